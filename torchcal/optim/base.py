@@ -1,0 +1,71 @@
+"""The solver interface and the registry that finds solvers by name."""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from .problem import Problem
+from .result import Result
+
+__all__ = ["Solver", "register", "get_solver", "available", "minimize"]
+
+_REGISTRY: dict[str, type["Solver"]] = {}
+
+
+class Solver:
+    """Base class of every solver. Options go to ``__init__``; :meth:`minimize` runs.
+
+    Subclasses set ``name`` and implement :meth:`_run`. ``seed`` seeds a private
+    ``torch.Generator`` so runs are reproducible and never touch global RNG state.
+    """
+
+    name = "solver"
+
+    def __init__(self, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None):
+        self.seed = seed
+        self.progress = progress
+        self.callback = callback
+
+    def generator(self, problem: Problem) -> torch.Generator:
+        g = torch.Generator(device=problem.device)
+        g.manual_seed(0 if self.seed is None else int(self.seed))
+        return g
+
+    def minimize(self, problem: Problem) -> Result:
+        import time
+
+        t0 = time.perf_counter()
+        res = self._run(problem)
+        res.wall_time_s = time.perf_counter() - t0
+        res.method = self.name
+        return res
+
+    def _run(self, problem: Problem) -> Result:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def register(cls: type[Solver]) -> type[Solver]:
+    """Class decorator: make a solver available by its ``name`` (and ``aliases``)."""
+    for key in (cls.name, *getattr(cls, "aliases", ())):
+        _REGISTRY[key.lower()] = cls
+    return cls
+
+
+def available() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def get_solver(method: str, **options) -> Solver:
+    try:
+        cls = _REGISTRY[method.lower()]
+    except KeyError:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(available())}") from None
+    return cls(**options)
+
+
+def minimize(problem: Problem, method: str = "lm", **options) -> Result:
+    """Minimise ``problem`` with the solver registered as ``method`` (e.g. ``"lm"``, ``"pso"``,
+    ``"ldpso-bt"``, ``"cpso"``, ``"ga"``, ``"ma"``, ``"mma"``)."""
+    return get_solver(method, **options).minimize(problem)

@@ -1,0 +1,113 @@
+"""Parameter sets: a named, unit-carrying vector with free/fixed flags and bounds."""
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["ParamSet"]
+
+
+@dataclass
+class ParamSet:
+    """Values of a robot's error parameters, with names, units, free flags and bounds.
+
+    Every entry is an *error* whose nominal value is 0 (the base frame is absolute: 0 means the
+    instrument frame coincides with the robot base). ``values``, ``lower`` and ``upper`` are
+    ``(K,)`` tensors; ``free`` is a ``(K,)`` bool tensor.
+    """
+
+    names: list[str]
+    units: list[str]
+    values: Tensor
+    free: Tensor
+    lower: Tensor
+    upper: Tensor
+
+    def __post_init__(self):
+        k = len(self.names)
+        for f in ("values", "free", "lower", "upper"):
+            t = getattr(self, f)
+            if t.shape != (k,):
+                raise ValueError(f"ParamSet.{f} has shape {tuple(t.shape)}, expected ({k},)")
+        if len(set(self.names)) != k:
+            dup = sorted({n for n in self.names if self.names.count(n) > 1})
+            raise ValueError(f"duplicate parameter names: {dup[:5]}")
+        self._index = {n: i for i, n in enumerate(self.names)}
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def clone(self) -> "ParamSet":
+        return ParamSet(list(self.names), list(self.units), self.values.clone(), self.free.clone(),
+                        self.lower.clone(), self.upper.clone())
+
+    def index(self, name: str) -> int:
+        try:
+            return self._index[name]
+        except KeyError:
+            close = [n for n in self.names if name.split(".")[0] in n][:6]
+            raise KeyError(f"no parameter named {name!r}" + (f"; similar: {', '.join(close)}" if close else "")) from None
+
+    def select(self, patterns) -> list[int]:
+        """Indices of parameters whose names match any glob pattern (``"joint_2.*"``, ``"*.dz"``)."""
+        if isinstance(patterns, str):
+            patterns = [patterns]
+        idx = [i for i, n in enumerate(self.names) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+        if not idx:
+            raise KeyError(f"no parameter matches {list(patterns)}; names look like {self.names[:4]}")
+        return idx
+
+    def fix(self, *patterns: str) -> "ParamSet":
+        """Mark matching parameters fixed (in place); returns self for chaining."""
+        self.free[self.select(list(patterns))] = False
+        return self
+
+    def unfix(self, *patterns: str) -> "ParamSet":
+        self.free[self.select(list(patterns))] = True
+        return self
+
+    def only(self, *patterns: str) -> "ParamSet":
+        """Free exactly the matching parameters."""
+        self.free[:] = False
+        return self.unfix(*patterns)
+
+    @property
+    def free_names(self) -> list[str]:
+        return [n for n, f in zip(self.names, self.free.tolist()) if f]
+
+    @property
+    def free_index(self) -> Tensor:
+        return torch.nonzero(self.free).flatten()
+
+    def expand(self, x_free: Tensor) -> Tensor:
+        """``(P, n_free)`` or ``(n_free,)`` free values -> full ``(P, K)`` / ``(K,)`` vectors
+        (fixed entries keep their current values)."""
+        idx = self.free_index
+        if x_free.shape[-1] != idx.numel():
+            raise ValueError(f"expected {idx.numel()} free values, got {x_free.shape[-1]}")
+        full = self.values.to(x_free.dtype).expand(*x_free.shape[:-1], len(self)).clone()
+        full[..., idx] = x_free
+        return full
+
+    def __getitem__(self, name: str) -> float:
+        return float(self.values[self.index(name)])
+
+    def __setitem__(self, name: str, value: float) -> None:
+        self.values[self.index(name)] = value
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, self.values.tolist()))
+
+    def table(self, only_free: bool = False, scale: bool = True) -> str:
+        """A readable table; with ``scale`` lengths are shown in mm and angles in mrad."""
+        lines = [f"{'parameter':<32} {'value':>14}  unit  free"]
+        for n, u, v, f in zip(self.names, self.units, self.values.tolist(), self.free.tolist()):
+            if only_free and not f:
+                continue
+            if scale and u in ("m", "rad"):
+                v, u = v * 1e3, "mm" if u == "m" else "mrad"
+            lines.append(f"{n:<32} {v:>14.6f}  {u:<5} {'yes' if f else 'no'}")
+        return "\n".join(lines)

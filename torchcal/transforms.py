@@ -1,0 +1,156 @@
+"""Batched rigid-body transforms on torch tensors.
+
+Rotations are ``(..., 3, 3)`` matrices, translations ``(..., 3)`` in metres, angles in radians.
+The roll-pitch-yaw convention is URDF's: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
+           "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
+
+
+def skew(v: Tensor) -> Tensor:
+    """``(..., 3) -> (..., 3, 3)`` cross-product matrix, ``skew(a) @ b == cross(a, b)``."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([torch.stack([z, -w, y], -1),
+                        torch.stack([w, z, -x], -1),
+                        torch.stack([-y, x, z], -1)], -2)
+
+
+def _rot(angle: Tensor, axis: int) -> Tensor:
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, z = torch.ones_like(c), torch.zeros_like(c)
+    if axis == 0:
+        rows = [[o, z, z], [z, c, -s], [z, s, c]]
+    elif axis == 1:
+        rows = [[c, z, s], [z, o, z], [-s, z, c]]
+    else:
+        rows = [[c, -s, z], [s, c, z], [z, z, o]]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+def rot_x(angle: Tensor) -> Tensor:
+    """``(...) rad -> (..., 3, 3)`` rotation about x."""
+    return _rot(angle, 0)
+
+
+def rot_y(angle: Tensor) -> Tensor:
+    """``(...) rad -> (..., 3, 3)`` rotation about y."""
+    return _rot(angle, 1)
+
+
+def rot_z(angle: Tensor) -> Tensor:
+    """``(...) rad -> (..., 3, 3)`` rotation about z."""
+    return _rot(angle, 2)
+
+
+def rpy_to_matrix(rpy: Tensor) -> Tensor:
+    """``(..., 3)`` roll, pitch, yaw (rad) ``-> (..., 3, 3)``, ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    r, p, y = rpy.unbind(-1)
+    cr, sr, cp, sp, cy, sy = torch.cos(r), torch.sin(r), torch.cos(p), torch.sin(p), torch.cos(y), torch.sin(y)
+    return torch.stack([
+        torch.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+        torch.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+        torch.stack([-sp, cp * sr, cp * cr], -1)], -2)
+
+
+def matrix_to_rpy(R: Tensor) -> Tensor:
+    """``(..., 3, 3) -> (..., 3)`` roll, pitch, yaw (rad), inverse of :func:`rpy_to_matrix`.
+
+    Away from pitch = ±90° the round trip is exact to machine precision; at the singularity
+    roll is set to 0 and yaw absorbs the rest.
+    """
+    cp = torch.sqrt(R[..., 0, 0] ** 2 + R[..., 1, 0] ** 2)
+    pitch = torch.atan2(-R[..., 2, 0], cp)
+    singular = cp < 1e-9
+    roll = torch.where(singular, torch.zeros_like(cp), torch.atan2(R[..., 2, 1], R[..., 2, 2]))
+    yaw = torch.where(singular, torch.atan2(-R[..., 0, 1], R[..., 1, 1]), torch.atan2(R[..., 1, 0], R[..., 0, 0]))
+    return torch.stack([roll, pitch, yaw], -1)
+
+
+def _sinc_terms(theta2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """sin(t)/t, (1-cos t)/t^2, (t - sin t)/t^3 from t^2, with Taylor series near 0."""
+    small = theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(t)) / t2)
+    c = torch.where(small, 1.0 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def so3_exp(r: Tensor) -> Tensor:
+    """``(..., 3)`` rotation vector (rad) ``-> (..., 3, 3)`` rotation matrix (Rodrigues)."""
+    a, b, _ = _sinc_terms((r * r).sum(-1))
+    K = skew(r)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def so3_left_jacobian(r: Tensor) -> Tensor:
+    """``(..., 3) -> (..., 3, 3)``: ``d exp(r) = skew(J_l(r) dr) exp(r)``."""
+    _, b, c = _sinc_terms((r * r).sum(-1))
+    K = skew(r)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
+    return eye + b[..., None, None] * K + c[..., None, None] * (K @ K)
+
+
+def so3_log(R: Tensor) -> Tensor:
+    """``(..., 3, 3) -> (..., 3)`` rotation vector with angle in [0, pi]."""
+    cos = ((R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1) / 2).clamp(-1.0, 1.0)
+    theta = torch.acos(cos)
+    w = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    sin = torch.sin(theta)
+    small = theta < 1e-6
+    scale = torch.where(small, 0.5 + theta ** 2 / 12, theta / (2 * torch.where(small, torch.ones_like(sin), sin)))
+    out = scale[..., None] * w
+    # Near pi the antisymmetric part vanishes: read the axis from the symmetric part instead.
+    near_pi = theta > torch.pi - 1e-4
+    if bool(near_pi.any()):
+        B = (R + R.transpose(-1, -2)) / 2 - cos[..., None, None] * torch.eye(3, dtype=R.dtype, device=R.device)
+        diag = torch.diagonal(B, dim1=-2, dim2=-1).clamp(min=0)
+        k = diag.argmax(-1, keepdim=True)
+        col = torch.gather(B, -1, k[..., None].expand(*B.shape[:-1], 1))[..., 0]
+        axis = col / col.norm(dim=-1, keepdim=True).clamp(min=1e-300)
+        axis = torch.where((axis * w).sum(-1, keepdim=True) < 0, -axis, axis)
+        out = torch.where(near_pi[..., None], axis * theta[..., None], out)
+    return out
+
+
+def homogeneous(R: Tensor, t: Tensor) -> Tensor:
+    """``(..., 3, 3), (..., 3) -> (..., 4, 4)``."""
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Rigid transform that best maps ``src`` onto ``dst`` (least squares, Kabsch/Horn).
+
+    Args:
+        src, dst: ``(n, 3)`` corresponding points (m), n >= 3 and not collinear.
+        weights: optional ``(n,)`` non-negative weights.
+    Returns:
+        ``R (3, 3)``, ``t (3,)`` with ``dst ≈ src @ R.T + t``.
+    """
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[-1] != 3:
+        raise ValueError(f"kabsch needs two (n, 3) point sets, got {tuple(src.shape)} and {tuple(dst.shape)}")
+    if src.shape[0] < 3:
+        raise ValueError(f"kabsch needs at least 3 points, got {src.shape[0]}")
+    w = torch.ones(src.shape[0], dtype=src.dtype, device=src.device) if weights is None else weights
+    w = w / w.sum()
+    cs, cd = (w[:, None] * src).sum(0), (w[:, None] * dst).sum(0)
+    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    U, S, Vh = torch.linalg.svd(H)
+    if float(S[1]) < 1e-12 * max(float(S[0]), 1e-300):
+        raise ValueError("kabsch: the points are (nearly) collinear, so the rotation about their line is "
+                         "undetermined; use poses that spread the markers in 3-D")
+    d = torch.sign(torch.det(Vh.T @ U.T))
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    R = Vh.T @ D @ U.T
+    return R, cd - R @ cs
