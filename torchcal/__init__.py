@@ -1,7 +1,16 @@
-"""torchcal: robot calibration on torch tensors."""
+"""torchcal: robot calibration on torch tensors.
+
+Robot model -> measurement model -> problem -> solver -> result/report:
+:class:`Robot` (batched, differentiable kinematics with error parameters),
+:mod:`torchcal.measurement` (residual blocks), :class:`torchcal.problem.CalibrationProblem`,
+:mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
+"""
+from .calibrate import CalibrationResult, calibrate
+from .io import Measurements, load_measurements
 from .params import ParamSet
 from .robot import Robot
 from .tree import Marker
 
 __version__ = "0.1.0"
-__all__ = ["Robot", "ParamSet", "Marker", "__version__"]
+__all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
+           "CalibrationResult", "__version__"]

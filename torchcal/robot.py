@@ -49,6 +49,48 @@ def _align_z(axis: Tensor) -> Tensor:
     return so3_exp(v / v.norm() * torch.atan2(v.norm(), torch.tensor(c, dtype=axis.dtype)))
 
 
+def _origin_attrs(T: np.ndarray) -> dict[str, str]:
+    rpy = matrix_to_rpy(torch.as_tensor(T[:3, :3])).numpy() + 0.0  # + 0.0 turns -0.0 into 0.0
+    return {"xyz": " ".join(repr(float(v) + 0.0) for v in T[:3, 3]), "rpy": " ".join(repr(float(v)) for v in rpy)}
+
+
+def _edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, root: str) -> str:
+    """The original URDF text with new joint origins and added marker/base links. Editing the
+    XML (rather than re-writing a parsed model) keeps everything kinematics does not read:
+    mimic tags, transmissions, gazebo blocks, comments."""
+    import xml.etree.ElementTree as ET
+
+    tree = ET.ElementTree(ET.fromstring(text))
+    rob = tree.getroot()
+    by_name = {j.get("name"): j for j in rob.findall("joint")}
+    for jt in joints:
+        el = by_name[jt.name]
+        o = el.find("origin")
+        if o is None:
+            o = ET.SubElement(el, "origin")
+        o.attrib.update(_origin_attrs(jt.origin))
+    links = {l.get("name") for l in rob.findall("link")}
+    for mk, T in mks:
+        ln = f"marker_{mk.name}"
+        if ln in links:
+            raise ValueError(f"cannot export: link {ln!r} already exists in the URDF")
+        ET.SubElement(rob, "link", name=ln)
+        j = ET.SubElement(rob, "joint", name=f"{ln}_joint", type="fixed")
+        ET.SubElement(j, "parent", link=mk.link)
+        ET.SubElement(j, "child", link=ln)
+        ET.SubElement(j, "origin", _origin_attrs(T))
+    if base is not None:
+        if base_link in links:
+            raise ValueError(f"cannot export: link {base_link!r} already exists; pass base_link='…'")
+        ET.SubElement(rob, "link", name=base_link)
+        j = ET.SubElement(rob, "joint", name=f"{base_link}_to_{root}", type="fixed")
+        ET.SubElement(j, "parent", link=base_link)
+        ET.SubElement(j, "child", link=root)
+        ET.SubElement(j, "origin", _origin_attrs(base))
+    ET.indent(tree, space="  ")
+    return '<?xml version="1.0"?>\n' + ET.tostring(rob, encoding="unicode") + "\n"
+
+
 class Robot:
     """A kinematic tree with measured frames (markers) and geometric error parameters.
 
@@ -63,7 +105,7 @@ class Robot:
     """
 
     def __init__(self, name: str, joints: list[JointSpec], markers: list, *, root: str | None = None,
-                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu", source=None,
+                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu",
                  urdf_text: str | None = None):
         self.name = name
         markers = [parse_marker(m) for m in markers]
@@ -77,7 +119,6 @@ class Robot:
         if root is not None and root != self.root:
             raise ValueError(f"expected root link {root!r}, found {self.root!r}")
         self.markers = markers
-        self._source = source  # yourdfpy object, kept to export a full URDF
         self._urdf_text = urdf_text
         self.dtype, self.device = dtype, torch.device(device)
         self._build()
@@ -98,13 +139,13 @@ class Robot:
 
         is_xml = isinstance(path, str) and path.lstrip().startswith("<")
         text = path if is_xml else (Path(path).read_text() if Path(path).is_file() else None)
-        name, joints, src = load_joints(path)
+        name, joints, _ = load_joints(path)
         if markers is None:
             parents = {j.parent for j in joints}
             markers = [j.child for j in joints if j.child not in parents]
         elif isinstance(markers, (str, Marker)):
             markers = [markers]
-        return cls(name, joints, list(markers), dtype=dtype, device=device, source=src, urdf_text=text)
+        return cls(name, joints, list(markers), dtype=dtype, device=device, urdf_text=text)
 
     @classmethod
     def from_dh(cls, table, convention: str = "classic", markers=None, *, name: str = "dh_robot",
@@ -813,33 +854,13 @@ class Robot:
         Joint origins carry the identified errors and zero offsets. Each marker becomes a fixed
         link ``marker_<name>`` on its link; a non-zero base frame becomes a new root link
         ``base_link`` (the instrument frame). Returns the XML text. When the robot came from a
-        URDF, everything else in it (inertials, meshes, limits) is kept as it was.
+        URDF, everything else in it (inertials, meshes, limits, mimic tags, transmissions) is
+        kept as it was; only joint origins change.
         """
         joints = self.calibrated_joints(params)
         base, mks = self._extra_frames(params)
-        if self._source is not None:
-            import yourdfpy
-
-            u = copy.deepcopy(self._source)
-            jm = {j.name: j for j in u.robot.joints}
-            for jt in joints:
-                jm[jt.name].origin = jt.origin
-                if jt.mimic is not None:
-                    pass  # offsets were folded into the mimic joint's origin
-            existing = {l.name for l in u.robot.links}
-            for mk, T in mks:
-                ln = f"marker_{mk.name}"
-                if ln in existing:
-                    raise ValueError(f"cannot export: link {ln!r} already exists in the URDF")
-                u.robot.links.append(yourdfpy.Link(name=ln))
-                u.robot.joints.append(yourdfpy.Joint(name=f"{ln}_joint", type="fixed", parent=mk.link, child=ln,
-                                                     origin=T))
-            if base is not None:
-                u.robot.links.append(yourdfpy.Link(name=base_link))
-                u.robot.joints.append(yourdfpy.Joint(name=f"{base_link}_to_{self.root}", type="fixed",
-                                                     parent=base_link, child=self.root, origin=base))
-            xml = u.write_xml_string()
-            xml = xml.decode() if isinstance(xml, bytes) else xml
+        if self._urdf_text is not None:
+            xml = _edit_urdf(self._urdf_text, joints, mks, base, base_link, self.root)
             Path(path).write_text(xml)
             return xml
         extra = [JointSpec(name=f"marker_{mk.name}_joint", type="fixed", parent=mk.link, child=f"marker_{mk.name}",

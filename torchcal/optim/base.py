@@ -8,9 +8,19 @@ import torch
 from .problem import Problem
 from .result import Result
 
-__all__ = ["Solver", "register", "get_solver", "available", "minimize"]
+__all__ = ["Solver", "register", "get_solver", "available", "minimize", "progress_bar"]
 
 _REGISTRY: dict[str, type["Solver"]] = {}
+
+
+def progress_bar(enabled: bool, total: int, desc: str):
+    """A tqdm bar of ``total`` iterations when ``enabled``, else ``None`` (imported lazily: most
+    runs inside a calibration loop want no bar)."""
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, leave=False)
 
 
 class Solver:

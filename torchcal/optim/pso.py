@@ -18,22 +18,11 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .base import Solver, register
+from .base import Solver, progress_bar, register
 from .problem import Problem
 from .result import Result
 
 __all__ = ["PSO", "LDPSO_BT", "ldpso_pop_sizes", "SwarmState"]
-
-
-def _progress_bar(enabled: bool, total: int, desc: str):
-    """A tqdm bar when ``enabled`` (imported lazily so tqdm stays an optional dependency)."""
-    if not enabled:
-        return None
-    try:
-        from tqdm.auto import tqdm
-    except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError("progress=True needs the 'tqdm' package (pip install tqdm)") from e
-    return tqdm(total=total, desc=desc)
 
 
 @dataclass
@@ -196,7 +185,7 @@ class PSO(Solver):
         # .item() would force a host sync every iteration.
         hist = torch.empty(self.max_iter + 1, dtype=problem.dtype, device=problem.device)
         hist[0] = s.gbest_f
-        bar = _progress_bar(self.progress, self.max_iter, self.name)
+        bar = progress_bar(self.progress, self.max_iter, self.name)
         if self.callback is not None:
             self.callback(0, float(s.gbest_f))
 
