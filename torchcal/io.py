@@ -216,7 +216,7 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
                                      "give unit quaternions (qw, qx, qy, qz)")
                 Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
     dt = dtype or robot.dtype
-    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns").to(robot.device)
+    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", _stacklevel=3).to(robot.device)
     cov = {c: torch.as_tensor(data[:, idx[c]], dtype=dt, device=robot.device) for c in covariates}
     return Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
                         None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path))

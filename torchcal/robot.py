@@ -60,7 +60,8 @@ def _edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, ro
     mimic tags, transmissions, gazebo blocks, comments."""
     import xml.etree.ElementTree as ET
 
-    tree = ET.ElementTree(ET.fromstring(text))
+    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
+    tree = ET.ElementTree(ET.fromstring(text, parser=parser))
     rob = tree.getroot()
     by_name = {j.get("name"): j for j in rob.findall("joint")}
     for jt in joints:
@@ -362,17 +363,18 @@ class Robot:
                         torch.tensor(self._default_free, device=self.device), -big, big)
 
     # ------------------------------------------------------------------ validation
-    def check_q(self, q, what: str = "q") -> Tensor:
+    def check_q(self, q, what: str = "q", *, _stacklevel: int = 2) -> Tensor:
         """Validate joint values and return them as a ``(N, dof)`` tensor on this robot's device.
 
         Raises on wrong shape and NaN/inf; warns when revolute values look like degrees or
         prismatic values look like millimetres."""
         q = torch.as_tensor(q, dtype=self.dtype, device=self.device)
+        shape = tuple(q.shape)
         if q.ndim == 1:
             q = q[None]
         if q.ndim != 2 or q.shape[-1] != self.dof:
             raise ValueError(f"{what} must have shape (N, {self.dof}) with columns {self.joint_names}, "
-                             f"got {tuple(q.shape)}")
+                             f"got {shape}")
         amax = q.abs().amax(0).tolist() if q.shape[0] else [0.0] * self.dof
         bad = [n for n, v in zip(self.joint_names, amax) if not np.isfinite(v)]
         if bad:
@@ -382,10 +384,10 @@ class Robot:
             span = max(abs(l), abs(h)) if np.isfinite(l) and np.isfinite(h) else None
             if u == "rad" and v > max(2.2 * np.pi, 1.5 * span if span else 0.0):
                 warnings.warn(f"joint {n!r} reaches |q| = {v:.1f}, which looks like degrees; torchcal expects "
-                              "radians (use numpy.deg2rad)", stacklevel=3)
+                              "radians (use numpy.deg2rad)", stacklevel=_stacklevel)
             elif u == "m" and v > max(5.0, 3 * span if span else 0.0):
                 warnings.warn(f"prismatic joint {n!r} reaches |q| = {v:.1f}, which looks like millimetres; "
-                              "torchcal expects metres (divide by 1000)", stacklevel=3)
+                              "torchcal expects metres (divide by 1000)", stacklevel=_stacklevel)
         return q
 
     def _check_params(self, params) -> Tensor | None:
@@ -471,10 +473,10 @@ class Robot:
 
     def _joint_values(self, q: Tensor, slots: Tensor | None) -> Tensor:
         """(N, dof) commands -> (P, N, J) joint values after offsets and mimic coupling."""
-        if slots is not None:
-            q = q[None] + slots[:, None, self._slices["offset"]]
-        else:
+        if q.ndim == 2:
             q = q[None]
+        if slots is not None:
+            q = q + slots[:, None, self._slices["offset"]]
         qj = q @ self._Mmap.T
         return qj + self._moff if self._has_moff else qj
 
@@ -589,16 +591,24 @@ class Robot:
             R, t = self._fk_rt(q, slots)
         return self._unbatch(R, pop, q1, 3), self._unbatch(t, pop, q1, 2)
 
-    def positions(self, q, params=None, *, check: bool = True) -> Tensor:
+    def positions(self, q, params=None, *, check: bool = True, base: bool = True) -> Tensor:
         """Marker positions only (m): ``(N, M, 3)``, or ``(P, N, M, 3)`` for a population.
 
         Cheaper than :meth:`fk` for position residuals: each marker point is carried from its
         link back to the base (``v <- O_j Rz(q_j) v``), so every step moves vectors, not frames.
+
+        Args:
+            q: ``(N, dof)``, or ``(P, N, dof)`` paired with a ``(P, K)`` population (joint values
+                that differ per parameter vector, as effect models produce them).
+            base: apply the base frame (instrument frame); ``False`` gives robot-base positions.
         """
-        q, slots, pop, q1 = self._prepare(q, params, check)
+        if isinstance(q, Tensor) and q.ndim == 3:
+            q, slots, pop, q1 = self._prepare_paired(q, params, check)
+        else:
+            q, slots, pop, q1 = self._prepare(q, params, check)
         O_R, O_t = self._origins(slots)
         qj = self._joint_values(q, slots)  # (P, N, J)
-        P, N = max(O_R.shape[0], qj.shape[0]), q.shape[0]
+        P, N = max(O_R.shape[0], qj.shape[0]), q.shape[-2]
         c, s = torch.cos(qj), torch.sin(qj)
         _, mt = self._markers(slots)
         out = []
@@ -617,9 +627,9 @@ class Robot:
                 f = self.parent_frame[j]
             out.append(v)
         t = torch.stack(out, 1).transpose(-1, -2).transpose(1, 2)  # (P, N, M, 3)
-        base = self._base(slots)
-        if base is not None:
-            Rb, tb = base
+        bframe = self._base(slots) if base else None
+        if bframe is not None:
+            Rb, tb = bframe
             t = tb[:, None, None] + (Rb[:, None, None] @ t[..., None])[..., 0]
         return self._unbatch(t, pop, q1, 2)
 
@@ -630,13 +640,28 @@ class Robot:
     def _prepare(self, q, params, check):
         q1 = q.ndim == 1 if isinstance(q, Tensor) else np.ndim(q) == 1
         if check or not isinstance(q, Tensor):
-            q = self.check_q(q)
+            q = self.check_q(q, _stacklevel=4)
         elif q1:
             q = q[None]
         p = self._check_params(params)
         pop = p is not None and p.ndim == 2
         slots = None if p is None else self._slots(p if pop else p[None])
         return q, slots, pop, q1
+
+    def _prepare_paired(self, q: Tensor, params, check):
+        """``q (P, N, dof)`` with ``params (P, K)`` (or ``(K,)``, broadcast)."""
+        p = self._check_params(params)
+        if p is None or q.shape[-1] != self.dof:
+            raise ValueError(f"q must have shape (N, {self.dof}) with columns {self.joint_names}, or (P, N, {self.dof}) "
+                             f"paired with a (P, K) parameter population; got {tuple(q.shape)}"
+                             + (" without params" if p is None else ""))
+        if check:
+            self.check_q(q.reshape(-1, q.shape[-1]), _stacklevel=5)
+        pop = p.ndim == 2
+        pp = p if pop else p[None]
+        if pp.shape[0] not in (1, q.shape[0]):
+            raise ValueError(f"q has {q.shape[0]} parameter rows but params has {pp.shape[0]}")
+        return q, self._slots(pp), True, False
 
     @staticmethod
     def _unbatch(x: Tensor, pop: bool, q1: bool, tail: int) -> Tensor:

@@ -169,7 +169,8 @@ def select_subtree(joints: list[JointSpec], markers: list[Marker]) -> tuple[str,
     for mk in markers:
         if mk.link not in links:
             close = [l for l in sorted(links) if mk.link.lower() in l.lower() or l.lower() in mk.link.lower()][:5]
-            hint = f"; did you mean {', '.join(close)}?" if close else "; list the links with Robot.links_of(path)"
+            hint = (f"; did you mean {', '.join(close)}?" if close
+                    else "; list the links with torchcal.urdf.urdf_links(path)")
             raise ValueError(f"marker {mk.name!r} is on link {mk.link!r}, which is not in the URDF{hint}")
         climb(mk.link)
     order, frontier = [], [root]

@@ -11,11 +11,28 @@ from .tree import JointSpec
 __all__ = ["load_joints", "urdf_links", "write_urdf"]
 
 
+def _strict_parse(text: str, where: str) -> None:
+    """yourdfpy parses in lxml's recover mode, which silently drops whatever follows an XML
+    error (a truncated file loses its last joints): parse strictly first to say where it broke."""
+    from lxml import etree
+
+    try:
+        etree.fromstring(text.encode())
+    except etree.XMLSyntaxError as e:
+        raise ValueError(f"could not parse URDF {where}: {e}. It must be well-formed XML (every tag closed, quotes "
+                         "matched) and load it again") from None
+
+
 def _load(path_or_xml):
     import yourdfpy
 
     kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
               load_collision_meshes=False)
+    is_xml = isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<")
+    if is_xml:
+        _strict_parse(path_or_xml, "string")
+    elif Path(path_or_xml).is_file():
+        _strict_parse(Path(path_or_xml).read_text(), str(path_or_xml))
     try:
         if isinstance(path_or_xml, (str, os.PathLike)) and not str(path_or_xml).lstrip().startswith("<"):
             p = Path(path_or_xml)
@@ -24,7 +41,7 @@ def _load(path_or_xml):
             return yourdfpy.URDF.load(str(p), **kw)
         import io
 
-        return yourdfpy.URDF.load(io.StringIO(str(path_or_xml)), **kw)
+        return yourdfpy.URDF.load(io.BytesIO(str(path_or_xml).encode()), **kw)
     except FileNotFoundError:
         raise
     except Exception as e:  # yourdfpy/lxml raise many types; say what the user can fix

@@ -1,0 +1,190 @@
+"""Shared fixtures: a KR 5 arc DH robot, a Craig-style modified-DH arm, a small tree URDF with a
+mimic joint, a prismatic joint, a fixed joint and non-z axes, and the TIAGo URDF (shared data)."""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcal import Robot
+from torchcal.robot_data import get_robot
+
+# The tests run many small ops: one intra-op thread is faster, and on a shared 2-core machine a
+# second spinning thread made the suite 5-7x slower. Override with TORCHCAL_TEST_THREADS.
+torch.set_num_threads(int(os.environ.get("TORCHCAL_TEST_THREADS", "1")))
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+TIAGO_URDF = SHARED / "data" / "tiago_mocap" / "tiago_48_hey5.urdf"
+
+#: markers of the tree robot: two link frames, the mimic finger and an unknown point on link4
+TREE_MARKERS = ["tool", "finger_a", "finger_b", "m1@link4=0.01,0.02,0.03"]
+
+# base -> link1 (yaw, z) -> link2 (pitch, y) -> link3 (slide, prismatic along x) -> link4 (roll,
+# axis 0.6 0.8 0) -> tool (fixed); link2 -> finger_a (axis -z) and link2 -> finger_b (mimic of
+# finger_a_joint with multiplier -1.5 and offset 0.1, axis x).
+TREE_URDF = """<?xml version="1.0"?>
+<robot name="tree_mimic">
+  <link name="base"/>
+  <link name="link1"/>
+  <link name="link2"/>
+  <link name="link3"/>
+  <link name="link4"/>
+  <link name="tool"/>
+  <link name="finger_a"/>
+  <link name="finger_b"/>
+  <joint name="yaw_joint" type="revolute">
+    <parent link="base"/><child link="link1"/>
+    <origin xyz="0.05 -0.02 0.3" rpy="0.1 -0.2 0.3"/>
+    <axis xyz="0 0 1"/>
+    <limit lower="-2.5" upper="2.5" effort="10" velocity="1"/>
+  </joint>
+  <joint name="pitch_joint" type="revolute">
+    <parent link="link1"/><child link="link2"/>
+    <origin xyz="0.0 0.1 0.2" rpy="0.0 0.4 0.0"/>
+    <axis xyz="0 1 0"/>
+    <limit lower="-2" upper="2" effort="10" velocity="1"/>
+  </joint>
+  <joint name="slide_joint" type="prismatic">
+    <parent link="link2"/><child link="link3"/>
+    <origin xyz="0.3 0.0 0.05" rpy="-0.3 0.0 0.2"/>
+    <axis xyz="1 0 0"/>
+    <limit lower="-0.2" upper="0.4" effort="10" velocity="1"/>
+  </joint>
+  <joint name="roll_joint" type="continuous">
+    <parent link="link3"/><child link="link4"/>
+    <origin xyz="0.1 0.05 -0.02" rpy="0.2 0.1 -0.1"/>
+    <axis xyz="0.6 0.8 0"/>
+  </joint>
+  <joint name="tool_joint" type="fixed">
+    <parent link="link4"/><child link="tool"/>
+    <origin xyz="0.02 0.03 0.15" rpy="0.5 -0.4 1.0"/>
+  </joint>
+  <joint name="finger_a_joint" type="revolute">
+    <parent link="link2"/><child link="finger_a"/>
+    <origin xyz="0.1 -0.05 0.0" rpy="0 0 0.7"/>
+    <axis xyz="0 0 -1"/>
+    <limit lower="-1" upper="1" effort="10" velocity="1"/>
+  </joint>
+  <joint name="finger_b_joint" type="revolute">
+    <parent link="link2"/><child link="finger_b"/>
+    <origin xyz="0.1 0.05 0.01" rpy="0.3 0 -0.7"/>
+    <axis xyz="1 0 0"/>
+    <limit lower="-2" upper="2" effort="10" velocity="1"/>
+    <mimic joint="finger_a_joint" multiplier="-1.5" offset="0.1"/>
+  </joint>
+</robot>
+"""
+
+
+def kr5_table() -> list[tuple[float, float, float, float]]:
+    """KR 5 arc classic DH rows (a, d, alpha, theta) from ``robot_data``."""
+    return [(j["a"], j["d"], j["alpha"], j["theta"]) for j in get_robot("kuka_kr5_arc")["joints"]]
+
+
+#: Craig-style modified DH 3R arm plus a prismatic row (rows: alpha_{i-1}, a_{i-1} as a, alpha).
+MODIFIED_TABLE = [
+    dict(a=0.0, d=0.35, alpha=0.0, theta=0.0),
+    dict(a=0.05, d=0.02, alpha=-math.pi / 2, theta=-math.pi / 2),
+    dict(a=0.45, d=-0.03, alpha=0.0, theta=0.1),
+    dict(a=0.04, d=0.4, alpha=math.pi / 2, theta=0.2),
+]
+
+#: SCARA-like classic DH table R-R-P-R (the third row prismatic).
+SCARA_TABLE = [
+    dict(a=0.325, d=0.387, alpha=0.0, theta=0.0),
+    dict(a=0.275, d=0.0, alpha=math.pi, theta=0.0),
+    dict(a=0.0, d=0.1, alpha=0.0, theta=0.3, type="prismatic", lower=0.0, upper=0.21),
+    dict(a=0.0, d=0.05, alpha=0.0, theta=0.0),
+]
+
+
+#: modified DH with a prismatic row (RPR).
+MODIFIED_PRISMATIC_TABLE = [
+    dict(a=0.0, d=0.2, alpha=0.0, theta=0.0),
+    dict(a=0.1, d=0.3, alpha=math.pi / 2, theta=0.4, type="prismatic", lower=0.0, upper=0.5),
+    dict(a=0.02, d=0.05, alpha=-math.pi / 2, theta=0.0),
+]
+
+
+@pytest.fixture(scope="session")
+def kr5() -> Robot:
+    return Robot.from_dh(kr5_table(), name="kr5_arc")
+
+
+@pytest.fixture(scope="session")
+def modified_arm() -> Robot:
+    return Robot.from_dh(MODIFIED_TABLE, convention="modified", name="craig_arm")
+
+
+@pytest.fixture(scope="session")
+def scara() -> Robot:
+    return Robot.from_dh(SCARA_TABLE, name="scara_like")
+
+
+@pytest.fixture(scope="session")
+def tree_urdf() -> str:
+    return TREE_URDF
+
+
+@pytest.fixture(scope="session")
+def tree_markers() -> list[str]:
+    return list(TREE_MARKERS)
+
+
+@pytest.fixture(scope="session")
+def tree_robot() -> Robot:
+    return Robot.from_urdf(TREE_URDF, markers=TREE_MARKERS)
+
+
+@pytest.fixture(scope="session")
+def tiago_path() -> Path:
+    if not TIAGO_URDF.is_file():
+        pytest.skip(f"TIAGo URDF not found: {TIAGO_URDF}; shared data is needed for this test")
+    return TIAGO_URDF
+
+
+@pytest.fixture(scope="session")
+def dh_tables() -> dict:
+    """name -> (rows as dicts, convention) for the DH robots above."""
+    kr5 = [dict(a=a, d=d, alpha=al, theta=th) for a, d, al, th in kr5_table()]
+    return {"kr5": (kr5, "classic"), "scara": (SCARA_TABLE, "classic"),
+            "modified_arm": (MODIFIED_TABLE, "modified"),
+            "modified_prismatic": (MODIFIED_PRISMATIC_TABLE, "modified")}
+
+
+@pytest.fixture(scope="session")
+def make_params():
+    """``make_params(robot, seed)``: random non-zero errors (see :func:`random_params`)."""
+    return random_params
+
+
+@pytest.fixture(scope="session")
+def make_q():
+    """``make_q(robot, n, seed)``: configurations inside the limits (see :func:`random_q`)."""
+    return random_q
+
+
+def random_params(robot: Robot, seed: int, scale: float = 0.05, base_rot: float = 2.5,
+                  base_trans: float = 1.5) -> torch.Tensor:
+    """Random non-zero errors: ``scale`` (m / rad) on every entry, a base rotation vector of norm
+    ``base_rot`` rad and a base translation of about ``base_trans`` m."""
+    g = torch.Generator().manual_seed(seed)
+    p = scale * (2 * torch.rand(robot.n_params, generator=g, dtype=torch.float64) - 1)
+    ax = torch.randn(3, generator=g, dtype=torch.float64)
+    p[3:6] = base_rot * ax / ax.norm()
+    p[0:3] = base_trans * (2 * torch.rand(3, generator=g, dtype=torch.float64) - 1)
+    return p.to(robot.dtype)
+
+
+def random_q(robot: Robot, n: int, seed: int) -> torch.Tensor:
+    """``(n, dof)`` configurations inside the limits (±π where a joint has none)."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = (x.clone() for x in robot.joint_limits)
+    lo = torch.where(torch.isfinite(lo), lo, torch.full_like(lo, -math.pi))
+    hi = torch.where(torch.isfinite(hi), hi, torch.full_like(hi, math.pi))
+    u = torch.rand(n, robot.dof, generator=g, dtype=torch.float64).to(robot.dtype)
+    return lo + (hi - lo) * u
