@@ -101,6 +101,13 @@ class ParamSet:
     def as_dict(self) -> dict[str, float]:
         return dict(zip(self.names, self.values.tolist()))
 
+    @staticmethod
+    def concat(*sets: "ParamSet") -> "ParamSet":
+        """One ParamSet holding the entries of several, in order."""
+        return ParamSet(sum((s.names for s in sets), []), sum((s.units for s in sets), []),
+                        torch.cat([s.values for s in sets]), torch.cat([s.free for s in sets]),
+                        torch.cat([s.lower for s in sets]), torch.cat([s.upper for s in sets]))
+
     def table(self, only_free: bool = False, scale: bool = True) -> str:
         """A readable table; with ``scale`` lengths are shown in mm and angles in mrad."""
         lines = [f"{'parameter':<32} {'value':>14}  unit  free"]

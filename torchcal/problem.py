@@ -56,3 +56,128 @@ class CalibrationProblem(Problem):
         full = self.full(x)
         J = torch.cat([b.jacobian(full) for b in self.blocks], 0)
         return J[:, self.params.free_index]
+
+
+class EffectCalibrationProblem(Problem):
+    """Geometry and effect models fitted together on position measurements.
+
+    ``params`` holds the robot's K geometric entries followed by every effect's parameters
+    (:func:`torchcal.effects.effect_params`); its free flags choose what moves. The model:
+    ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics, position maps
+    (thermal) applied, then the instrument frame.
+
+    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values,
+    times the per-row position scale of position effects); effect columns by central
+    differences, all perturbations evaluated in one population call.
+    """
+
+    def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6):
+        from .measurement import Loss, PositionResidual
+
+        idx = params.free_index
+        if idx.numel() == 0:
+            raise ValueError("no free parameter")
+        super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
+        self.robot, self.params, self.effects, self.data = robot, params, list(effects), data
+        self.K = robot.n_params
+        if params.names[: self.K] != robot.param_names:
+            raise ValueError("params must start with the robot's geometric parameters (robot.params())")
+        self.loss = loss or Loss("l2")
+        blk = PositionResidual(robot, data)
+        self._rows, self._cols, self._meas = blk._rows, blk._cols, blk._meas
+        self.n_obs = blk.n_obs
+        self.m = 3 * self.n_obs
+        self._prep = [e.prepare(data.q, data.covariates) for e in self.effects]
+        offs, o = [], self.K
+        for e in self.effects:
+            offs.append((o, o + e.n_params))
+            o += e.n_params
+        self._offs = offs
+        if o != len(params):
+            raise ValueError(f"params has {len(params)} entries, the robot and effects need {o}")
+        self.fd_step = fd_step
+        free = params.free.clone()
+        self._geo_free = torch.nonzero(free[: self.K]).flatten()
+        self._eff_free = torch.nonzero(free[self.K:]).flatten() + self.K
+
+    def full(self, X: Tensor) -> Tensor:
+        return self.params.expand(X)
+
+    def _positions(self, full: Tensor) -> tuple[Tensor, Tensor | None]:
+        """``(P, n_obs, 3)`` model positions (instrument frame) and the per-row scale of
+        position effects (or None)."""
+        geo = full[:, : self.K]
+        q = self.data.q[None].expand(full.shape[0], -1, -1)
+        dq = None
+        scale = None
+        for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+            if e.kind == "joint":
+                d = e.joint_delta(full[:, a:b], prep)
+                dq = d if dq is None else dq + d
+        if dq is not None:
+            q = q + dq
+        p = self.robot.positions(q, geo, check=False, base=False)  # (P, N, M, 3)
+        for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+            if e.kind == "position":
+                s = e.row_scale(full[:, a:b], prep)
+                scale = s if scale is None else scale * s
+                p = e.position_map(p, full[:, a:b], prep)
+        Rb, tb = self.robot.base_transform(geo)
+        p = tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
+        return p[:, self._rows, self._cols], scale
+
+    def errors(self, full: Tensor) -> Tensor:
+        """``(P, n_obs)`` Euclidean errors (m)."""
+        p, _ = self._positions(full)
+        return (p - self._meas).norm(dim=-1)
+
+    def residuals(self, X: Tensor) -> Tensor:
+        p, _ = self._positions(self.full(X))
+        r = p - self._meas
+        if self.loss.kind != "l2":
+            fac, _ = self.loss.scales((r * r).sum(-1))
+            r = r * fac[..., None]
+        return r.reshape(r.shape[0], -1)
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        full = self.full(x)[None]
+        cols = []
+        if self._geo_free.numel():
+            geo = full[0, : self.K]
+            q = self.data.q
+            for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+                if e.kind == "joint":
+                    q = q + e.joint_delta(full[:, a:b], prep)[0]
+            Jg = self.robot.param_jacobian(q, geo, kind="position", check=False)[self._rows, self._cols]  # (n, 3, K)
+            scale = None
+            for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+                if e.kind == "position":
+                    s = e.row_scale(full[:, a:b], prep)[0]
+                    scale = s if scale is None else scale * s
+            if scale is not None:  # p_w = R_b (s p) + t_b: every column but base.x/y/z scales by s
+                fac = scale[self._rows][:, None, None].expand_as(Jg).clone()
+                fac[..., :3] = 1.0
+                Jg = Jg * fac
+            cols.append((self._geo_free, Jg[..., self._geo_free].reshape(-1, self._geo_free.numel())))
+        if self._eff_free.numel():
+            k = self._eff_free.numel()
+            h = self.fd_step * torch.clamp(full[0, self._eff_free].abs(), min=1.0)
+            E = torch.zeros(2 * k, full.shape[1], dtype=full.dtype, device=full.device)
+            ar = torch.arange(k, device=full.device)
+            E[ar, self._eff_free] = h
+            E[ar + k, self._eff_free] = -h
+            p, _ = self._positions(full + E)
+            d = (p[:k] - p[k:]) / (2 * h)[:, None, None]  # (k, n, 3)
+            cols.append((self._eff_free, d.permute(1, 2, 0).reshape(-1, k)))
+        # assemble in the order of the free parameters
+        free_full = self.params.free_index
+        pos = {int(v): i for i, v in enumerate(free_full.tolist())}
+        J = torch.zeros(self.m, free_full.numel(), dtype=full.dtype, device=full.device)
+        for idx, block in cols:
+            J[:, [pos[int(v)] for v in idx.tolist()]] = block
+        if self.loss.kind != "l2":
+            p, _ = self._positions(full)
+            r = p[0] - self._meas
+            _, jfac = self.loss.scales((r * r).sum(-1))
+            J = J * jfac.repeat_interleave(3)[:, None]
+        return J

@@ -633,6 +633,14 @@ class Robot:
             t = tb[:, None, None] + (Rb[:, None, None] @ t[..., None])[..., 0]
         return self._unbatch(t, pop, q1, 2)
 
+    def base_transform(self, params) -> tuple[Tensor, Tensor]:
+        """Instrument frame <- robot base from ``params (K,)`` or ``(P, K)``: rotation
+        ``(…, 3, 3)`` and translation ``(…, 3)`` m."""
+        p = self._check_params(params)
+        pop = p.ndim == 2
+        R, t = self._base(self._slots(p if pop else p[None]))
+        return (R, t) if pop else (R[0], t[0])
+
     # Up to this many (pose x parameter vector) pairs, 4x4 products (fewer ops) beat the
     # column form (fewer flops); measured on the KR5 arc, float64, one thread.
     SMALL_BATCH = 16

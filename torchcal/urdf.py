@@ -133,3 +133,17 @@ def write_urdf(name: str, joints: list[JointSpec], path: str | os.PathLike | Non
     if path is not None:
         Path(path).write_text(xml)
     return xml
+
+
+def read_inertials(path_or_xml) -> dict[str, dict]:
+    """Link inertials of a URDF: link name -> dict(mass kg, com (3,) m in the link frame).
+    Links without an ``<inertial>`` or with zero mass are left out."""
+    u = _load(path_or_xml)
+    out = {}
+    for l in u.robot.links:
+        inert = l.inertial
+        if inert is None or inert.mass is None or float(inert.mass) <= 0:
+            continue
+        T = np.eye(4) if inert.origin is None else np.asarray(inert.origin, dtype=float)
+        out[l.name] = {"mass": float(inert.mass), "com": T[:3, 3].copy()}
+    return out
