@@ -122,5 +122,12 @@ def serial_regressor(robot, q: Tensor, qd: Tensor, qdd: Tensor, links: Sequence[
     def frames(q_: Tensor) -> Tensor:
         return robot.fk(q_, check=False)[:, idx]
 
+    # Robot caches its nominal joint origins on first use; filled inside a torch.func transform
+    # the cache would hold a tensor of that transform's level and fail later, so fill it here
+    # (both the small- and the large-batch FK paths).
+    with torch.no_grad():
+        for n in (1, 64):
+            robot.fk(torch.zeros(n, q.shape[-1], dtype=q.dtype), check=False)
+
     g = torch.as_tensor(gravity, dtype=q.dtype)
     return euler_lagrange(_energy_features(frames, g), q, qd, qdd)
