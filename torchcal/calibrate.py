@@ -13,6 +13,7 @@ from .io import Measurements
 from .measurement import Loss, PoseResidual, PositionResidual
 from .optim import Result, get_solver
 from .params import ParamSet
+from .fitting import fit_identified
 from .problem import CalibrationProblem
 from .registration import register_base
 from .report import error_stats, histogram_figure, write_json
@@ -199,6 +200,11 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         p = register_base(robot, data, p)
     start = p.clone()
 
+    def p_cand(cur: ParamSet) -> ParamSet:
+        nxt = start.clone()
+        nxt.values = cur.values.clone()
+        return nxt
+
     def blocks(loss_obj):
         if kind == "pose":
             return [PoseResidual(robot, data, rot_weight=rot_weight, loss=loss_obj)]
@@ -209,60 +215,39 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     if test is not None:
         stages[0]["test"] = stage_stats(robot, nominal, test)
 
-    candidates = p.clone()  # everything the caller left free; identifiability picks from it
+    swarm = method.lower() in SWARM_METHODS or method.lower() in ("hybrid", "pso+lm")
+    loss_obj = None
 
-    def reduce_at(values: Tensor):
-        """Fix the free parameters that the data cannot identify at ``values``."""
-        from .identifiability import analyse_jacobian
+    def make_problem(q: ParamSet, lo=None) -> CalibrationProblem:
+        box = _search_box(q, search_radius or _SEARCH) if swarm else q
+        return CalibrationProblem(robot, box, blocks(lo), fitness=fitness)
 
-        q = candidates.clone()
-        q.values = values.clone()
-        prob0 = CalibrationProblem(robot, q, blocks(None))
-        J0 = prob0.jacobian(prob0.x0)
-        units = [q.units[i] for i in q.free_index.tolist()]
-        rep = analyse_jacobian(J0, q.free_names, units, markers=robot.marker_names, kind=kind, prefer=prefer)
-        q.fix(*rep.dropped) if rep.dropped else None
-        return q, rep
+    opts = dict(options or {})
+    if method.lower() in ("lm", "levenberg-marquardt"):
+        # the registered start is close to the solution: little initial damping, fewer Jacobians
+        opts.setdefault("tau", 1e-6)
 
-    def fit(p: ParamSet) -> tuple[ParamSet, Result, Loss | None]:
-        loss_obj, s = None, None
-        rounds = 1 if loss == "l2" else (1 if loss_scale is not None else 3)
-        for _ in range(rounds):
-            if loss != "l2":
-                if loss_scale is not None:
-                    scale = float(loss_scale)
-                else:  # robust σ from the current residuals (MAD), so inliers stay quadratic
-                    e = PositionResidual(robot, data).errors(p.values[None])[0]
-                    scale = max(2.5 * 1.4826 * float(e.median()), 1e-9)
-                loss_obj = Loss(loss, scale)
-            prob = CalibrationProblem(robot, p, blocks(loss_obj), fitness=fitness)
-            if method.lower() in SWARM_METHODS or method.lower() in ("hybrid", "pso+lm"):
-                prob = CalibrationProblem(robot, _search_box(p, search_radius or _SEARCH), blocks(loss_obj),
-                                          fitness=fitness)
-            s = get_solver(method, seed=seed, progress=progress, **dict(options or {})).minimize(prob)
-            if polish and method.lower() in SWARM_METHODS:
-                prob.x0 = s.x.clone()
-                s2 = get_solver("lm").minimize(prob)
-                s2.history, s2.method = s.history + s2.history, f"{s.method}+lm"
-                s = s2
-            p = p.clone()
-            p.values = prob.full(s.x).detach()
-        return p, s, loss_obj
+    def solve(prob):
+        s = get_solver(method, seed=seed, progress=progress, **opts).minimize(prob)
+        if polish and method.lower() in SWARM_METHODS:
+            prob.x0 = s.x.clone()
+            s2 = get_solver("lm").minimize(prob)
+            s2.history, s2.method = s.history + s2.history, f"{s.method}+lm"
+            s = s2
+        return s
 
+    # robust losses: the scale is re-estimated from the residuals over three rounds (IRLS-style)
+    rounds = 1 if loss == "l2" or loss_scale is not None else 3
     report = None
-    if reduce:
-        # Identifiability depends on where it is judged: a marker guessed on a joint axis hides
-        # that joint's offset. Judge at the start, fit, judge again at the solution, and refit
-        # while the identifiable set grows.
-        p, report = reduce_at(p.values)
-        for _ in range(3):
-            p, s, loss_obj = fit(p)
-            p_next, rep = reduce_at(p.values)
-            if set(p_next.free_names) <= set(p.free_names):
-                break
-            p, report = p_next, rep
-    else:
-        p, s, loss_obj = fit(p)
+    for rnd in range(rounds):
+        if loss != "l2":
+            scale = float(loss_scale) if loss_scale is not None else max(
+                2.5 * 1.4826 * float(PositionResidual(robot, data).errors(p.values[None])[0].median()), 1e-9)
+            loss_obj = Loss(loss, scale)
+        p, s, rep = fit_identified(lambda q: make_problem(q, loss_obj), p if rnd == 0 else p_cand(p),
+                                   solve=solve, markers=robot.marker_names, kind=kind, prefer=prefer,
+                                   reduce=reduce)
+        report = rep or report
     unident = {n: report.reasons.get(n, "not identifiable") for n in report.dropped} if report else {}
 
     # standard errors on the fitted (identifiable) set

@@ -134,8 +134,8 @@ class PositionResidual(ResidualBlock):
         return p[:, self._rows, self._cols] - self._meas
 
     def _raw_jacobian(self, params: Tensor) -> tuple[Tensor, Tensor]:
-        J = self.robot.param_jacobian(self.data.q, params, kind="position", check=False)  # (N, M, 3, K)
-        p = self.robot.positions(self.data.q, params, check=False)
+        J, p = self.robot.param_jacobian(self.data.q, params, kind="position", check=False,
+                                         return_positions=True)  # (N, M, 3, K), (N, M, 3)
         return p[self._rows, self._cols] - self._meas, J[self._rows, self._cols]
 
 
@@ -236,8 +236,8 @@ class DistanceResidual(ResidualBlock):
         return (d - self.dist)[..., None]
 
     def _raw_jacobian(self, params: Tensor) -> tuple[Tensor, Tensor]:
-        J = self.robot.param_jacobian(self.data.q, params, kind="position", check=False)[:, self._m]  # (N, 3, K)
-        p = self.robot.positions(self.data.q, params, check=False)[:, self._m]
+        J, p = self.robot.param_jacobian(self.data.q, params, kind="position", check=False, return_positions=True)
+        J, p = J[:, self._m], p[:, self._m]  # (N, 3, K), (N, 3)
         diff = p[self.pairs[:, 0]] - p[self.pairs[:, 1]]
         n = diff.norm(dim=-1, keepdim=True)
         u = diff / n

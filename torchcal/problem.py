@@ -31,6 +31,7 @@ class CalibrationProblem(Problem):
         if idx.numel() == 0:
             raise ValueError("no free parameter: unfix some with ParamSet.unfix('pattern')")
         self.robot, self.params, self.blocks, self.fitness_kind = robot, params, blocks, fitness
+        self.fitness_is_sse = fitness == "sse"  # lets LM reuse its own sum of squares
         super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
         self.m = sum(b.n_obs * b.obs_dim for b in blocks)
         if self.m < idx.numel():
@@ -79,12 +80,14 @@ class EffectCalibrationProblem(Problem):
             raise ValueError("no free parameter")
         super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
         self.robot, self.params, self.effects, self.data = robot, params, list(effects), data
+        self.fitness_is_sse = True
         self.K = robot.n_params
         if params.names[: self.K] != robot.param_names:
             raise ValueError("params must start with the robot's geometric parameters (robot.params())")
         self.loss = loss or Loss("l2")
         blk = PositionResidual(robot, data)
         self._rows, self._cols, self._meas = blk._rows, blk._cols, blk._meas
+        self.obs_cols_measured = blk.obs_index[:, 1]  # index into data.marker_names
         self.n_obs = blk.n_obs
         self.m = 3 * self.n_obs
         self._prep = [e.prepare(data.q, data.covariates) for e in self.effects]

@@ -299,7 +299,6 @@ class Robot:
         p4[kinds == 2, 2, 3] = 1
         self._M4_one, self._M4_c, self._M4_s, self._M4_p = one, c4, s4, p4
         self._has_moff = bool((self._moff != 0).any())
-        self._nominal_cache4 = None
         Tm = torch.tensor(np.stack([mk.matrix() for mk in self.markers]), **fk)
         self._mk_R, self._mk_t = Tm[:, :3, :3].contiguous(), Tm[:, :3, 3].contiguous()
         self._mk_frame = [link_frame[mk.link] for mk in self.markers]
@@ -316,7 +315,11 @@ class Robot:
         self.joint_limits = (torch.tensor([-np.inf if v is None else v for v in lim_lo], **fk),
                              torch.tensor([np.inf if v is None else v for v in lim_hi], **fk))
         self._units = [("m" if by_name[n].type == "prismatic" else "rad") for n in self.joint_names]
+        # filled now rather than lazily: a cache first filled inside a torch.func transform would
+        # carry that transform's level and break later calls
         self._nominal_cache = None
+        self._nominal_cache = self._origins(None)
+        self._nominal_cache4 = homogeneous(*self._nominal_cache)
 
     # ------------------------------------------------------------------ basic facts
     @property
@@ -469,6 +472,10 @@ class Robot:
         if slots is None:
             return None
         b = slots[:, self._slices["base"]]
+        if b.device.type == "cpu" and not b.requires_grad and not bool(b.any()):
+            # a base fixed at zero (robot-frame data): skip the rotation-vector exponential
+            eye = torch.eye(3, dtype=b.dtype, device=b.device).expand(b.shape[0], 3, 3)
+            return eye, b[:, :3]
         return so3_exp(b[:, 3:]), b[:, :3]
 
     def _joint_values(self, q: Tensor, slots: Tensor | None) -> Tensor:
@@ -518,8 +525,6 @@ class Robot:
         """Same frames as :meth:`_chain` as (P,N,4,4) products: fewer, smaller ops, which is
         what a single configuration needs."""
         if slots is None:
-            if self._nominal_cache4 is None:
-                self._nominal_cache4 = homogeneous(*self._origins(None))
             O4 = self._nominal_cache4
         else:
             O4 = homogeneous(*self._origins(slots))
@@ -691,13 +696,16 @@ class Robot:
             t = tb[:, None, None] + (Rb[:, None, None] @ t[..., None])[..., 0]
         return R, t
 
-    def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True) -> Tensor:
+    def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True,
+                       return_positions: bool = False):
         """Analytic derivative of the marker poses w.r.t. all K parameters.
 
         Args:
             kind: ``"position"``: rows are d(p_x, p_y, p_z) (m per unit); ``"pose"``: three more rows,
                 the angular velocity ω (rad per unit, instrument frame) with ``dR = skew(ω) R`` —
                 the Jacobian of a rotation-vector residual ``log(R R_meas^T)`` at zero.
+            return_positions: also return the marker positions ``(…, M, 3)`` (m) computed on the
+                way, which saves a second kinematics pass in least-squares solvers.
         Returns:
             ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population).
         """
@@ -706,12 +714,13 @@ class Robot:
         q, slots, pop, q1 = self._prepare(q, params, check)
         if slots is None:
             slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
-        Jac = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
+        Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
         # a parameter's column is the sum over the slots it moves
         K = self.n_params
         out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
         out.index_add_(-1, self._slot_gather, Jac)
-        return self._unbatch(out[..., :K], pop, q1, 3)
+        J = self._unbatch(out[..., :K], pop, q1, 3)
+        return (J, self._unbatch(pw, pop, q1, 2)) if return_positions else J
 
     def joint_jacobian(self, q, params=None, *, check: bool = True) -> Tensor:
         """Geometric Jacobian of every marker w.r.t. the commands ``q``: ``(N, M, 6, dof)``
@@ -721,7 +730,7 @@ class Robot:
             raise ValueError("joint_jacobian takes one parameter vector (K,), not a population")
         if slots is None:
             slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
-        Jac = self._slot_jacobian(q, slots, "pose")[..., self._slices["offset"]]
+        Jac = self._slot_jacobian(q, slots, "pose")[0][..., self._slices["offset"]]
         return self._unbatch(Jac, False, q1, 3)
 
     def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
@@ -834,7 +843,7 @@ class Robot:
             base_cols = torch.cat([base_lin, base_ang], -2)
         else:
             base_cols = base_lin
-        return torch.cat([base_cols, body], -1)
+        return torch.cat([base_cols, body], -1), pw
 
     # ------------------------------------------------------------------ export
     def calibrated_joints(self, params) -> list[JointSpec]:

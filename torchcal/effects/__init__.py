@@ -18,7 +18,7 @@ def build_effect(name: str, robot, data=None, **kw) -> Effect:
     if name not in EFFECTS:
         raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}")
     eff = EFFECTS[name](robot, **kw)
-    if data is not None:
+    if data is not None and eff.applicable(data)[0]:
         if isinstance(eff, ThermalDrift):
             eff = eff.bind(data)
         elif isinstance(eff, Backlash):

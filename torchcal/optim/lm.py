@@ -37,6 +37,8 @@ def require_residuals(problem: Problem, who: str) -> None:
 def fitness_is_sum_of_squares(problem: Problem) -> bool:
     """True when ``problem.fitness`` is the default ``sum(r**2)``, so a solver may reuse its own
     sum of squares instead of calling ``fitness`` again."""
+    if getattr(problem, "fitness_is_sse", False):
+        return True
     fit = type(problem).fitness
     if fit is Problem.fitness:
         return True
