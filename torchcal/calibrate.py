@@ -236,13 +236,17 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             s = s2
         return s
 
-    # robust losses: the scale is re-estimated from the residuals over three rounds (IRLS-style)
-    rounds = 1 if loss == "l2" or loss_scale is not None else 3
+    # robust losses: the scale is re-estimated from the residuals until it settles (IRLS-style);
+    # the first estimate comes from a start millimetres off, so it shrinks over several rounds
     report = None
-    for rnd in range(rounds):
+    scale_prev = None
+    for rnd in range(1 if loss == "l2" or loss_scale is not None else 12):
         if loss != "l2":
             scale = float(loss_scale) if loss_scale is not None else max(
                 2.5 * 1.4826 * float(PositionResidual(robot, data).errors(p.values[None])[0].median()), 1e-9)
+            if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
+                break
+            scale_prev = scale
             loss_obj = Loss(loss, scale)
         p, s, rep = fit_identified(lambda q: make_problem(q, loss_obj), p if rnd == 0 else p_cand(p),
                                    solve=solve, markers=robot.marker_names, kind=kind, prefer=prefer,

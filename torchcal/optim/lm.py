@@ -180,8 +180,9 @@ class LevenbergMarquardt(Solver):
         mu0: absolute initial damping (overrides ``tau``), e.g. ``0.1``.
         scaling: ``"identity"`` (``D = I``) or ``"marquardt"`` (``D = diag(JᵀJ)``, the running
             maximum over iterations, with zero entries replaced by 1).
-        gtol: stop when the projected gradient ``||Jᵀr||_inf < gtol`` (units of residual² per
-            parameter unit).
+        gtol: stop when the largest cosine between the residual vector and a column of J,
+            ``max_i |J_iᵀr| / (|J_i| |r|)``, is below ``gtol`` (MINPACK's scale-free test, computed
+            on the projected gradient): it does not depend on the units of residuals or parameters.
         xtol: stop when ``||h|| < xtol * (||x|| + xtol)``.
         ftol: stop when both the actual and the predicted relative decrease of ``S`` are
             below ``ftol``.
@@ -259,13 +260,20 @@ class LevenbergMarquardt(Solver):
                 Ae, ge = A_, g_
             return A_, g_, Ae, ge, torch.neg(ge).unsqueeze(1)
 
+        def gcos(ge_: Tensor, A_: Tensor, S_: Tensor) -> Tensor:
+            """Scale-free gradient test (MINPACK's): the largest cosine between r and a column of J."""
+            den = torch.sqrt(A_.diagonal().clamp(min=1e-300) * S_.clamp(min=1e-300))
+            return torch.where(S_ > 0, (ge_.abs() / den).max(), torch.zeros_like(S_))
+
         A, g, Ae, ge, rhs = linearise(x, r, J)
+        S0 = dot(r, r)
         S, gnorm, xnorm, Amax = torch.stack([
-            dot(r, r), torch.linalg.vector_norm(ge, math.inf), torch.linalg.vector_norm(x),
-            A.diagonal().max()]).tolist()
+            S0, gcos(ge, A, S0), torch.linalg.vector_norm(x), A.diagonal().max()]).tolist()
         if marquardt:
+            # floor the scaling: a near-zero column would otherwise get no damping and its
+            # parameter would run off in a direction the data cannot see
             dA = A.diagonal()
-            Dvec = torch.where(dA > 0, dA, torch.ones_like(dA))
+            Dvec = dA.clamp(min=1e-6 * float(dA.max())) if float(dA.max()) > 0 else torch.ones_like(dA)
             Dm = torch.diag_embed(Dvec)
             mu = self.mu0 if self.mu0 is not None else self.tau
         else:
@@ -316,7 +324,7 @@ class LevenbergMarquardt(Solver):
                         if marquardt:
                             Dvec = torch.maximum(Dvec, A.diagonal())
                             Dm = torch.diag_embed(Dvec)
-                        gnorm = torch.linalg.vector_norm(ge, math.inf).item()
+                        gnorm = gcos(ge, A, dot(r, r)).item()
                         xnorm = torch.linalg.vector_norm(x).item()
                         mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                         nu = 2.0
