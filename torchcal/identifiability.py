@@ -347,6 +347,11 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
     if len(names) != k or len(units) != k:
         raise ValueError(f"{k} Jacobian columns but {len(names)} names and {len(units)} units")
     An, norms, zero = normalise_columns(A, rtol)
+    if m > k:
+        # Column relations, singular values, least-squares coefficients and residual norms are
+        # all invariant under an orthogonal transform of the rows: work on the k x k R factor of
+        # a thin QR instead of the tall m x k matrix (hundreds of poses cost no more than ten).
+        An = torch.linalg.qr(torch.from_numpy(An), mode="r").R.numpy()
 
     # base subset: tiered pivoted QR over the non-zero columns
     tiers = [[i for i in t if not zero[i]] for t in _tiers(markers, names, prefer)]
@@ -368,8 +373,14 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
     what = "marker position" if kind == "position" else "marker position or orientation"
     reasons, relations, residuals = {}, {}, {}
     B = An[:, kept]
+    kept_set = set(kept)
+    todo = [i for i in range(k) if i not in kept_set and not zero[i]]
+    # one least-squares solve with every dropped column as a right-hand side
+    coef = (np.linalg.lstsq(B, An[:, todo], rcond=None)[0] if kept and todo
+            else np.zeros((len(kept), len(todo))))
+    coef_of = {i: coef[:, t] for t, i in enumerate(todo)}
     for i in range(k):
-        if i in kept:
+        if i in kept_set:
             continue
         n = names[i]
         if zero[i]:
@@ -377,7 +388,7 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
                           "column is zero), so no measurement can see it")
             relations[n], residuals[n] = {}, 1.0
             continue
-        c, *_ = np.linalg.lstsq(B, An[:, i], rcond=None) if kept else (np.zeros(0),)
+        c = coef_of[i]
         res = float(np.linalg.norm(An[:, i] - B @ c)) if kept else 1.0
         # unscaled: a_i/|a_i| = Σ c_j a_j/|a_j|  =>  a_i = Σ c_j |a_i|/|a_j| a_j (per unit of p_i)
         cu = {names[j]: float(cj * norms[i] / norms[j]) for j, cj in zip(kept, c)}

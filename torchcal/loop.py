@@ -121,11 +121,17 @@ def _geometric_start(robot, data: Measurements, patterns) -> ParamSet:
     return register_base(robot, data, p)
 
 
-def _fit(robot, data: Measurements, geo: ParamSet, effects: list, start: Tensor | None = None) -> ParamSet:
-    """Geometry + effects fitted on ``data`` (identifiable subset), LM."""
-    ps = ParamSet.concat(geo.clone(), effect_params(effects, data))
+def _fit(robot, data: Measurements, geo: ParamSet, effects: list, start: ParamSet | None = None) -> ParamSet:
+    """Geometry + effects fitted on ``data`` by LM. Without ``start``: the identifiable subset of
+    ``geo``'s free entries and all effect parameters, judged as in :func:`fit_identified`. With
+    ``start`` (a fit of the same model on a superset of the rows): its free set and values are
+    the start, with no new identifiability analysis — what the cross-validation folds use."""
     if start is not None:
-        ps.values = start.clone()
+        ps = start.clone()
+        make = lambda p: EffectCalibrationProblem(robot, p, effects, data)  # noqa: E731
+        ps, _, _ = fit_identified(make, ps, reduce=False, options={"max_iter": 100, "tau": 1e-6})
+        return ps
+    ps = ParamSet.concat(geo.clone(), effect_params(effects, data))
     ps, _, _ = fit_identified(lambda p: EffectCalibrationProblem(robot, p, effects, data), ps,
                               markers=robot.marker_names, options={"max_iter": 200, "tau": 1e-6})
     return ps
@@ -149,23 +155,21 @@ def _residuals(robot, params: ParamSet, effects: list, data: Measurements) -> Te
     return out.reshape(len(data), -1)
 
 
-def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor], warm: ParamSet | None):
-    """Cross-validated per-row squared errors (m²) and the per-fold fitted models."""
+def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor]):
+    """Cross-validated per-row squared errors (m²), the per-fold fitted models, and the fit on
+    all rows (which the folds start from: identifiable set and values)."""
+    full = _fit(robot, data, _geometric_start(robot, data, geo_patterns), effects)
     sq = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
     fits = []
     for f in folds:
         mask = torch.ones(len(data), dtype=torch.bool)
         mask[f] = False
         tr, va = data.subset(mask), data.subset(f)
-        geo = _geometric_start(robot, tr, geo_patterns)
-        start = None
-        if warm is not None and len(warm) == len(geo) + sum(e.n_params for e in effects):
-            start = warm.values
-        p = _fit(robot, tr, geo, effects, start)
+        p = _fit(robot, tr, None, effects, start=full)
         _, s = _row_sq_errors(robot, p, effects, va)
         sq[f] = s
         fits.append(p)
-    return sq, fits
+    return sq, fits, full
 
 
 def _compare(sq_old: Tensor, sq_new: Tensor, k_old: int, k_new: int, n_obs: int) -> tuple[float, float, bool]:
@@ -297,23 +301,22 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     geo_choice = []
     best_sq, best_fits, best_set, best_k = None, None, None, 0
     for name, pats in GEOMETRIC_SETS:
-        sq, fits = _cv(robot, train, pats, [], fl, None)
-        k = int(fits[0].free.sum())
+        sq, fits, full = _cv(robot, train, pats, [], fl)
+        k = int(full.free.sum())
         entry = {"name": name, "n_params": k, "cv_rmse_mm": _rmse_mm(sq, n_obs)}
         if best_sq is None:
             entry["accepted"] = True
-            best_sq, best_fits, best_set, best_k = sq, fits, (name, pats), k
+            best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats), k, full
         else:
             t, pen_ok, ok = _compare(best_sq, sq, best_k, k, n_obs)
             entry.update({"t": t, "accepted": ok})
             if ok:
-                best_sq, best_fits, best_set, best_k = sq, fits, (name, pats), k
+                best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats), k, full
         geo_choice.append(entry)
         say(f"geometric set {name:<16} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm"
             + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
     geo_patterns = best_set[1]
-    geo_start = _geometric_start(robot, train, geo_patterns)
-    params = _fit(robot, train, geo_start, [])
+    params = best_full
     st_tr, e_tr = _stats(robot, params, [], train)
     st_te, e_te = _stats(robot, params, [], test)
     stages.append(_stage("geometric", int(params.free.sum()), st_tr, st_te, _rmse_mm(best_sq, n_obs)))
@@ -332,7 +335,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             cand_report.append({"name": n, "accepted": False, "applicable": False, "reason": why or "no parameters"})
             continue
         pool.append(n)
-    accepted_effects, accepted = [], []
+    accepted_effects, accepted, stage_fits = [], [], []
     cur_sq, cur_fits, cur_k = best_sq, best_fits, best_k
     rnd = 0
     while pool:
@@ -341,23 +344,23 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for n in pool:
             eff = build_effect(n, robot, train)
             trial = accepted_effects + [eff]
-            sq, fits = _cv(robot, train, geo_patterns, trial, fl, None)
-            k = int(fits[0].free.sum())
+            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl)
+            k = int(full.free.sum())
             t, pen_ok, ok = _compare(cur_sq, sq, cur_k, k, n_obs)
             gain = _rmse_mm(cur_sq, n_obs) - _rmse_mm(sq, n_obs)
-            results.append((ok, t, n, sq, fits, k, gain, pen_ok))
+            results.append((ok, t, n, sq, fits, k, gain, pen_ok, full, eff))
             say(f"round {rnd}: {n:<20} {k:>3} params  CV RMSE {_rmse_mm(sq, n_obs):.4f} mm  gain {gain:+.4f} mm  "
                 f"t = {t:.1f}")
         results.sort(key=lambda r: (r[0], r[1]), reverse=True)
-        ok, t, n, sq, fits, k, gain, pen_ok = results[0]
+        ok, t, n, sq, fits, k, gain, pen_ok, full, eff = results[0]
         for r_ in results:
             cand_report.append({"name": r_[2], "round": rnd, "n_params": r_[5], "cv_rmse_mm": _rmse_mm(r_[3], n_obs),
                                 "cv_gain_mm": r_[6], "t": r_[1], "penalised_ok": r_[7],
                                 "accepted": bool(r_[0] and r_[2] == n)})
         if not ok:
             break
-        eff = build_effect(n, robot, train)
         accepted_effects.append(eff)
+        stage_fits.append(full)
         cur_sq, cur_fits, cur_k = sq, fits, k
         pool.remove(n)
         say(f"accepted {n}")
@@ -368,7 +371,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     prev_params = params
     for i, eff in enumerate(accepted_effects):
         effs = accepted_effects[: i + 1]
-        p = _fit(robot, train, _geometric_start(robot, train, geo_patterns), effs)
+        p = stage_fits[i]
         for e in effs:  # copy fitted values into the effect objects
             a = p.names.index(e.param_names[0])
             e.theta = p.values[a:a + e.n_params].clone()
