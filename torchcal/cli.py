@@ -56,20 +56,57 @@ def _calibrate(a) -> int:
     return 0
 
 
+def _loop(a) -> int:
+    import shlex
+
+    import torch
+
+    from .io import load_measurements
+    from .loop import run_loop
+    from .loop_report import write_loop_report
+
+    torch.set_num_threads(a.threads)
+    robot = _robot(a.robot, a.marker, a.data)
+    train = load_measurements(a.data, robot)
+    test = load_measurements(a.test, robot) if a.test else None
+    if test is None and a.holdout:
+        train, test = train.split(a.holdout, seed=a.seed)
+    res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
+                   noise_mm=a.noise_mm)
+    out = Path(a.out)
+    cmd = "torchcal " + " ".join(shlex.quote(x) for x in sys.argv[1:]) if a.command is None else a.command
+    write_loop_report(res, out, command=cmd)
+    try:
+        from .persist import save
+
+        save(res.model(), out / "model")
+        saved = f"; model in {out / 'model'}"
+    except Exception as e:  # the report is still worth having
+        saved = f"; the model could not be saved: {e}"
+    print(f"\n{'stage':<22}{'params':>7}{'train mean':>12}" + ("{:>12}".format("test mean") if test else ""))
+    for s_ in res.stages:
+        line = f"{s_['name']:<22}{s_['n_params']:>7}{s_['train']['mean_mm']:>12.4f}"
+        if test is not None:
+            line += f"{s_['test']['mean_mm']:>12.4f}"
+        print(line + "   [mm]")
+    print(f"effects found: {[e['name'] for e in res.accepted] or 'none'}; report in {out / 'report.md'}{saved}")
+    return 0
+
+
 def _simulate(a) -> int:
     import torch
 
     from .robot import Robot
-    from .sim import SimConfig, simulate, write_dataset
+    from .sim import SimConfig, simulate_with_effects, write_dataset
 
     torch.set_num_threads(1)
     robot = Robot.from_urdf(a.robot, markers=a.marker or None)
     cfg = SimConfig(n=a.poses, noise=a.noise_mm * 1e-3, base_distance=a.base_distance, seed=a.seed,
                     length_error=a.length_error_mm * 1e-3, angle_error=a.angle_error_mrad * 1e-3)
-    data, truth = simulate(robot, cfg)
+    data, truth, effects = simulate_with_effects(robot, cfg, a.effect)
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_dataset(out, data, truth, meta={"noise_mm": a.noise_mm, "seed": a.seed})
+    write_dataset(out, data, truth, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
     print(f"wrote {len(data)} rows to {out} and the truth to {out.with_suffix('.truth.json')} (keep it away from the solver)")
     return 0
 
@@ -98,6 +135,22 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--out", required=True, help="output directory")
     c.set_defaults(func=_calibrate)
 
+    lp = sub.add_parser("loop", help="calibrate, trace the residual to the effect the model lacks, add it, report")
+    lp.add_argument("--robot", required=True, help="URDF file")
+    lp.add_argument("--data", required=True, help="training CSV")
+    lp.add_argument("--test", help="held-out CSV (only measured)")
+    lp.add_argument("--holdout", type=float, default=0.0, help="without --test: fraction of rows held out")
+    lp.add_argument("--marker", action="append", help="LINK or NAME@LINK[=x,y,z] (m); repeatable")
+    lp.add_argument("--candidates", nargs="*", help="effects to consider (default: all the data allows)")
+    lp.add_argument("--folds", type=int, default=5)
+    lp.add_argument("--noise-mm", type=float, help="instrument noise for the report (mean error, mm)")
+    lp.add_argument("--no-elm", action="store_true", help="skip the residual ELM stage")
+    lp.add_argument("--seed", type=int, default=0)
+    lp.add_argument("--threads", type=int, default=1)
+    lp.add_argument("--command", help=argparse.SUPPRESS)
+    lp.add_argument("--out", required=True, help="output directory (report, figures, model/)")
+    lp.set_defaults(func=_loop)
+
     s = sub.add_parser("simulate", help="simulate laser-tracker measurements with geometric errors")
     s.add_argument("--robot", required=True)
     s.add_argument("--marker", action="append")
@@ -106,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--length-error-mm", type=float, default=0.5)
     s.add_argument("--angle-error-mrad", type=float, default=1.0)
     s.add_argument("--base-distance", type=float, default=3.0, help="instrument distance from the base (m)")
+    s.add_argument("--effect", action="append", default=[], help="physical effect to simulate (repeatable): "
+                   "joint_compliance, backlash, cyclic_joint_error, joint_scale, thermal_drift")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True, help="CSV path; the truth goes beside it as .truth.json")
     s.set_defaults(func=_simulate)

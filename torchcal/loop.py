@@ -187,16 +187,22 @@ def _rmse_mm(sq_rows: Tensor, n_obs: int) -> float:
 
 
 def _stats(robot, params, effects, data, elm=None) -> tuple[dict | None, Tensor]:
+    """Error statistics (mm), overall and per marker, and the per-observation errors (m)."""
     if data is None or len(data) == 0:
         return None, torch.zeros(0)
-    e, _ = _row_sq_errors(robot, params, effects, data)
+    prob = EffectCalibrationProblem(robot, params, effects, data)
+    e = prob.errors(params.values[None])[0]
+    cols = prob.obs_cols_measured
     if elm is not None:
         r = _residuals(robot, params, effects, data)
         pred = elm.predict(_elm_inputs(data))
         left = (r - pred).reshape(len(data), -1, 3)
         seen = ~torch.isnan(left).any(-1)
         e = left[seen].norm(dim=-1)
-    return error_stats(e), e
+        cols = torch.nonzero(seen)[:, 1]
+    out = error_stats(e)
+    out["per_marker"] = {m: error_stats(e[cols == k]) for k, m in enumerate(data.marker_names) if bool((cols == k).any())}
+    return out, e
 
 
 def _elm_inputs(data: Measurements) -> Tensor:
@@ -233,22 +239,25 @@ def _evidence(robot, params: ParamSet, effect, effects_before: list, data: Measu
         x = prep.features["dT"]
         c = float(torch.corrcoef(torch.stack([x, radial]))[0, 1])
         return (f"residual along the base-to-marker direction correlates with {effect.covariate} (r = {c:.2f})",
-                {"x": x.tolist(), "y": (radial * 1e3).tolist(), "xlabel": f"{effect.covariate} - mean",
-                 "ylabel": "radial residual [mm]"})
+                {"all": {"x": x.tolist(), "residual": (radial * 1e3).tolist(), "r": c,
+                         "xlabel": f"{effect.covariate} − mean", "ylabel": "radial residual [mm]"}})
     J = robot.joint_jacobian(data.q, geo, check=False)[:, :, :3, :]  # (N, M, 3, dof)
     mk = [robot.marker_names.index(m) for m in data.marker_names]
     J = J[:, mk].reshape(len(data), -1, robot.dof)
     dq = (torch.linalg.pinv(J) @ r[..., None])[..., 0]  # (N, dof) rad
     a = params.names.index(effect.param_names[0])
     theta = params.values[a:a + effect.n_params]
+    effect.theta = theta.clone()
     pred = effect.joint_delta(theta[None], effect.prepare(data.q, data.covariates))[0]  # (N, dof)
+    prep = effect.prepare(data.q, data.covariates)
+    xsig = _signature_x(effect, data, prep)  # (N, dof) what a person plots the residual against
     best, out = None, {}
     for j in effect.joints:
         i = robot.joint_names.index(j)
         if float(pred[:, i].std()) == 0:
             continue
         c = float(torch.corrcoef(torch.stack([pred[:, i], dq[:, i]]))[0, 1])
-        out[j] = {"signature": pred[:, i].tolist(), "residual_dq": dq[:, i].tolist(), "r": c}
+        out[j] = {"x": xsig[:, i].tolist(), "fitted": pred[:, i].tolist(), "residual": dq[:, i].tolist(), "r": c}
         if best is None or abs(c) > abs(best[1]):
             best = (j, c)
     sig = {"joint_compliance": "gravity-torque deflection", "backlash": "direction of the last motion",
@@ -258,11 +267,52 @@ def _evidence(robot, params: ParamSet, effect, effects_before: list, data: Measu
     return (f"residual projected on joint {best[0]} correlates with the fitted {sig} (r = {best[1]:.2f})", out)
 
 
+# x axis of the evidence plot per effect: (label, unit)
+SIGNATURE_AXIS = {"joint_compliance": ("gravity torque", "N·m"), "backlash": ("direction of the last motion", "±1"),
+                  "cyclic_joint_error": ("joint angle", "rad"), "joint_scale": ("joint angle", "rad")}
+
+
+def _signature_x(effect, data: Measurements, prep) -> Tensor:
+    """``(N, dof)`` the physical signature of a joint effect per joint: gravity torque for
+    compliance (URDF inertials), direction for backlash, the joint angle otherwise."""
+    if effect.name == "joint_compliance" and not effect.lumped:
+        tau = effect.torques(data.q, data.covariates)
+        return effect._scatter(tau[None])[0]
+    if effect.name == "backlash":
+        return effect._scatter(prep.features["dir"][None])[0]
+    return data.q
+
+
 def _without(params: ParamSet, effect, effects_before: list) -> ParamSet:
     names = [n for e in effects_before for n in e.param_names]
     keep = list(range(len(params) - len(names) - effect.n_params)) + [params.names.index(n) for n in names]
     return ParamSet([params.names[i] for i in keep], [params.units[i] for i in keep], params.values[keep],
                     params.free[keep], params.lower[keep], params.upper[keep])
+
+
+# ----------------------------------------------------------------------------- covariates
+TIME_COLUMNS = ("t_start_robot", "time", "t", "timestamp")
+
+
+def derive_directions(data: Measurements) -> str | None:
+    """Add ``dir.<joint>`` covariates (+1/-1: direction from which each joint reached the
+    posture) from the time order of the rows, when the data has a time column and no direction
+    columns. The first posture in time counts as approached from below. Returns the time column
+    used, or None. A covariate, not a measurement: it is derived for test data the same way."""
+    if any(k.startswith("dir.") for k in data.covariates):
+        return None
+    key = next((k for k in TIME_COLUMNS if k in data.covariates), None)
+    if key is None or len(data) < 2:
+        return None
+    order = torch.argsort(data.covariates[key])
+    q = data.q[order]
+    steps = torch.diff(q, dim=0, prepend=q[:1])
+    d = torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
+    inv = torch.empty_like(order)
+    inv[order] = torch.arange(len(order), device=order.device)
+    for j, n in enumerate(data.joint_names):
+        data.covariates[f"dir.{n}"] = d[inv, j]
+    return key
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -282,6 +332,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     """
     t0 = time.perf_counter()
     say = log or (lambda *a, **k: None)
+    derived = derive_directions(train)
+    if derived is not None:
+        if test is not None:
+            derive_directions(test)
+        say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     timings: dict[str, float] = {}
     n_obs = int(train.seen.sum())
     fl = _folds(len(train), min(folds, len(train)), seed)

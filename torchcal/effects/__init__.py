@@ -19,10 +19,7 @@ def build_effect(name: str, robot, data=None, **kw) -> Effect:
         raise ValueError(f"unknown effect {name!r}; known: {sorted(EFFECTS)}")
     eff = EFFECTS[name](robot, **kw)
     if data is not None and eff.applicable(data)[0]:
-        if isinstance(eff, ThermalDrift):
-            eff = eff.bind(data)
-        elif isinstance(eff, Backlash):
-            eff = eff.restrict_to_data(data)
+        eff = eff.bind(data) if isinstance(eff, ThermalDrift) else eff.restrict_to_data(data)
     return eff
 
 

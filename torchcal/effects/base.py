@@ -78,6 +78,18 @@ class Effect:
         covariates), with the reason in words when not."""
         return True, ""
 
+    def restrict_to_data(self, data, min_lever_m: float = 5e-3) -> "Effect":
+        """A copy acting only on joints whose motion moves the measured markers: median lever
+        over the data at least ``min_lever_m`` (m per rad; prismatic joints always count). A
+        joint that barely moves the markers cannot show an effect, and fitting one there only
+        invents values no measurement can check."""
+        J = self.robot.joint_jacobian(data.q, check=False)[:, :, :3, :]  # (N, M, 3, dof)
+        mk = [self.robot.marker_names.index(m) for m in data.marker_names]
+        lever = J[:, mk].norm(dim=-2).amax(1).median(0).values  # (dof,)
+        keep = [j for j in self.joints if self.robot.joint_units[self.robot.joint_names.index(j)] == "m"
+                or float(lever[self.robot.joint_names.index(j)]) >= min_lever_m]
+        return type(self)(self.robot, keep, **self.config())
+
     def init_theta(self, data=None) -> Tensor:
         """Start values (zeros: no effect)."""
         return torch.zeros(self.n_params, dtype=self.robot.dtype, device=self.robot.device)

@@ -23,7 +23,7 @@ def gravity_features(robot, q: Tensor, links: list[str], gravity=GRAVITY) -> Ten
     from ..robot import Robot
     from ..tree import Marker
 
-    aux = Robot(robot.name, robot.joints, [Marker(f"__g_{l}", l) for l in links], dtype=robot.dtype,
+    aux = Robot(robot.name, robot.joints, [Marker(f"__g{i}_{l}", l) for i, l in enumerate(links)], dtype=robot.dtype,
                 device=robot.device)
     cols = [aux.joint_names.index(n) for n in robot.joint_names]
     J = aux.joint_jacobian(q, check=False)[..., cols]  # (N, L, 6, dof)

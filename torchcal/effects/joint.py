@@ -81,9 +81,11 @@ class Backlash(Effect):
             return False, "no 'dir.<joint>' covariate (+1/-1 direction of the last motion) in the data"
         return True, ""
 
-    def restrict_to_data(self, data) -> "Backlash":
-        """A copy acting only on joints whose direction covariate the data has."""
-        return Backlash(self.robot, [j for j in self.joints if f"dir.{j}" in data.covariates])
+    def restrict_to_data(self, data, min_lever_m: float = 5e-3) -> "Backlash":
+        """A copy acting only on joints whose direction covariate the data has (and that move
+        the markers, see :meth:`Effect.restrict_to_data`)."""
+        seen = Backlash(self.robot, [j for j in self.joints if f"dir.{j}" in data.covariates])
+        return Effect.restrict_to_data(seen, data, min_lever_m)
 
     def prepare(self, q, covariates):
         cols = []
