@@ -6,11 +6,17 @@ Robot model -> measurement model -> problem -> solver -> result/report:
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
 from .calibrate import CalibrationResult, calibrate
+from .correct import Corrector
+from .elm import ELM, tune_elm
 from .io import Measurements, load_measurements
+from .loop import run_loop
+from .model import CalibratedModel
 from .params import ParamSet
+from .persist import load, save
 from .robot import Robot
 from .tree import Marker
 
 __version__ = "0.1.0"
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
-           "CalibrationResult", "__version__"]
+           "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",
+           "__version__"]

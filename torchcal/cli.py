@@ -165,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--out", required=True, help="CSV path; the truth goes beside it as .truth.json")
     s.set_defaults(func=_simulate)
 
+    from .cli_correct import add_correct_parser
+
+    add_correct_parser(sub)
     a = ap.parse_args(argv)
     try:
         return a.func(a)

@@ -34,12 +34,17 @@ __all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS"]
 
 T_ACCEPT = 3.0
 
-# nested geometric parameter sets, smallest first (glob patterns; markers' positions always)
+# Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
+# default free set: every origin / DH error). Markers' positions are always free.
 GEOMETRIC_SETS = [
     ("base+markers", ["base.*"]),
     ("+joint offsets", ["base.*", "*.offset", "*.dtheta"]),
-    ("+joint origins", None),  # None: the robot's default free set (every origin / DH error)
+    ("+joint origins", None),
 ]
+# When CV rejects the full set (small data), the full set is also tried with a ridge on every
+# non-base error: prior residuals sqrt(λ/N)·e per row-normalised error, with λ = c · SSE_cv /
+# (1 mm)² so that a 1 mm (or 1 mrad at 1 m) error costs the fraction c of the best CV misfit.
+RIDGE_FRACTIONS = (0.01, 0.1, 1.0)
 
 
 @dataclass
@@ -73,6 +78,7 @@ class LoopResult:
     timings: dict = field(default_factory=dict)
     errors: dict = field(default_factory=dict)   # stage -> {"train": Tensor, "test": Tensor} (m)
     evidence: dict = field(default_factory=dict)  # effect -> arrays for plots
+    elm_covariates: list = field(default_factory=list)
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
@@ -88,9 +94,12 @@ class LoopResult:
 
         geo = self.robot.params(self.params.values[: self.robot.n_params])
         geo.free = self.params.free[: self.robot.n_params].clone()
-        for e in self.effects:
-            e.robot = self.robot
-        return CalibratedModel(self.robot, geo, effects=list(self.effects), residual=self.elm,
+        residual = self.elm
+        if residual is not None and residual.n_outputs_ != 3:
+            raise ValueError("the residual ELM predicts several markers at once; a deployable model holds a "
+                             "residual for one marker: run the loop with that marker only")
+        return CalibratedModel(self.robot, geo, effects=list(self.effects), residual=residual,
+                               covariates=self.elm_covariates if residual is not None else None,
                                meta={"report": self.report()})
 
 
@@ -121,18 +130,20 @@ def _geometric_start(robot, data: Measurements, patterns) -> ParamSet:
     return register_base(robot, data, p)
 
 
-def _fit(robot, data: Measurements, geo: ParamSet, effects: list, start: ParamSet | None = None) -> ParamSet:
+def _fit(robot, data: Measurements, geo: ParamSet, effects: list, start: ParamSet | None = None,
+         ridge: float = 0.0) -> ParamSet:
     """Geometry + effects fitted on ``data`` by LM. Without ``start``: the identifiable subset of
     ``geo``'s free entries and all effect parameters, judged as in :func:`fit_identified`. With
     ``start`` (a fit of the same model on a superset of the rows): its free set and values are
     the start, with no new identifiability analysis — what the cross-validation folds use."""
     if start is not None:
         ps = start.clone()
-        make = lambda p: EffectCalibrationProblem(robot, p, effects, data)  # noqa: E731
+        make = lambda p: EffectCalibrationProblem(robot, p, effects, data, ridge=ridge * len(data))  # noqa: E731
+        # ridge is per row, so a fold of fewer rows gets a proportionally weaker prior
         ps, _, _ = fit_identified(make, ps, reduce=False, options={"max_iter": 100, "tau": 1e-6})
         return ps
     ps = ParamSet.concat(geo.clone(), effect_params(effects, data))
-    ps, _, _ = fit_identified(lambda p: EffectCalibrationProblem(robot, p, effects, data), ps,
+    ps, _, _ = fit_identified(lambda p: EffectCalibrationProblem(robot, p, effects, data, ridge=ridge * len(data)), ps,
                               markers=robot.marker_names, options={"max_iter": 200, "tau": 1e-6})
     return ps
 
@@ -155,17 +166,17 @@ def _residuals(robot, params: ParamSet, effects: list, data: Measurements) -> Te
     return out.reshape(len(data), -1)
 
 
-def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor]):
+def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor], ridge: float = 0.0):
     """Cross-validated per-row squared errors (m²), the per-fold fitted models, and the fit on
     all rows (which the folds start from: identifiable set and values)."""
-    full = _fit(robot, data, _geometric_start(robot, data, geo_patterns), effects)
+    full = _fit(robot, data, _geometric_start(robot, data, geo_patterns), effects, ridge=ridge)
     sq = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
     fits = []
     for f in folds:
         mask = torch.ones(len(data), dtype=torch.bool)
         mask[f] = False
         tr, va = data.subset(mask), data.subset(f)
-        p = _fit(robot, tr, None, effects, start=full)
+        p = _fit(robot, tr, None, effects, start=full, ridge=ridge)
         _, s = _row_sq_errors(robot, p, effects, va)
         sq[f] = s
         fits.append(p)
@@ -205,9 +216,13 @@ def _stats(robot, params, effects, data, elm=None) -> tuple[dict | None, Tensor]
     return out, e
 
 
+def _elm_covariates(data: Measurements) -> list[str]:
+    """Covariates the residual ELM reads after the commands: temperatures and directions."""
+    return [k for k in sorted(data.covariates) if k.startswith(("temp", "dir."))]
+
+
 def _elm_inputs(data: Measurements) -> Tensor:
-    cols = [data.q] + [v[:, None] for k, v in sorted(data.covariates.items()) if k.startswith(("temp", "dir."))]
-    return torch.cat(cols, 1)
+    return torch.cat([data.q] + [data.covariates[k][:, None] for k in _elm_covariates(data)], 1)
 
 
 def _elm_cv(robot, data, params_folds, effects, folds, n_hidden: int, ridge: float, seed: int) -> Tensor:
@@ -342,7 +357,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     fl = _folds(len(train), min(folds, len(train)), seed)
 
     # 1. nominal: base registration only
-    geo0 = _geometric_start(robot, train, GEOMETRIC_SETS[0][1])
+    geo0 = _geometric_start(robot, train, GEOMETRIC_SETS[0][1])  # base registration only
     nominal = ParamSet.concat(geo0, effect_params([], train))
     stages = []
     st_tr, e_tr = _stats(robot, nominal, [], train)
@@ -361,16 +376,31 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         entry = {"name": name, "n_params": k, "cv_rmse_mm": _rmse_mm(sq, n_obs)}
         if best_sq is None:
             entry["accepted"] = True
-            best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats), k, full
+            best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats, 0.0), k, full
         else:
             t, pen_ok, ok = _compare(best_sq, sq, best_k, k, n_obs)
             entry.update({"t": t, "accepted": ok})
             if ok:
-                best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats), k, full
+                best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats, 0.0), k, full
         geo_choice.append(entry)
-        say(f"geometric set {name:<16} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm"
+        say(f"geometric set {name:<22} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm"
             + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
-    geo_patterns = best_set[1]
+    if best_set[1] is not None:  # the full set lost: try it regularised
+        sse = float(best_sq.sum())
+        for c in RIDGE_FRACTIONS:
+            ridge = c * sse / 1e-6 / len(train)  # per row
+            sq, fits, full = _cv(robot, train, None, [], fl, ridge=ridge)
+            k = int(full.free.sum())
+            t, pen_ok, ok = _compare(best_sq, sq, best_k, best_k, n_obs)  # shrunk: counts as no new parameter
+            name = f"+joint origins, ridge c={c:g}"
+            entry = {"name": name, "n_params": k, "ridge_per_row": ridge, "cv_rmse_mm": _rmse_mm(sq, n_obs), "t": t,
+                     "accepted": ok}
+            geo_choice.append(entry)
+            say(f"geometric set {name:<22} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm  t = {t:.1f}  "
+                f"{'accepted' if ok else 'rejected'}")
+            if ok:
+                best_sq, best_fits, best_set, best_full = sq, fits, (name, None, ridge), full
+    geo_patterns, geo_ridge = best_set[1], best_set[2]
     params = best_full
     st_tr, e_tr = _stats(robot, params, [], train)
     st_te, e_te = _stats(robot, params, [], test)
@@ -399,7 +429,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for n in pool:
             eff = build_effect(n, robot, train)
             trial = accepted_effects + [eff]
-            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl)
+            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl, ridge=geo_ridge)
             k = int(full.free.sum())
             t, pen_ok, ok = _compare(cur_sq, sq, cur_k, k, n_obs)
             gain = _rmse_mm(cur_sq, n_obs) - _rmse_mm(sq, n_obs)
@@ -478,7 +508,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     return LoopResult(robot=robot, params=params, effects=accepted_effects, elm=elm_model, stages=stages,
                       accepted=accepted, candidates=cand_report, geometric={"chosen": best_set[0], "sets": geo_choice},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
-                      timings=timings, errors=errors, evidence=evidence)
+                      timings=timings, errors=errors, evidence=evidence, elm_covariates=_elm_covariates(train))
 
 
 def _stage(name: str, k: int, train: dict | None, test: dict | None, cv_rmse_mm: float | None = None) -> dict:

@@ -2,6 +2,8 @@
 :class:`~torchcal.optim.Problem` over the free parameters."""
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -72,7 +74,8 @@ class EffectCalibrationProblem(Problem):
     differences, all perturbations evaluated in one population call.
     """
 
-    def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6):
+    def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6,
+                 ridge: float = 0.0):
         from .measurement import Loss, PositionResidual
 
         idx = params.free_index
@@ -99,6 +102,16 @@ class EffectCalibrationProblem(Problem):
         if o != len(params):
             raise ValueError(f"params has {len(params)} entries, the robot and effects need {o}")
         self.fd_step = fd_step
+        # ridge: prior residuals sqrt(ridge) * e for every free joint error (lengths in m, angles
+        # through a 1 m lever), pulling what the data barely sees to 0; the base frame and the
+        # marker offsets are unknowns of the set-up, not errors of the robot, and stay unpulled
+        self.ridge = float(ridge)
+        setup = ("base.",) + tuple(f"{m}." for m in robot.marker_names)
+        geo_err = torch.tensor([not n.startswith(setup) for n in params.names[: self.K]]
+                               + [False] * (len(params) - self.K), device=params.free.device)
+        self._ridge_idx = torch.nonzero(geo_err & params.free).flatten() if self.ridge > 0 else None
+        if self._ridge_idx is not None:
+            self.m += int(self._ridge_idx.numel())
         free = params.free.clone()
         self._geo_free = torch.nonzero(free[: self.K]).flatten()
         self._eff_free = torch.nonzero(free[self.K:]).flatten() + self.K
@@ -135,12 +148,16 @@ class EffectCalibrationProblem(Problem):
         return (p - self._meas).norm(dim=-1)
 
     def residuals(self, X: Tensor) -> Tensor:
-        p, _ = self._positions(self.full(X))
+        full = self.full(X)
+        p, _ = self._positions(full)
         r = p - self._meas
         if self.loss.kind != "l2":
             fac, _ = self.loss.scales((r * r).sum(-1))
             r = r * fac[..., None]
-        return r.reshape(r.shape[0], -1)
+        r = r.reshape(r.shape[0], -1)
+        if self._ridge_idx is not None:
+            r = torch.cat([r, math.sqrt(self.ridge) * full[:, self._ridge_idx]], -1)
+        return r
 
     def jacobian(self, x: Tensor) -> Tensor:
         full = self.full(x)[None]
@@ -175,12 +192,16 @@ class EffectCalibrationProblem(Problem):
         # assemble in the order of the free parameters
         free_full = self.params.free_index
         pos = {int(v): i for i, v in enumerate(free_full.tolist())}
-        J = torch.zeros(self.m, free_full.numel(), dtype=full.dtype, device=full.device)
+        J = torch.zeros(self.m, free_full.numel(), dtype=full.dtype, device=full.device)  # incl. ridge rows
         for idx, block in cols:
-            J[:, [pos[int(v)] for v in idx.tolist()]] = block
+            J[: 3 * self.n_obs, [pos[int(v)] for v in idx.tolist()]] = block
         if self.loss.kind != "l2":
             p, _ = self._positions(full)
             r = p[0] - self._meas
             _, jfac = self.loss.scales((r * r).sum(-1))
-            J = J * jfac.repeat_interleave(3)[:, None]
+            J[: 3 * self.n_obs] = J[: 3 * self.n_obs] * jfac.repeat_interleave(3)[:, None]
+        if self._ridge_idx is not None:
+            n = self._ridge_idx.numel()
+            rows = torch.arange(3 * self.n_obs, 3 * self.n_obs + n, device=J.device)
+            J[rows, [pos[int(v)] for v in self._ridge_idx.tolist()]] = math.sqrt(self.ridge)
         return J

@@ -346,6 +346,11 @@ class Robot:
         r._build()
         return r
 
+    @property
+    def urdf_text(self) -> str | None:
+        """The URDF text this robot was loaded from (None for a robot built from a DH table)."""
+        return self._urdf_text
+
     def urdf_hash(self) -> str:
         """SHA-256 of the URDF text this robot came from (or of its exported nominal URDF)."""
         text = self._urdf_text if self._urdf_text is not None else self.to_urdf_string()

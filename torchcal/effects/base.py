@@ -125,9 +125,28 @@ class Effect:
             return torch.zeros_like(q)
         return self.joint_delta(self.theta[None], self.prepare(q, covariates or {}))[0]
 
+    @property
+    def covariates(self) -> list[str]:
+        """Covariates the effect reads (every prediction must be given them)."""
+        return []
+
+    def position_correction(self, p: Tensor, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor:
+        """``p (N, M, 3)`` robot-base marker positions (m) -> corrected, with the fitted
+        parameters (the hook :class:`~torchcal.model.CalibratedModel` calls after FK)."""
+        if self.kind != "position":
+            return p
+        return self.position_map(p[None], self.theta[None], self.prepare(q, covariates or {}))[0]
+
     def state_dict(self) -> dict:
-        return {"name": self.name, "joints": list(self.joints), "theta": self.theta.detach().cpu().tolist(),
+        """What :func:`torchcal.persist.save` stores: tensors bit-exactly, the rest as JSON."""
+        return {"name": self.name, "joints": list(self.joints), "theta": self.theta.detach().clone(),
                 "config": self.config()}
+
+    @classmethod
+    def from_state_dict(cls, state: dict, robot) -> "Effect":
+        eff = cls(robot, list(state["joints"]), **dict(state.get("config") or {}))
+        eff.theta = torch.as_tensor(state["theta"], dtype=robot.dtype, device=robot.device).clone()
+        return eff
 
     def config(self) -> dict:
         """Constructor settings beyond ``joints`` needed to rebuild the effect."""

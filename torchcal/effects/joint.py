@@ -75,6 +75,10 @@ class Backlash(Effect):
         return [(f"{j}.half_play", "rad" if u == "rad" else "m") for j, u in
                 zip(self.joints, [self.robot.joint_units[self.robot.joint_names.index(j)] for j in self.joints])]
 
+    @property
+    def covariates(self) -> list[str]:
+        return [f"dir.{j}" for j in self.joints]
+
     def applicable(self, data):
         missing = [j for j in self.joints if f"dir.{j}" not in data.covariates]
         if len(missing) == len(self.joints):

@@ -43,6 +43,10 @@ class ThermalDrift(Effect):
     def config(self) -> dict:
         return {"covariate": self.covariate, "t0": self.t0}
 
+    @property
+    def covariates(self) -> list[str]:
+        return [self.covariate] if self.covariate else []
+
     def param_info(self):
         return [("alpha", f"1/{self.covariate or 'covariate unit'}")]
 

@@ -1,0 +1,212 @@
+"""``torchcal correct``: corrected joint commands for a CSV of targets, from a saved model.
+
+Targets CSV (header row, one target per row):
+
+* ``x, y, z``: target position (m) in the model's instrument frame (required);
+* ``qw, qx, qy, qz``: target orientation as a unit quaternion (optional; all four or none;
+  without them the targets are positions only);
+* a column per joint (the model's joint names, rad / m): IK start for that target (optional;
+  choose the branch, e.g. elbow up). Without them IK starts mid-range with random restarts;
+* a column per covariate the model needs (``model.required_covariates``, e.g. ``temperature``).
+
+Output CSV: the target columns, the corrected command per joint, ``converged`` (1/0),
+``reason`` (``ok``, ``unreachable``, ``joint_limits``, ``singular``, ``not_converged``,
+``max_outer``), ``predicted_error_mm`` and, for pose targets, ``predicted_rot_error_mrad``.
+Numbers are written with full float64 precision (``repr``).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+__all__ = ["add_correct_parser", "correct_main", "main", "read_targets", "write_corrections",
+           "quat_to_matrix", "matrix_to_quat"]
+
+_POS, _QUAT = ("x", "y", "z"), ("qw", "qx", "qy", "qz")
+
+
+def quat_to_matrix(qt: Tensor) -> Tensor:
+    """``(..., 4)`` quaternion ``(w, x, y, z)`` (normalised here) ``-> (..., 3, 3)``."""
+    qt = qt / qt.norm(dim=-1, keepdim=True)
+    w, x, y, z = qt.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def matrix_to_quat(R: Tensor) -> Tensor:
+    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's
+    method: the largest of the four candidates is computed first, so it is accurate everywhere)."""
+    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    t = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
+    k = t.argmax(-1)
+    s = torch.sqrt(t.gather(-1, k[..., None]).clamp(min=1e-300))[..., 0] * 2  # 4 |component k|
+    cand = [
+        torch.stack([s / 4, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s], -1),
+        torch.stack([(r21 - r12) / s, s / 4, (r01 + r10) / s, (r02 + r20) / s], -1),
+        torch.stack([(r02 - r20) / s, (r01 + r10) / s, s / 4, (r12 + r21) / s], -1),
+        torch.stack([(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, s / 4], -1),
+    ]
+    q = torch.stack(cand, -2).gather(-2, k[..., None, None].expand(*k.shape, 1, 4))[..., 0, :]
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def _read(path) -> tuple[list[str], list[list[str]]]:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"targets file not found: {p}")
+    with open(p, newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    if len(rows) < 2:
+        raise ValueError(f"{p}: needs a header row (x,y,z[,qw,qx,qy,qz]) and at least one target row")
+    header = [h.strip() for h in rows[0]]
+    for i, r in enumerate(rows[1:], start=2):
+        if len(r) != len(header):
+            raise ValueError(f"{p}, line {i}: {len(r)} cells but the header has {len(header)} columns")
+    return header, rows[1:]
+
+
+def read_targets(path, robot, covariates: list[str] | None = None):
+    """Read a targets CSV (see the module docstring).
+
+    Returns:
+        ``(targets, q0, cov, has_quat)``: ``targets (N, 4, 4)`` or ``(N, 3)`` (m), ``q0 (N, dof)``
+        or ``None``, ``cov`` dict ``name -> (N,)`` or ``None``, and whether orientations were given.
+    """
+    header, rows = _read(path)
+    col = {h: i for i, h in enumerate(header)}
+    missing = [c for c in _POS if c not in col]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {missing}; the targets need x,y,z in metres "
+                         f"(and optionally qw,qx,qy,qz); found {header}")
+    nq = [c for c in _QUAT if c in col]
+    if nq and len(nq) != 4:
+        raise ValueError(f"{path}: give all four quaternion columns qw,qx,qy,qz or none; found {nq}")
+
+    def num(name: str) -> Tensor:
+        vals = []
+        for i, r in enumerate(rows, start=2):
+            cell = r[col[name]].strip()
+            try:
+                v = float(cell)
+            except ValueError:
+                raise ValueError(f"{path}, line {i}, column {name!r}: {cell!r} is not a number") from None
+            if not math.isfinite(v):
+                raise ValueError(f"{path}, line {i}, column {name!r}: {cell!r} is not finite")
+            vals.append(v)
+        return torch.tensor(vals, dtype=robot.dtype, device=robot.device)
+
+    p = torch.stack([num(c) for c in _POS], -1)
+    if float(p.abs().max()) > 50:
+        raise ValueError(f"{path}: target positions reach {float(p.abs().max()):.1f}, which looks like "
+                         "millimetres; torchcal expects metres")
+    has_quat = bool(nq)
+    if has_quat:
+        qt = torch.stack([num(c) for c in _QUAT], -1)
+        n = qt.norm(dim=-1)
+        if bool(((n - 1).abs() > 1e-3).any()):
+            i = int(torch.nonzero((n - 1).abs() > 1e-3)[0])
+            raise ValueError(f"{path}, line {i + 2}: quaternion norm {float(n[i]):.4f}, expected 1 "
+                             "(qw,qx,qy,qz of a unit quaternion)")
+        T = torch.eye(4, dtype=robot.dtype, device=robot.device).repeat(p.shape[0], 1, 1)
+        T[:, :3, :3] = quat_to_matrix(qt)
+        T[:, :3, 3] = p
+        targets = T
+    else:
+        targets = p
+    js = [j for j in robot.joint_names if j in col]
+    if js and len(js) != robot.dof:
+        raise ValueError(f"{path}: IK start columns must name every joint {robot.joint_names}; found only {js}")
+    q0 = torch.stack([num(j) for j in robot.joint_names], -1) if js else None
+    cov = None
+    if covariates:
+        miss = [c for c in covariates if c not in col]
+        if miss:
+            raise ValueError(f"{path}: the model needs covariate column(s) {miss}")
+        cov = {c: num(c) for c in covariates}
+    return targets, q0, cov, has_quat
+
+
+def write_corrections(path, targets: Tensor, res, robot) -> None:
+    """Write targets, corrected commands and status (see the module docstring)."""
+    pose = targets.ndim == 3
+    header = list(_POS) + (list(_QUAT) if pose else []) + list(robot.joint_names) + \
+        ["converged", "reason", "predicted_error_mm"] + (["predicted_rot_error_mrad"] if pose else [])
+    p = targets[:, :3, 3] if pose else targets
+    qt = matrix_to_quat(targets[:, :3, :3]) if pose else None
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for i in range(p.shape[0]):
+            row = [repr(float(v)) for v in p[i]]
+            if pose:
+                row += [repr(float(v)) for v in qt[i]]
+            row += [repr(float(v)) for v in res.q[i]]
+            row += [int(bool(res.converged[i])), res.reason[i], repr(float(res.predicted_error_mm[i]))]
+            if pose:
+                row.append(repr(float(res.predicted_rot_error_mrad[i])))
+            w.writerow(row)
+
+
+def add_correct_parser(sub) -> argparse.ArgumentParser:
+    """Add the ``correct`` sub-command to an ``argparse`` sub-parser set (``ap.add_subparsers()``)."""
+    c = sub.add_parser("correct", help="corrected joint commands for target poses, from a saved model",
+                       description="Corrected joint commands for a CSV of targets (x,y,z in m, optional "
+                                   "qw,qx,qy,qz, optional per-joint IK start columns), using a model saved "
+                                   "by torchcal.save.")
+    c.add_argument("--model", required=True, help="model directory (model.json, tensors.safetensors, robot.urdf)")
+    c.add_argument("--targets", required=True,
+                   help="targets CSV: x,y,z (m) [, qw,qx,qy,qz] [, joint columns = IK start]")
+    c.add_argument("--out", required=True, help="output CSV: targets, corrected joint commands, status")
+    c.add_argument("--tol-mm", type=float, default=1e-3, help="tolerance on the predicted position error (mm)")
+    c.add_argument("--tol-mrad", type=float, default=1e-3, help="tolerance on the predicted rotation error (mrad)")
+    c.add_argument("--max-outer", type=int, default=10, help="correction rounds at most")
+    c.add_argument("--strict", action="store_true", help="exit with status 3 when any target fails")
+    c.add_argument("--threads", type=int, default=1)
+    c.set_defaults(func=correct_main)
+    return c
+
+
+def correct_main(a: argparse.Namespace) -> int:
+    """Run ``torchcal correct`` with parsed arguments (see :func:`add_correct_parser`)."""
+    from .correct import Corrector
+    from .persist import load
+
+    torch.set_num_threads(a.threads)
+    model = load(a.model)
+    targets, q0, cov, _ = read_targets(a.targets, model.robot, model.required_covariates)
+    res = Corrector(model, tol_mm=a.tol_mm, tol_mrad=a.tol_mrad, max_outer=a.max_outer).correct(targets, q0, cov)
+    write_corrections(a.out, targets, res, model.robot)
+    n, ok = len(res.reason), int(res.converged.sum())
+    fails = {k: v for k, v in res.summary().items() if k != "ok"}
+    print(f"{model.robot.name}: corrected {ok}/{n} targets"
+          + (f"; failed: {fails}" if fails else "") + f"; wrote {a.out}")
+    return 3 if (a.strict and ok < n) else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry: ``python -m torchcal.cli_correct --model DIR --targets CSV --out CSV``."""
+    ap = argparse.ArgumentParser(prog="torchcal")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    add_correct_parser(sub)
+    a = ap.parse_args(["correct", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return a.func(a)
+    except (ValueError, FileNotFoundError, KeyError) as e:
+        print(f"torchcal correct: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
