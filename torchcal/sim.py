@@ -104,71 +104,130 @@ EFFECT_DEFAULTS = {
 }
 
 
-def simulate_effects(robot, q: Tensor, names: list[str], generator: torch.Generator,
-                     options: dict | None = None) -> tuple[Tensor, dict, dict, Tensor | None]:
-    """Joint deflections and covariates of physical effects for commands ``q (N, dof)``.
+def draw_effects(robot, names: list[str], generator: torch.Generator, options: dict | None = None) -> dict:
+    """Draw the true size of each named physical effect (the hidden truth of a simulated robot).
 
     Written independently of the fitted effect classes where that is cheap (random phases,
-    a motion sequence for directions), so that the loop is not shown its own model.
-
-    Returns (Δq (N, dof), covariates, truth, row scale of robot-base positions or None).
-    """
-    from .effects.gravity import gravity_features
+    true masses plus a payload), so that the loop is not shown its own model."""
     from .urdf import read_inertials
 
     opts = {k: dict(v) for k, v in EFFECT_DEFAULTS.items()}
     for k, v in (options or {}).items():
         opts.setdefault(k, {}).update(v)
-    N, dof = q.shape
-    dq = torch.zeros_like(q)
-    cov: dict[str, Tensor] = {}
+    dof = robot.dof
+    rnd = lambda *shape: torch.rand(*shape, generator=generator, dtype=torch.float64)  # noqa: E731
     truth: dict = {}
-    scale = None
-    rev = torch.tensor([u == "rad" for u in robot.joint_units], device=q.device)
     for name in names:
         o = opts.get(name, {})
         if name == "joint_compliance":
-            inert = read_inertials(robot._urdf_text) if robot._urdf_text else {}
+            inert = read_inertials(robot.urdf_text) if robot.urdf_text else {}
             links = [l for l in inert if l in {jt.child for jt in robot.joints}]
-            tool = robot.markers[0].link
-            F = gravity_features(robot, q, links + [tool])  # (N, L+1, dof, 4)
-            mm = [[inert[l]["mass"], *(inert[l]["mass"] * inert[l]["com"]).tolist()] for l in links]
             m = o["payload_kg"]
+            mm = [[inert[l]["mass"], *(inert[l]["mass"] * inert[l]["com"]).tolist()] for l in links]
             mm.append([m, *(m * torch.tensor(o["payload_com"], dtype=torch.float64)).tolist()])
-            tau = torch.einsum("nljf,lf->nj", F, torch.tensor(mm, dtype=q.dtype, device=q.device))
-            c = o["compliance"] * (0.5 + torch.rand(dof, generator=generator, dtype=torch.float64)).to(q)
-            dq = dq + c * tau * rev
-            truth[name] = {"compliance_rad_per_Nm": c.tolist(), "payload_kg": m, "payload_com_m": list(o["payload_com"])}
+            truth[name] = {"compliance_rad_per_Nm": (o["compliance"] * (0.5 + rnd(dof))).tolist(),
+                           "payload_kg": m, "payload_com_m": list(o["payload_com"]),
+                           "links": links + [robot.markers[0].link], "mass_moments": mm}
         elif name == "backlash":
-            # the poses are visited in the order given: each joint's direction of approach
-            steps = torch.diff(q, dim=0, prepend=q[:1] - 1e-3 * torch.sign(torch.randn(1, dof, generator=generator,
-                                                                                         dtype=torch.float64)).to(q))
-            d = torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
-            b = o["half_play"] * (0.5 + torch.rand(dof, generator=generator, dtype=torch.float64)).to(q)
-            dq = dq + b * d
-            for j, n in enumerate(robot.joint_names):
-                cov[f"dir.{n}"] = d[:, j]
-            truth[name] = {"half_play_rad": b.tolist()}
+            truth[name] = {"half_play_rad": (o["half_play"] * (0.5 + rnd(dof))).tolist()}
         elif name == "cyclic_joint_error":
-            ph = 2 * math.pi * torch.rand(2, dof, generator=generator, dtype=torch.float64).to(q)
-            a1 = o["amp1"] * (0.5 + torch.rand(dof, generator=generator, dtype=torch.float64)).to(q)
-            a2 = o["amp2"] * (0.5 + torch.rand(dof, generator=generator, dtype=torch.float64)).to(q)
-            dq = dq + (a1 * torch.sin(q + ph[0]) + a2 * torch.sin(2 * q + ph[1])) * rev
-            truth[name] = {"amp1_rad": a1.tolist(), "amp2_rad": a2.tolist(), "phase_rad": ph.tolist()}
+            truth[name] = {"phase_rad": (2 * math.pi * rnd(2, dof)).tolist(),
+                           "amp1_rad": (o["amp1"] * (0.5 + rnd(dof))).tolist(),
+                           "amp2_rad": (o["amp2"] * (0.5 + rnd(dof))).tolist()}
         elif name == "joint_scale":
-            s = o["scale"] * torch.randn(dof, generator=generator, dtype=torch.float64).to(q)
-            dq = dq + s * q
-            truth[name] = {"scale": s.tolist()}
+            truth[name] = {"scale": (o["scale"] * torch.randn(dof, generator=generator, dtype=torch.float64)).tolist()}
         elif name == "thermal_drift":
-            walk = torch.cumsum(torch.randn(N, generator=generator, dtype=torch.float64), 0).to(q)
-            walk = (walk - walk.min()) / (walk.max() - walk.min() + 1e-12) * o["dT"]
-            temp = 20.0 + walk
-            cov["temperature"] = temp
-            scale = 1 + o["alpha"] * (temp - temp.mean())
-            truth[name] = {"alpha_per_K": o["alpha"], "t_ref_C": float(temp.mean())}
+            truth[name] = {"alpha_per_K": o["alpha"], "span_K": o["dT"], "t_ref_C": 20.0 + o["dT"] / 2}
         else:
             raise ValueError(f"unknown effect {name!r}; simulate one of {sorted(EFFECT_DEFAULTS)}")
-    return dq, cov, truth, scale
+    return truth
+
+
+def apply_effects(robot, q: Tensor, truth: dict, *, directions: Tensor | None = None,
+                  temperature: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+    """Joint deflections ``Δq (N, dof)`` and the row scale of robot-base positions (thermal, or
+    None) of the effects in ``truth`` at commands ``q``. ``directions (N, dof)`` (+1/-1) and
+    ``temperature (N,)`` °C are the states backlash and thermal drift need."""
+    from .effects.gravity import gravity_features
+
+    dq = torch.zeros_like(q)
+    scale = None
+    rev = torch.tensor([u == "rad" for u in robot.joint_units], device=q.device)
+    T = lambda v: torch.as_tensor(v, dtype=q.dtype, device=q.device)  # noqa: E731
+    for name, t in truth.items():
+        if name == "joint_compliance":
+            F = gravity_features(robot, q, t["links"])  # (N, L, dof, 4)
+            tau = torch.einsum("nljf,lf->nj", F, T(t["mass_moments"]))
+            dq = dq + T(t["compliance_rad_per_Nm"]) * tau * rev
+        elif name == "backlash":
+            dq = dq + T(t["half_play_rad"]) * directions
+        elif name == "cyclic_joint_error":
+            ph = T(t["phase_rad"])
+            dq = dq + (T(t["amp1_rad"]) * torch.sin(q + ph[0]) + T(t["amp2_rad"]) * torch.sin(2 * q + ph[1])) * rev
+        elif name == "joint_scale":
+            dq = dq + T(t["scale"]) * q
+        elif name == "thermal_drift":
+            scale = 1 + t["alpha_per_K"] * (temperature - t["t_ref_C"])
+    return dq, scale
+
+
+def directions_of(q: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """Direction (+1/-1) from which each joint reaches each pose when the poses are visited in
+    order; the first pose's direction is drawn (or +1)."""
+    first = (torch.sign(torch.randn(1, q.shape[1], generator=generator, dtype=torch.float64)).to(q)
+             if generator is not None else torch.ones(1, q.shape[1], dtype=q.dtype, device=q.device))
+    steps = torch.diff(q, dim=0, prepend=q[:1] - 1e-3 * first)
+    return torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
+
+
+class SimulatedRobot:
+    """A "real" robot for simulation: geometric errors, physical effects and an instrument.
+
+    Only :meth:`measure` output should reach a solver; :meth:`reach` (noise-free) is for scoring
+    what commands actually do, e.g. after correction."""
+
+    def __init__(self, robot, truth: ParamSet, effects: dict, noise: float, generator: torch.Generator):
+        self.robot, self.truth, self.effects, self.noise, self.g = robot, truth, effects, noise, generator
+
+    def reach(self, q: Tensor, *, directions: Tensor | None = None, temperature: Tensor | None = None) -> Tensor:
+        """``(N, M, 3)`` where the markers really go for commands ``q`` (m, instrument frame)."""
+        if directions is None and "backlash" in self.effects:
+            directions = directions_of(q)
+        if temperature is None and "thermal_drift" in self.effects:
+            temperature = torch.full((q.shape[0],), self.effects["thermal_drift"]["t_ref_C"], dtype=q.dtype)
+        dq, scale = apply_effects(self.robot, q, self.effects, directions=directions, temperature=temperature)
+        geo = self.truth.values
+        p = self.robot.positions(q + dq, geo, base=False)
+        if scale is not None:
+            p = p * scale[:, None, None]
+        Rb, tb = self.robot.base_transform(geo)
+        return tb + (Rb @ p[..., None])[..., 0]
+
+    def measure(self, q: Tensor) -> Measurements:
+        """Measure poses visited in the order given: covariates for the effects present."""
+        cov: dict[str, Tensor] = {}
+        d = temp = None
+        if "backlash" in self.effects:
+            d = directions_of(q, self.g)
+            cov.update({f"dir.{n}": d[:, j] for j, n in enumerate(self.robot.joint_names)})
+        if "thermal_drift" in self.effects:
+            t = self.effects["thermal_drift"]
+            walk = torch.cumsum(torch.randn(q.shape[0], generator=self.g, dtype=torch.float64), 0).to(q)
+            walk = (walk - walk.min()) / (walk.max() - walk.min() + 1e-12) * t["span_K"]
+            temp = 20.0 + walk
+            cov["temperature"] = temp
+        p = self.reach(q, directions=d, temperature=temp)
+        p = p + torch.randn(p.shape, generator=self.g, dtype=torch.float64).to(p) * self.noise
+        return Measurements(q.clone(), p, list(self.robot.marker_names), list(self.robot.joint_names), covariates=cov)
+
+
+def simulated_robot(robot, cfg: SimConfig | None = None, effects: list[str] = (), *, options: dict | None = None,
+                    true_params: ParamSet | None = None) -> SimulatedRobot:
+    """Draw a "real" robot: geometric errors from ``cfg`` (or ``true_params``) and effects."""
+    cfg = cfg or SimConfig()
+    g = torch.Generator().manual_seed(cfg.seed)
+    truth = true_params if true_params is not None else random_errors(robot, robot.params(), cfg, g)
+    return SimulatedRobot(robot, truth, draw_effects(robot, list(effects), g, options), cfg.noise, g)
 
 
 def simulate_with_effects(robot, cfg: SimConfig | None = None, effects: list[str] = (), *,
@@ -178,17 +237,7 @@ def simulate_with_effects(robot, cfg: SimConfig | None = None, effects: list[str
 
     Returns (measurements with covariates, geometric truth, effect truth)."""
     cfg = cfg or SimConfig()
-    g = torch.Generator().manual_seed(cfg.seed)
-    truth = true_params if true_params is not None else random_errors(robot, robot.params(), cfg, g)
+    sim = simulated_robot(robot, cfg, effects, options=options, true_params=true_params)
     if q is None:
-        q = random_configs(robot, cfg.n, g, cfg.joint_margin)
-    dq, cov, etruth, scale = simulate_effects(robot, q, list(effects), g, options)
-    geo = truth.values
-    p = robot.positions(q + dq, geo, base=False)
-    if scale is not None:
-        p = p * scale[:, None, None]
-    Rb, tb = robot.base_transform(geo)
-    p = tb + (Rb @ p[..., None])[..., 0]
-    noise = torch.randn(p.shape, generator=g, dtype=torch.float64).to(p) * cfg.noise
-    data = Measurements(q.clone(), p + noise, list(robot.marker_names), list(robot.joint_names), covariates=cov)
-    return data, truth, etruth
+        q = random_configs(robot, cfg.n, sim.g, cfg.joint_margin)
+    return sim.measure(q), sim.truth, sim.effects
