@@ -79,6 +79,7 @@ class LoopResult:
     errors: dict = field(default_factory=dict)   # stage -> {"train": Tensor, "test": Tensor} (m)
     evidence: dict = field(default_factory=dict)  # effect -> arrays for plots
     elm_covariates: list = field(default_factory=list)
+    geometric_fits: dict = field(default_factory=dict)  # set name -> ParamSet fitted on all training rows
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
@@ -368,10 +369,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. geometric parameter set by CV (nested sets, the acceptance rule between neighbours)
     t1 = time.perf_counter()
-    geo_choice = []
+    geo_choice, geo_fits = [], {}
     best_sq, best_fits, best_set, best_k = None, None, None, 0
     for name, pats in GEOMETRIC_SETS:
         sq, fits, full = _cv(robot, train, pats, [], fl)
+        geo_fits[name] = full
         k = int(full.free.sum())
         entry = {"name": name, "n_params": k, "cv_rmse_mm": _rmse_mm(sq, n_obs)}
         if best_sq is None:
@@ -390,6 +392,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for c in RIDGE_FRACTIONS:
             ridge = c * sse / 1e-6 / len(train)  # per row
             sq, fits, full = _cv(robot, train, None, [], fl, ridge=ridge)
+            geo_fits[f"+joint origins, ridge c={c:g}"] = full
             k = int(full.free.sum())
             t, pen_ok, ok = _compare(best_sq, sq, best_k, best_k, n_obs)  # shrunk: counts as no new parameter
             name = f"+joint origins, ridge c={c:g}"
@@ -508,7 +511,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     return LoopResult(robot=robot, params=params, effects=accepted_effects, elm=elm_model, stages=stages,
                       accepted=accepted, candidates=cand_report, geometric={"chosen": best_set[0], "sets": geo_choice},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
-                      timings=timings, errors=errors, evidence=evidence, elm_covariates=_elm_covariates(train))
+                      timings=timings, errors=errors, evidence=evidence, elm_covariates=_elm_covariates(train),
+                      geometric_fits=geo_fits)
 
 
 def _stage(name: str, k: int, train: dict | None, test: dict | None, cv_rmse_mm: float | None = None) -> dict:
