@@ -29,10 +29,10 @@ def _robot(urdf: str, markers: list[str] | None, data_csv: str | None):
     return Robot.from_urdf(urdf, markers=markers)
 
 
-def _calibrate(a) -> int:
+def _load(a):
+    """Robot, training and held-out data from the common options."""
     import torch
 
-    from .calibrate import SWARM_METHODS, calibrate
     from .io import load_measurements
 
     torch.set_num_threads(a.threads)
@@ -41,6 +41,13 @@ def _calibrate(a) -> int:
     test = load_measurements(a.test, robot) if a.test else None
     if test is None and a.holdout:
         train, test = train.split(a.holdout, seed=a.seed)
+    return robot, train, test
+
+
+def _calibrate(a) -> int:
+    from .calibrate import SWARM_METHODS, calibrate
+
+    robot, train, test = _load(a)
     progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty())
     res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
                     progress=progress, polish=a.polish, free=a.free or None)
@@ -59,18 +66,10 @@ def _calibrate(a) -> int:
 def _loop(a) -> int:
     import shlex
 
-    import torch
-
-    from .io import load_measurements
     from .loop import run_loop
     from .loop_report import write_loop_report
 
-    torch.set_num_threads(a.threads)
-    robot = _robot(a.robot, a.marker, a.data)
-    train = load_measurements(a.data, robot)
-    test = load_measurements(a.test, robot) if a.test else None
-    if test is None and a.holdout:
-        train, test = train.split(a.holdout, seed=a.seed)
+    robot, train, test = _load(a)
     res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
                    noise_mm=a.noise_mm)
     out = Path(a.out)

@@ -6,7 +6,7 @@ from pathlib import Path
 import torch
 
 from .loop import SIGNATURE_AXIS, LoopResult
-from .report import write_json
+from .report import histogram_figure, write_json
 
 __all__ = ["write_loop_report"]
 
@@ -21,36 +21,16 @@ def _plt():
 
 
 def _histograms(res: LoopResult, path: Path, split: str) -> bool:
-    """Error histograms before / geometric / full model in one figure (log axis when the stages
-    are orders of magnitude apart), as calibration papers show them."""
-    import numpy as np
-
+    """Error histograms before / geometric / full model in one figure, as calibration papers
+    show them."""
     names = list(res.errors)
-    pick = [n for n in (names[0], "geometric", names[-1]) if n in res.errors]
-    pick = list(dict.fromkeys(pick))
-    data = [(n, res.errors[n][split].detach().cpu().double().numpy() * 1e3) for n in pick
-            if res.errors[n].get(split) is not None and res.errors[n][split].numel()]
-    if not data:
-        return False
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 4), dpi=120)
-    hi = max(float(d.max()) for _, d in data)
-    lo = min(float(np.percentile(d[d > 0], 1)) for _, d in data if (d > 0).any())
-    log = hi > 30 * lo
-    bins = np.geomspace(lo * 0.8, hi * 1.05, 50) if log else np.linspace(0, hi * 1.02, 40)
+    pick = list(dict.fromkeys(n for n in (names[0], "geometric", names[-1]) if n in res.errors))
     label = {names[0]: "before (base registration only)", "geometric": "geometric calibration"}
-    for n, d in data:
-        ax.hist(d, bins=bins, alpha=0.55, label=f"{label.get(n, 'full model: ' + n.lstrip('+'))}: "
-                                                 f"mean {d.mean():.3f} mm, max {d.max():.3f} mm")
-    if log:
-        ax.set_xscale("log")
-    ax.set_xlabel("position error per observation [mm]" + (" (log scale)" if log else ""))
-    ax.set_ylabel("observations")
-    ax.set_title(f"{res.robot.name}: error before / geometric / full model ({split}, {len(data[0][1])} observations)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    stages = [(label.get(n, "full model: " + n.lstrip("+")), res.errors[n][split]) for n in pick
+              if res.errors[n].get(split) is not None and res.errors[n][split].numel()]
+    if not stages:
+        return False
+    histogram_figure(stages, path, title=f"{res.robot.name}: error before / geometric / full model", split=split)
     return True
 
 
