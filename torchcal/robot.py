@@ -623,7 +623,7 @@ class Robot:
         _, mt = self._markers(slots)
         out = []
         for m, f in enumerate(self._mk_frame):
-            v = mt[:, m, :, None].expand(P, 3, N)  # (P, 3, N) so each step is one batched matmul
+            v = mt[:, m, :, None].expand(P, 3, N)  # (P, 3, N): columns of points, batched over P
             while f != 0:
                 j = f - 1
                 kind = self._kinds[j]
@@ -633,7 +633,11 @@ class Robot:
                     v = torch.stack([cj * x - sj * y, sj * x + cj * y, v[:, 2]], 1)
                 elif kind == 2:
                     v = torch.stack([v[:, 0], v[:, 1], v[:, 2] + qj[..., j]], 1)
-                v = torch.baddbmm(O_t[:, j, :, None].expand(P, 3, 1), O_R[:, j].expand(P, 3, 3), v)
+                # v <- O_t + O_R v as three column updates: cheaper than a batched 3x3 matmul here
+                OR = O_R[:, j]
+                w = torch.addcmul(O_t[:, j, :, None], OR[:, :, 0:1], v[:, 0:1])
+                w = torch.addcmul(w, OR[:, :, 1:2], v[:, 1:2])
+                v = torch.addcmul(w, OR[:, :, 2:3], v[:, 2:3])
                 f = self.parent_frame[j]
             out.append(v)
         t = torch.stack(out, 1).transpose(-1, -2).transpose(1, 2)  # (P, N, M, 3)
