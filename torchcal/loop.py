@@ -167,10 +167,18 @@ def _residuals(robot, params: ParamSet, effects: list, data: Measurements) -> Te
     return out.reshape(len(data), -1)
 
 
-def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor], ridge: float = 0.0):
+def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor], ridge: float = 0.0,
+        geo_free: Tensor | None = None):
     """Cross-validated per-row squared errors (m²), the per-fold fitted models, and the fit on
-    all rows (which the folds start from: identifiable set and values)."""
-    full = _fit(robot, data, _geometric_start(robot, data, geo_patterns), effects, ridge=ridge)
+    all rows (which the folds start from: identifiable set and values).
+
+    ``geo_free``: the geometric stage's identifiable set, kept when effects are tried. An effect
+    must not make geometric errors "identifiable" through itself (thermal scaling sees a base
+    rotation at 2e-4 of its size): those fits crawl along flat valleys and mean nothing."""
+    geo = _geometric_start(robot, data, geo_patterns)
+    if geo_free is not None:
+        geo.free &= geo_free
+    full = _fit(robot, data, geo, effects, ridge=ridge)
     sq = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
     fits = []
     for f in folds:
@@ -405,6 +413,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                 best_sq, best_fits, best_set, best_full = sq, fits, (name, None, ridge), full
     geo_patterns, geo_ridge = best_set[1], best_set[2]
     params = best_full
+    geo_free = best_full.free[: robot.n_params].clone()
     st_tr, e_tr = _stats(robot, params, [], train)
     st_te, e_te = _stats(robot, params, [], test)
     stages.append(_stage("geometric", int(params.free.sum()), st_tr, st_te, _rmse_mm(best_sq, n_obs)))
@@ -432,14 +441,17 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for n in pool:
             eff = build_effect(n, robot, train)
             trial = accepted_effects + [eff]
-            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl, ridge=geo_ridge)
+            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl, ridge=geo_ridge, geo_free=geo_free)
             k = int(full.free.sum())
             t, pen_ok, ok = _compare(cur_sq, sq, cur_k, k, n_obs)
             gain = _rmse_mm(cur_sq, n_obs) - _rmse_mm(sq, n_obs)
             results.append((ok, t, n, sq, fits, k, gain, pen_ok, full, eff))
             say(f"round {rnd}: {n:<20} {k:>3} params  CV RMSE {_rmse_mm(sq, n_obs):.4f} mm  gain {gain:+.4f} mm  "
                 f"t = {t:.1f}")
-        results.sort(key=lambda r: (r[0], r[1]), reverse=True)
+        # among candidates that pass, the one with the lowest penalised CV error wins (t only
+        # says an improvement is real; a look-alike effect can have a similar t and a smaller gain)
+        results.sort(key=lambda r: (r[0], -float(r[3].mean()) * (1 + 2 * r[5] / n_obs) if r[0] else r[1]),
+                     reverse=True)
         ok, t, n, sq, fits, k, gain, pen_ok, full, eff = results[0]
         for r_ in results:
             cand_report.append({"name": r_[2], "round": rnd, "n_params": r_[5], "cv_rmse_mm": _rmse_mm(r_[3], n_obs),
