@@ -433,7 +433,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             continue
         pool.append(n)
     accepted_effects, accepted, stage_fits = [], [], []
-    cur_sq, cur_fits, cur_k = best_sq, best_fits, best_k
+    cur_sq, cur_fits, cur_k, cur_full = best_sq, best_fits, best_k, best_full
     rnd = 0
     while pool:
         rnd += 1
@@ -454,14 +454,20 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                      reverse=True)
         ok, t, n, sq, fits, k, gain, pen_ok, full, eff = results[0]
         for r_ in results:
+            # measured on the held-out rows after the decision, for the report only
+            test_gain = None
+            if test is not None:
+                cur_te, _ = _stats(robot, cur_full, accepted_effects, test)
+                cand_te, _ = _stats(robot, r_[8], accepted_effects + [r_[9]], test)
+                test_gain = cur_te["mean_mm"] - cand_te["mean_mm"]
             cand_report.append({"name": r_[2], "round": rnd, "n_params": r_[5], "cv_rmse_mm": _rmse_mm(r_[3], n_obs),
-                                "cv_gain_mm": r_[6], "t": r_[1], "penalised_ok": r_[7],
+                                "cv_gain_mm": r_[6], "t": r_[1], "penalised_ok": r_[7], "test_gain_mm": test_gain,
                                 "accepted": bool(r_[0] and r_[2] == n)})
         if not ok:
             break
         accepted_effects.append(eff)
         stage_fits.append(full)
-        cur_sq, cur_fits, cur_k = sq, fits, k
+        cur_sq, cur_fits, cur_k, cur_full = sq, fits, k, full
         pool.remove(n)
         say(f"accepted {n}")
     timings["diagnosis"] = time.perf_counter() - t2
