@@ -44,6 +44,18 @@ def _load(a):
     return robot, train, test
 
 
+def _print_stages(stages: list[dict], has_test: bool) -> None:
+    """The per-stage error table both commands print (mm)."""
+    w = max(12, max(len(s["name"]) for s in stages) + 2)
+    cols = ["train mean", "train max"] + (["test mean", "test max"] if has_test else [])
+    print(f"\n{'stage':<{w}}{'params':>7}" + "".join(f"{c:>12}" for c in cols))
+    for s in stages:
+        vals = [s["train"]["mean_mm"], s["train"]["max_mm"]]
+        if has_test:
+            vals += [s["test"]["mean_mm"], s["test"]["max_mm"]]
+        print(f"{s['name']:<{w}}{s['n_params']:>7}" + "".join(f"{v:>12.4f}" for v in vals) + "   [mm]")
+
+
 def _calibrate(a) -> int:
     from .calibrate import SWARM_METHODS, calibrate
 
@@ -53,12 +65,7 @@ def _calibrate(a) -> int:
                     progress=progress, polish=a.polish, free=a.free or None)
     out = res.save(a.out)
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
-    print(f"{'stage':<12}{'params':>7}{'train mean':>12}{'train max':>11}" + ("{:>12}{:>11}".format("test mean", "test max") if test else ""))
-    for s in res.stages:
-        line = f"{s['name']:<12}{s['n_params']:>7}{s['train']['mean_mm']:>12.4f}{s['train']['max_mm']:>11.4f}"
-        if test is not None:
-            line += f"{s['test']['mean_mm']:>12.4f}{s['test']['max_mm']:>11.4f}"
-        print(line + "   [mm]")
+    _print_stages(res.stages, test is not None)
     print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
     return 0
 
@@ -82,12 +89,7 @@ def _loop(a) -> int:
         saved = f"; model in {out / 'model'}"
     except Exception as e:  # the report is still worth having
         saved = f"; the model could not be saved: {e}"
-    print(f"\n{'stage':<22}{'params':>7}{'train mean':>12}" + ("{:>12}".format("test mean") if test else ""))
-    for s_ in res.stages:
-        line = f"{s_['name']:<22}{s_['n_params']:>7}{s_['train']['mean_mm']:>12.4f}"
-        if test is not None:
-            line += f"{s_['test']['mean_mm']:>12.4f}"
-        print(line + "   [mm]")
+    _print_stages(res.stages, test is not None)
     print(f"effects found: {[e['name'] for e in res.accepted] or 'none'}; report in {out / 'report.md'}{saved}")
     return 0
 
