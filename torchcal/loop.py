@@ -491,7 +491,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                          "cv_gain_mm": next(c["cv_gain_mm"] for c in cand_report if c.get("accepted") and c["name"] == eff.name),
                          "test_gain_mm": gain_test, "evidence": ev_text,
                          "params": {n: float(v) for n, v, f in zip(p.names, p.values.tolist(), p.free.tolist())
-                                    if n.startswith(eff.name + ".") and f}})
+                                    if n.startswith(eff.name + ".") and f},
+                         "units": {n: u for n, u in zip(eff.param_names, eff.param_units)}})
         stages.append(_stage(f"+{eff.name}", int(p.free.sum()), st_tr, st_te))
         errors[f"+{eff.name}"] = {"train": e_tr, "test": e_te}
         params_by_stage.append((p, ev_data))

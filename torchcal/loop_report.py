@@ -115,8 +115,8 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
                   f"- evidence: {a['evidence']}"]
             if ev_figs.get(a["name"]):
                 L += ["", f"![evidence for {a['name']}](evidence_{a['name']}.png)"]
-            L += ["", "| parameter | value |", "|---|---|"]
-            L += [f"| {n} | {v:.6g} |" for n, v in a["params"].items()]
+            L += ["", "| parameter | value | unit |", "|---|---|---|"]
+            L += [f"| {n} | {v:.6g} | {a.get('units', {}).get(n, '')} |" for n, v in a["params"].items()]
             L.append("")
     else:
         L += ["No effect passed the rule: the geometric model explains the data to within what the "
