@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .params import ParamSet
-from .transforms import homogeneous, matrix_to_rpy, rpy_to_matrix, skew, so3_exp, so3_left_jacobian
+from .transforms import homogeneous, matrix_to_rpy, rot_y, rot_z, rpy_to_matrix, skew, so3_exp, so3_left_jacobian
 from .tree import JointSpec, Marker, parse_marker, select_subtree
 
 __all__ = ["Robot"]
@@ -767,8 +767,6 @@ class Robot:
             e = slots[:, self._slices["urdf"]].reshape(P, -1, 6)
             F0 = RP[:, :, U] @ self._U_R  # (P, N, U, 3, 3)
             ex, ey, ez = eye.unbind(0)
-            from .transforms import rot_y, rot_z
-
             Rz = rot_z(e[..., 5])[:, None]
             Ry = rot_y(e[..., 4])[:, None]
             a_yaw = F0 @ ez
@@ -804,8 +802,6 @@ class Robot:
         M = len(self.markers)
         e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
         F0 = RF[:, :, self._mk_frame] @ self._mk_R  # (P, N, M, 3, 3)
-        from .transforms import rot_y, rot_z
-
         Rz = rot_z(e[..., 5])[:, None]
         Ry = rot_y(e[..., 4])[:, None]
         ex, ey, ez = eye.unbind(0)
