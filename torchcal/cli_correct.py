@@ -196,16 +196,11 @@ def correct_main(a: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry: ``python -m torchcal.cli_correct --model DIR --targets CSV --out CSV``."""
-    ap = argparse.ArgumentParser(prog="torchcal")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    add_correct_parser(sub)
-    a = ap.parse_args(["correct", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return a.func(a)
-    except (ValueError, FileNotFoundError, KeyError) as e:
-        print(f"torchcal correct: error: {e}", file=sys.stderr)
-        return 2
+    """Stand-alone entry: ``python -m torchcal.cli_correct --model DIR --targets CSV --out CSV``
+    (the same as ``torchcal correct …``)."""
+    from .cli import main as cli_main
+
+    return cli_main(["correct", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -397,25 +397,24 @@ class RRRU:
         Returns:
             ``(..., 3, 14)`` (m per rad for the drive offsets, m/m for lengths).
         """
-        params = self._params(params)
-        theta = self._xyz(theta, "theta")
-        if p is None:
-            with torch.no_grad():
-                p = self.fk(theta, params, p0=p0)
-        g = self.geometry(self._lift(params, theta))
-        _, Hp, _, Hq = self._partials(p, theta, g)
+        _, Hp, _, Hq = self._partials_at_solution(theta, params, p, p0, with_params=True)
         return -torch.linalg.solve(Hp, Hq)
 
     def joint_jacobian(self, theta, params=None, *, p=None, p0=None) -> Tensor:
         """``∂p/∂θ`` (m/rad), ``(..., 3, 3)``: the platform's velocity per drive rate."""
+        _, Hp, Ht, _ = self._partials_at_solution(theta, params, p, p0, with_params=False)
+        return -torch.linalg.solve(Hp, torch.diag_embed(Ht))
+
+    def _partials_at_solution(self, theta, params, p, p0, *, with_params: bool):
+        """Loop-closure partials at the FK solution (solved here unless ``p`` is given); the
+        implicit-function Jacobians are ``-Hp⁻¹ H_x``."""
         params = self._params(params)
         theta = self._xyz(theta, "theta")
         if p is None:
             with torch.no_grad():
                 p = self.fk(theta, params, p0=p0)
         g = self.geometry(self._lift(params, theta))
-        _, Hp, Ht, _ = self._partials(p, theta, g, params=False)
-        return -torch.linalg.solve(Hp, torch.diag_embed(Ht))
+        return self._partials(p, theta, g, params=with_params)
 
 
 class _ImplicitFK(torch.autograd.Function):
