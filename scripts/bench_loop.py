@@ -114,11 +114,13 @@ def main(argv=None) -> dict:
     print(f"geometric set chosen: {res.geometric['chosen']} ({len(res.geometric['sets'])} sets evaluated)")
     print(f"{'candidate':<22}{'round':>6}{'params':>7}{'CV gain mm':>12}{'t':>8}  decision")
     for c in res.candidates:
-        if "round" in c or c["name"] == "residual_elm":
+        if "t" in c:
             print(f"{c['name']:<22}{c.get('round', '-'):>6}{c['n_params']:>7}{c['cv_gain_mm']:>12.4f}{c['t']:>8.1f}  "
                   f"{'accepted' if c['accepted'] else 'rejected'}")
         else:
-            print(f"{c['name']:<22}{'-':>6}{'-':>7}{'':>12}{'':>8}  not applicable: {c.get('reason', '')}")
+            why = c.get("reason", "")
+            print(f"{c['name']:<22}{c.get('round', '-'):>6}{'-':>7}{'':>12}{'':>8}  "
+                  f"{'not applicable: ' if c.get('applicable') is False else ''}{why}")
     print(f"{'stage time':<22}{'s':>8}")
     for k, v in stage_s.items():
         print(f"{k:<22}{v:>8.2f}")

@@ -73,6 +73,17 @@ class Measurements:
                             None if self.quaternions is None else self.quaternions[idx],
                             {k: v[idx] for k, v in self.covariates.items()}, self.source)
 
+    def select_markers(self, names: list[str]) -> "Measurements":
+        """The same rows with only the markers ``names`` (in that order), e.g. one point of a
+        motion-capture rigid body for a protocol that uses one."""
+        missing = [n for n in names if n not in self.marker_names]
+        if missing:
+            raise ValueError(f"no marker {missing}; these rows have {self.marker_names}")
+        k = [self.marker_names.index(n) for n in names]
+        return Measurements(self.q, self.positions[:, k], list(names), list(self.joint_names),
+                            None if self.quaternions is None else self.quaternions[:, k], dict(self.covariates),
+                            self.source)
+
     def split(self, holdout: float, seed: int = 0) -> tuple["Measurements", "Measurements"]:
         """Random split into (train, test) with ``holdout`` of the rows in test."""
         if not 0 < holdout < 1:

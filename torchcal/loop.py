@@ -1,38 +1,49 @@
 """The loop with measured data: calibrate, read the residual, trace it to the physical effect the
 model lacks, add it, and report held-out error before and after.
 
-Every decision (which geometric parameters, which effect, whether the residual ELM helps) is
-made on the training data alone, by K-fold cross-validation. The held-out ``test`` data never
-steers anything: it is only measured.
+Every decision (which geometric parameters and prior, which effect and which of its modes,
+whether the residual ELM helps) is made on the training rows alone, by K-fold cross-validation
+under the rule of :mod:`torchcal.selection`. The held-out ``test`` rows never steer anything:
+they are only measured.
 
-Acceptance rule (stated once, used for every decision). Adding something to the model is
-accepted when, on the cross-validated per-row squared errors (sum over the row's markers),
-(1) the mean improvement is significant: a paired one-sided t statistic ``t > T_ACCEPT`` (3.0,
-about p < 0.002 for the sample sizes here), and (2) the penalised cross-validated error falls:
-``MSE_cv · (1 + 2k / n_obs)`` with ``k`` the free parameters (an AIC-like penalty on what it adds).
-The diagnosis repeats, with accepted effects kept, until no candidate passes.
+Stages:
+
+1. *nominal*: the instrument frame registered, nothing else;
+2. *noise*: a robust estimate ``σ̂`` of the per-axis noise, which sets the Huber threshold of
+   every fit and score (outliers then neither steer the fit nor decide the comparisons);
+3. *geometry*: nested parameter sets (base + markers, + joint offsets, + all joint origins); when
+   the data cannot support the full set, Gaussian priors on every geometric error with a scale
+   in mm and mrad (MAP) chosen by the same rule, counted by their effective number of parameters;
+4. *diagnosis*: each candidate effect starts from a linear step around the current model (a
+   family's modes chosen one by one), is fitted and cross-validated; the best that passes is
+   added, and the diagnosis repeats;
+5. *residual ELM*: kept only when it passes the rule;
+6. suspect rows (observations beyond ``OUTLIER_K σ̂``) are listed, never dropped.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from .effects import EFFECTS, build_effect, effect_params
-from .fitting import fit_identified
+from .effects import EFFECTS, build_effect
+from .elm import ELM
 from .io import Measurements
+from .loop_evidence import evidence_for
+from .loop_fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
+                       geometric_start, noise_sigma, observation_errors, split_params)
 from .params import ParamSet
-from .problem import EffectCalibrationProblem
-from .registration import register_base
-from .report import error_stats, write_json
+from .report import error_stats
+from .selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
 
-__all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS"]
+__all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "stage_stats",
+           "derive_directions"]
 
-T_ACCEPT = 3.0
+logger = logging.getLogger("torchcal.loop")
 
 # Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
 # default free set: every origin / DH error). Markers' positions are always free.
@@ -41,32 +52,28 @@ GEOMETRIC_SETS = [
     ("+joint offsets", ["base.*", "*.offset", "*.dtheta"]),
     ("+joint origins", None),
 ]
-# When CV rejects the full set (small data), the full set is also tried with a ridge on every
-# non-base error: prior residuals sqrt(λ/N)·e per row-normalised error, with λ = c · SSE_cv /
-# (1 mm)² so that a 1 mm (or 1 mrad at 1 m) error costs the fraction c of the best CV misfit.
-RIDGE_FRACTIONS = (0.01, 0.1, 1.0)
-
-
-@dataclass
-class Candidate:
-    name: str
-    n_params: int
-    cv_rmse_mm: float
-    cv_gain_mm: float
-    t: float
-    accepted: bool
-    round: int
-    penalised_ok: bool
-    reason: str = ""
 
 
 @dataclass
 class LoopResult:
-    """Outcome of :func:`run_loop`; :meth:`report` has the JSON shape of ``report.json``."""
+    """Outcome of :func:`run_loop`; :meth:`report` has the JSON shape of ``report.json``.
+
+    Attributes:
+        params: geometry + accepted effects, fitted on all training rows.
+        effects: accepted effect objects (fitted ``theta``); ``elm``: the residual ELM or None.
+        stages: per stage, error statistics (mm) on the training and held-out rows.
+        accepted / candidates: what was added, and every candidate examined, with the numbers
+            that decided (cross-validated) and the held-out gain measured afterwards.
+        geometric: the geometric sets and priors tried and the one chosen.
+        noise_sigma_mm: robust per-axis noise estimate of the final model (mm);
+            ``huber_mm``: the Huber threshold of the last round (mm).
+        suspects: training observations beyond ``OUTLIER_K σ̂``: row, marker, error (mm).
+        flags: warnings about candidates (a covariate outside its training range on the test rows).
+    """
 
     robot: object
-    params: ParamSet                  # geometry + accepted effects, fitted on all training rows
-    effects: list                     # accepted Effect objects with fitted theta
+    params: ParamSet
+    effects: list
     elm: object | None
     stages: list[dict]
     accepted: list[dict]
@@ -80,13 +87,22 @@ class LoopResult:
     evidence: dict = field(default_factory=dict)  # effect -> arrays for plots
     elm_covariates: list = field(default_factory=list)
     geometric_fits: dict = field(default_factory=dict)  # set name -> ParamSet fitted on all training rows
+    noise_sigma_mm: float | None = None
+    huber_mm: float | None = None
+    suspects: list = field(default_factory=list)
+    flags: list = field(default_factory=list)
+    prior_mm: float | None = None
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
-                "noise_floor_mm": self.noise_floor_mm, "stages": self.stages, "effects": self.accepted,
-                "candidates": self.candidates, "geometric_set": self.geometric,
-                "rule": f"accept when the paired t statistic of the cross-validated per-row squared-error "
-                        f"improvement exceeds {T_ACCEPT} and MSE_cv*(1+2k/n_obs) decreases",
+                "noise_floor_mm": self.noise_floor_mm, "noise_sigma_mm": self.noise_sigma_mm,
+                "huber_threshold_mm": self.huber_mm, "stages": self.stages, "effects": self.accepted,
+                "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
+                "suspect_rows": self.suspects, "flags": self.flags,
+                "rule": f"accept when the paired t statistic of the cross-validated per-row Huber-score "
+                        f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
+                        f"parameters); a family's modes are added one by one under the same rule with the "
+                        f"threshold raised for the number of modes tried",
                 "residual_elm": self.elm is not None, "timings_s": self.timings}
 
     def model(self):
@@ -104,214 +120,45 @@ class LoopResult:
                                meta={"report": self.report()})
 
 
-# ----------------------------------------------------------------------------- fitting pieces
-def _folds(n: int, k: int, seed: int) -> list[Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    perm = torch.randperm(n, generator=g)
-    return [perm[i::k].sort().values for i in range(k)]
-
-
-def _geometric_start(robot, data: Measurements, patterns) -> ParamSet:
-    p = robot.params()
-    for m in robot.marker_names:
-        if m not in data.marker_names:
-            p.fix(f"{m}.*")
-        p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
-    if patterns is not None:
-        keep = set(p.free_names)
-        p.free[:] = False
-        for pat in patterns:
-            try:
-                p.unfix(pat)
-            except KeyError:
-                pass
-        for m in data.marker_names:
-            p.unfix(f"{m}.dx", f"{m}.dy", f"{m}.dz")
-        p.free &= torch.tensor([n in keep for n in p.names], device=p.free.device)
-    return register_base(robot, data, p)
-
-
-def _fit(robot, data: Measurements, geo: ParamSet, effects: list, start: ParamSet | None = None,
-         ridge: float = 0.0) -> ParamSet:
-    """Geometry + effects fitted on ``data`` by LM. Without ``start``: the identifiable subset of
-    ``geo``'s free entries and all effect parameters, judged as in :func:`fit_identified`. With
-    ``start`` (a fit of the same model on a superset of the rows): its free set and values are
-    the start, with no new identifiability analysis — what the cross-validation folds use."""
-    if start is not None:
-        ps = start.clone()
-        make = lambda p: EffectCalibrationProblem(robot, p, effects, data, ridge=ridge * len(data))  # noqa: E731
-        # ridge is per row, so a fold of fewer rows gets a proportionally weaker prior
-        ps, _, _ = fit_identified(make, ps, reduce=False, options={"max_iter": 100, "tau": 1e-6})
-        return ps
-    ps = ParamSet.concat(geo.clone(), effect_params(effects, data))
-    ps, _, _ = fit_identified(lambda p: EffectCalibrationProblem(robot, p, effects, data, ridge=ridge * len(data)), ps,
-                              markers=robot.marker_names, options={"max_iter": 200, "tau": 1e-6})
-    return ps
-
-
-def _row_sq_errors(robot, params: ParamSet, effects: list, data: Measurements) -> tuple[Tensor, Tensor]:
-    """Per-observation errors (m) and per-row squared errors (m²) of a fitted model."""
-    prob = EffectCalibrationProblem(robot, params, effects, data)
-    e = prob.errors(params.values[None])[0]
-    rows = prob._rows
-    sq = torch.zeros(len(data), dtype=e.dtype, device=e.device).index_add_(0, rows, e * e)
-    return e, sq
-
-
-def _residuals(robot, params: ParamSet, effects: list, data: Measurements) -> Tensor:
-    """``(N, 3M)`` measured − model position per row (NaN where a marker was not seen)."""
-    prob = EffectCalibrationProblem(robot, params, effects, data)
-    p, _ = prob._positions(params.values[None])
-    out = torch.full((len(data), len(data.marker_names), 3), float("nan"), dtype=p.dtype, device=p.device)
-    out[prob._rows, prob.obs_cols_measured] = prob._meas - p[0]
-    return out.reshape(len(data), -1)
-
-
-def _cv(robot, data: Measurements, geo_patterns, effects: list, folds: list[Tensor], ridge: float = 0.0,
-        geo_free: Tensor | None = None):
-    """Cross-validated per-row squared errors (m²), the per-fold fitted models, and the fit on
-    all rows (which the folds start from: identifiable set and values).
-
-    ``geo_free``: the geometric stage's identifiable set, kept when effects are tried. An effect
-    must not make geometric errors "identifiable" through itself (thermal scaling sees a base
-    rotation at 2e-4 of its size): those fits crawl along flat valleys and mean nothing."""
-    geo = _geometric_start(robot, data, geo_patterns)
-    if geo_free is not None:
-        geo.free &= geo_free
-    full = _fit(robot, data, geo, effects, ridge=ridge)
-    sq = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
-    fits = []
-    for f in folds:
-        mask = torch.ones(len(data), dtype=torch.bool)
-        mask[f] = False
-        tr, va = data.subset(mask), data.subset(f)
-        p = _fit(robot, tr, None, effects, start=full, ridge=ridge)
-        _, s = _row_sq_errors(robot, p, effects, va)
-        sq[f] = s
-        fits.append(p)
-    return sq, fits, full
-
-
-def _compare(sq_old: Tensor, sq_new: Tensor, k_old: int, k_new: int, n_obs: int) -> tuple[float, float, bool]:
-    d = sq_old - sq_new
-    n = d.numel()
-    sd = float(d.std()) if n > 1 else 0.0
-    t = float(d.mean()) / (sd / math.sqrt(n)) if sd > 0 else (math.inf if float(d.mean()) > 0 else 0.0)
-    pen_old = float(sq_old.mean()) * (1 + 2 * k_old / n_obs)
-    pen_new = float(sq_new.mean()) * (1 + 2 * k_new / n_obs)
-    return t, pen_new < pen_old, t > T_ACCEPT and pen_new < pen_old
-
-
-def _rmse_mm(sq_rows: Tensor, n_obs: int) -> float:
-    return 1e3 * math.sqrt(float(sq_rows.sum()) / max(n_obs, 1))
-
-
-def _stats(robot, params, effects, data, elm=None) -> tuple[dict | None, Tensor]:
-    """Error statistics (mm), overall and per marker, and the per-observation errors (m)."""
+# ----------------------------------------------------------------------------- statistics
+def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None
+                ) -> tuple[dict | None, Tensor]:
+    """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
+    model on ``data``."""
     if data is None or len(data) == 0:
         return None, torch.zeros(0)
-    prob = EffectCalibrationProblem(robot, params, effects, data)
-    e = prob.errors(params.values[None])[0]
-    cols = prob.obs_cols_measured
+    ctx = Context(robot, data, [], None, 1.0)
+    e3, rows = observation_errors(ctx, params, effects, data)
+    cols = data.seen.nonzero()[:, 1]
     if elm is not None:
-        r = _residuals(robot, params, effects, data)
-        pred = elm.predict(_elm_inputs(data))
-        left = (r - pred).reshape(len(data), -1, 3)
+        r = residual_matrix(robot, params, effects, data)
+        left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
         seen = ~torch.isnan(left).any(-1)
         e = left[seen].norm(dim=-1)
         cols = torch.nonzero(seen)[:, 1]
+    else:
+        e = e3.norm(dim=-1)
     out = error_stats(e)
     out["per_marker"] = {m: error_stats(e[cols == k]) for k, m in enumerate(data.marker_names) if bool((cols == k).any())}
     return out, e
 
 
-def _elm_covariates(data: Measurements) -> list[str]:
+def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements) -> Tensor:
+    """``(N, 3M)`` measured − model position per row (NaN where a marker was not seen)."""
+    ctx = Context(robot, data, [], None, 1.0)
+    e3, _ = observation_errors(ctx, params, effects, data)
+    out = torch.full((len(data), len(data.marker_names), 3), float("nan"), dtype=e3.dtype, device=e3.device)
+    out[data.seen] = -e3
+    return out.reshape(len(data), -1)
+
+
+def elm_covariates(data: Measurements) -> list[str]:
     """Covariates the residual ELM reads after the commands: temperatures and directions."""
     return [k for k in sorted(data.covariates) if k.startswith(("temp", "dir."))]
 
 
-def _elm_inputs(data: Measurements) -> Tensor:
-    return torch.cat([data.q] + [data.covariates[k][:, None] for k in _elm_covariates(data)], 1)
-
-
-def _elm_cv(robot, data, params_folds, effects, folds, n_hidden: int, ridge: float, seed: int) -> Tensor:
-    from .elm import ELM
-
-    sq = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
-    for f, p in zip(folds, params_folds):
-        mask = torch.ones(len(data), dtype=torch.bool)
-        mask[f] = False
-        tr, va = data.subset(mask), data.subset(f)
-        r_tr = torch.nan_to_num(_residuals(robot, p, effects, tr))
-        elm = ELM(n_hidden=n_hidden, ridge=ridge, seed=seed).fit(_elm_inputs(tr), r_tr)
-        left = (_residuals(robot, p, effects, va) - elm.predict(_elm_inputs(va))).reshape(len(va), -1, 3)
-        sq[f] = torch.nan_to_num((left * left).sum(-1)).sum(-1)
-    return sq
-
-
-def _evidence(robot, params: ParamSet, effect, effects_before: list, data: Measurements) -> tuple[str, dict]:
-    """The residual of the model *without* ``effect`` projected on joint space (per row, minimum
-    norm), against the effect's own signature: the numbers a person would check."""
-    K = robot.n_params
-    geo = params.values[:K]
-    r = torch.nan_to_num(_residuals(robot, _without(params, effect, effects_before), effects_before, data))  # (N, 3M)
-    if effect.kind == "position":
-        prep = effect.prepare(data.q, data.covariates)
-        pr = robot.positions(data.q, geo, base=False, check=False)  # robot-base positions
-        Rb, _ = robot.base_transform(geo)
-        radial = torch.einsum("nmi,nmi->n", (r.reshape(len(data), -1, 3) @ Rb), pr) / pr.norm(dim=-1).sum(-1)
-        x = prep.features["dT"]
-        c = float(torch.corrcoef(torch.stack([x, radial]))[0, 1])
-        return (f"residual along the base-to-marker direction correlates with {effect.covariate} (r = {c:.2f})",
-                {"all": {"x": x.tolist(), "residual": (radial * 1e3).tolist(), "r": c,
-                         "xlabel": f"{effect.covariate} − mean", "ylabel": "radial residual [mm]"}})
-    J = robot.joint_jacobian(data.q, geo, check=False)[:, :, :3, :]  # (N, M, 3, dof)
-    mk = [robot.marker_names.index(m) for m in data.marker_names]
-    J = J[:, mk].reshape(len(data), -1, robot.dof)
-    dq = (torch.linalg.pinv(J) @ r[..., None])[..., 0]  # (N, dof) rad
-    a = params.names.index(effect.param_names[0])
-    theta = params.values[a:a + effect.n_params]
-    effect.theta = theta.clone()
-    pred = effect.joint_delta(theta[None], effect.prepare(data.q, data.covariates))[0]  # (N, dof)
-    prep = effect.prepare(data.q, data.covariates)
-    xsig = _signature_x(effect, data, prep)  # (N, dof) what a person plots the residual against
-    best, out = None, {}
-    for j in effect.joints:
-        i = robot.joint_names.index(j)
-        if float(pred[:, i].std()) == 0:
-            continue
-        c = float(torch.corrcoef(torch.stack([pred[:, i], dq[:, i]]))[0, 1])
-        out[j] = {"x": xsig[:, i].tolist(), "fitted": pred[:, i].tolist(), "residual": dq[:, i].tolist(), "r": c}
-        if best is None or abs(c) > abs(best[1]):
-            best = (j, c)
-    sig = {"joint_compliance": "gravity-torque deflection", "backlash": "direction of the last motion",
-           "cyclic_joint_error": "harmonics of the joint angle", "joint_scale": "joint angle"}.get(effect.name, "signature")
-    if best is None:
-        return "no joint moved the signature", out
-    return (f"residual projected on joint {best[0]} correlates with the fitted {sig} (r = {best[1]:.2f})", out)
-
-
-# x axis of the evidence plot per effect: (label, unit)
-SIGNATURE_AXIS = {"joint_compliance": ("gravity torque", "N·m"), "backlash": ("direction of the last motion", "±1"),
-                  "cyclic_joint_error": ("joint angle", "rad"), "joint_scale": ("joint angle", "rad")}
-
-
-def _signature_x(effect, data: Measurements, prep) -> Tensor:
-    """``(N, dof)`` the physical signature of a joint effect per joint: gravity torque for
-    compliance (URDF inertials), direction for backlash, the joint angle otherwise."""
-    if effect.name == "joint_compliance" and not effect.lumped:
-        tau = effect.torques(data.q, data.covariates)
-        return effect._scatter(tau[None])[0]
-    if effect.name == "backlash":
-        return effect._scatter(prep.features["dir"][None])[0]
-    return data.q
-
-
-def _without(params: ParamSet, effect, effects_before: list) -> ParamSet:
-    names = [n for e in effects_before for n in e.param_names]
-    keep = list(range(len(params) - len(names) - effect.n_params)) + [params.names.index(n) for n in names]
-    return ParamSet([params.names[i] for i in keep], [params.units[i] for i in keep], params.values[keep],
-                    params.free[keep], params.lower[keep], params.upper[keep])
+def elm_inputs(data: Measurements) -> Tensor:
+    return torch.cat([data.q] + [data.covariates[k][:, None] for k in elm_covariates(data)], 1)
 
 
 # ----------------------------------------------------------------------------- covariates
@@ -339,23 +186,75 @@ def derive_directions(data: Measurements) -> str | None:
     return key
 
 
+def _extrapolation(eff, test: Measurements | None) -> list[dict]:
+    """Covariates an effect reads whose held-out values leave the training range."""
+    out = []
+    if test is None:
+        return out
+    for c, (lo, hi) in eff.covariate_range.items():
+        if c not in test.covariates:
+            continue
+        v = test.covariates[c]
+        tol = 0.01 * (hi - lo)
+        outside = float(((v < lo - tol) | (v > hi + tol)).double().mean())
+        if outside > 0:
+            out.append({"effect": eff.name, "covariate": c, "train_range": [lo, hi],
+                        "test_range": [float(v.min()), float(v.max())], "fraction_outside": outside,
+                        "note": "the held-out rows lie outside the training range of this covariate: the "
+                                "effect would extrapolate there" + (" (time covariates are clamped to the "
+                                                                    "training range in the deployed model)"
+                                                                    if c in TIME_COLUMNS else "")})
+    return out
+
+
 # ----------------------------------------------------------------------------- the loop
+def _duplicate_groups(data: Measurements) -> Tensor:
+    """A group id per row: rows with identical commands share one (they must share a fold)."""
+    _, inv = torch.unique(data.q, dim=0, return_inverse=True)
+    return inv
+
+
+def _say(log):
+    def out(msg: str) -> None:
+        logger.info(msg)
+        if log is not None:
+            log(msg)
+    return out
+
+
 def run_loop(robot, train: Measurements, test: Measurements | None = None, *, candidates: list[str] | None = None,
              folds: int = 5, seed: int = 0, elm: bool = True, elm_hidden: int | None = None,
              noise_mm: float | None = None, progress: bool = False, log=print) -> LoopResult:
-    """Base registration → geometric calibration (parameter set chosen by CV) → diagnosis and
-    effects → residual ELM (kept only when it helps in CV) → final fit on all training rows.
+    """Registration → noise estimate → geometry (sets and priors chosen by CV) → diagnosis and
+    effects → residual ELM (kept only when it helps in CV) → report.
 
     Args:
+        robot: the :class:`~torchcal.robot.Robot` (markers declared).
+        train: training rows (:class:`~torchcal.io.Measurements`, m and rad); every decision is
+            made on them.
+        test: held-out rows, only measured (optional).
         candidates: effect names to consider (default: every effect in
-            :data:`torchcal.effects.EFFECTS` that the data allows).
-        folds: K of the K-fold cross-validation on the training rows.
+            :data:`torchcal.effects.EFFECTS` that the data allows); checked before any fitting.
+        folds: K of the K-fold cross-validation (≥ 2); rows with identical commands share a fold.
+        seed: seed of the fold assignment and the ELM.
+        elm: try the residual ELM stage; ``elm_hidden``: its hidden units (default N/4, 8–64).
         noise_mm: instrument noise (mean Euclidean error a perfect model would leave, mm) for the
             report; default: the median of a ``marker_std_mm`` covariate when the data has one.
-        log: a print-like function for progress lines (``None`` to stay quiet).
+        progress: a progress bar over the diagnosis candidates (tqdm).
+        log: a print-like function for progress lines (``None`` to stay quiet); lines also go
+            to the ``torchcal.loop`` logger.
+
+    Returns:
+        A :class:`LoopResult`.
     """
+    names = list(EFFECTS) if candidates is None else list(candidates)
+    unknown = [n for n in names if n not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect(s) {unknown}; known: {sorted(EFFECTS)}")
+    if folds < 2:
+        raise ValueError(f"folds must be at least 2, got {folds}")
     t0 = time.perf_counter()
-    say = log or (lambda *a, **k: None)
+    say = _say(log)
     derived = derive_directions(train)
     if derived is not None:
         if test is not None:
@@ -363,181 +262,312 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     timings: dict[str, float] = {}
     n_obs = int(train.seen.sum())
-    fl = _folds(len(train), min(folds, len(train)), seed)
+    fl = folds_of(len(train), min(folds, len(train)), seed, _duplicate_groups(train))
 
     # 1. nominal: base registration only
-    geo0 = _geometric_start(robot, train, GEOMETRIC_SETS[0][1])  # base registration only
-    nominal = ParamSet.concat(geo0, effect_params([], train))
-    stages = []
-    st_tr, e_tr = _stats(robot, nominal, [], train)
-    st_te, e_te = _stats(robot, nominal, [], test)
-    stages.append(_stage("nominal", 0, st_tr, st_te))
-    errors = {"nominal": {"train": e_tr, "test": e_te}}
+    geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1])
+    stages, errors = [], {}
+
+    def add_stage(name: str, k: float, params, effects, elm_model=None, cv=None, extra=None):
+        st_tr, e_tr = stage_stats(robot, params, effects, train, elm_model)
+        st_te, e_te = stage_stats(robot, params, effects, test, elm_model)
+        s = {"name": name, "n_params": int(round(k)), "train": st_tr}
+        if st_te is not None:
+            s["test"] = st_te
+        if cv is not None:
+            s["cv_rmse_mm"] = cv
+        s.update(extra or {})
+        stages.append(s)
+        errors[name] = {"train": e_tr, "test": e_te}
+        return s
+
+    add_stage("nominal", 0, geo0, [])
     timings["nominal"] = time.perf_counter() - t0
 
-    # 2. geometric parameter set by CV (nested sets, the acceptance rule between neighbours)
+    # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
+    ctx = Context(robot, train, fl, None, 1.0)
+    probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None), [], None)
+    for _ in range(3):
+        sigma = noise_sigma(ctx, probe)
+        ctx = Context(robot, train, fl, HUBER_K * sigma, sigma)
+        probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None), [], None)
+    say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")
+
+    # 3. geometry: nested sets, then priors when the full set is rejected
     geo_choice, geo_fits = [], {}
-    best_sq, best_fits, best_set, best_k = None, None, None, 0
+    best: Model | None = None
     for name, pats in GEOMETRIC_SETS:
-        sq, fits, full = _cv(robot, train, pats, [], fl)
-        geo_fits[name] = full
-        k = int(full.free.sum())
-        entry = {"name": name, "n_params": k, "cv_rmse_mm": _rmse_mm(sq, n_obs)}
-        if best_sq is None:
+        m = probe if pats is None else evaluate(ctx, name, geometric_start(robot, train, pats), [], None)
+        m.label = name
+        geo_fits[name] = m.params
+        entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": rmse_mm(m.scores, n_obs)}
+        if best is None:
             entry["accepted"] = True
-            best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats, 0.0), k, full
+            best = m
         else:
-            t, pen_ok, ok = _compare(best_sq, sq, best_k, k, n_obs)
+            t, _, ok = compare(best.scores, m.scores, best.k, m.k, n_obs)
             entry.update({"t": t, "accepted": ok})
             if ok:
-                best_sq, best_fits, best_set, best_k, best_full = sq, fits, (name, pats, 0.0), k, full
+                best = m
         geo_choice.append(entry)
-        say(f"geometric set {name:<22} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm"
+        say(f"geometric set {name:<24} {m.k:>5.1f} params  CV {entry['cv_rmse_mm']:.4f} mm"
             + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
-    if best_set[1] is not None:  # the full set lost: try it regularised
-        sse = float(best_sq.sum())
-        for c in RIDGE_FRACTIONS:
-            ridge = c * sse / 1e-6 / len(train)  # per row
-            sq, fits, full = _cv(robot, train, None, [], fl, ridge=ridge)
-            geo_fits[f"+joint origins, ridge c={c:g}"] = full
-            k = int(full.free.sum())
-            t, pen_ok, ok = _compare(best_sq, sq, best_k, best_k, n_obs)  # shrunk: counts as no new parameter
-            name = f"+joint origins, ridge c={c:g}"
-            entry = {"name": name, "n_params": k, "ridge_per_row": ridge, "cv_rmse_mm": _rmse_mm(sq, n_obs), "t": t,
-                     "accepted": ok}
-            geo_choice.append(entry)
-            say(f"geometric set {name:<22} {k:>3} params  CV RMSE {entry['cv_rmse_mm']:.4f} mm  t = {t:.1f}  "
-                f"{'accepted' if ok else 'rejected'}")
-            if ok:
-                best_sq, best_fits, best_set, best_full = sq, fits, (name, None, ridge), full
-    geo_patterns, geo_ridge = best_set[1], best_set[2]
-    params = best_full
-    geo_free = best_full.free[: robot.n_params].clone()
-    st_tr, e_tr = _stats(robot, params, [], train)
-    st_te, e_te = _stats(robot, params, [], test)
-    stages.append(_stage("geometric", int(params.free.sum()), st_tr, st_te, _rmse_mm(best_sq, n_obs)))
-    errors["geometric"] = {"train": e_tr, "test": e_te}
+    if best.label != GEOMETRIC_SETS[-1][0]:
+        full_start = geometric_start(robot, train, None)  # every error, held by the prior
+        tried: list[Model] = []
+        m = evaluate_prior(ctx, "prior", full_start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
+        for mt in sorted(tried, key=lambda x: x.prior_mm):
+            name = f"prior {mt.prior_mm:g} mm/mrad"
+            geo_fits[name] = mt.params
+            geo_choice.append({"name": name, "n_params": int(mt.params.free.sum()), "k_eff": mt.k,
+                               "prior_mm": mt.prior_mm, "cv_rmse_mm": rmse_mm(mt.scores, n_obs),
+                               "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
+        t, _, ok = compare(best.scores, m.scores, best.k, m.k, n_obs)
+        m.label = f"prior {m.prior_mm:g} mm/mrad"
+        next(g for g in geo_choice if g["name"] == m.label).update({"t": t, "accepted": ok})
+        say(f"geometric {m.label:<26} (scale chosen by CV among {sorted(x.prior_mm for x in tried)})  k_eff "
+            f"{m.k:>5.1f}  CV {rmse_mm(m.scores, n_obs):.4f} mm  t = {t:.1f}  {'accepted' if ok else 'rejected'}")
+        if ok:
+            best = m
     timings["geometric"] = time.perf_counter() - t1
 
-    # 3. diagnosis: add effects while one passes the rule
+    # 4. diagnosis
     t2 = time.perf_counter()
-    names = candidates if candidates is not None else list(EFFECTS)
+    current = best
+    cand_report: list[dict] = []
+    flags: list[dict] = []
     pool = []
-    cand_report = []
     for n in names:
-        eff = build_effect(n, robot, train)
+        eff = build_effect(n, robot, train, geometry=current.params.values[: robot.n_params])
         ok, why = eff.applicable(train)
         if not ok or eff.n_params == 0:
             cand_report.append({"name": n, "accepted": False, "applicable": False, "reason": why or "no parameters"})
             continue
         pool.append(n)
-    accepted_effects, accepted, stage_fits = [], [], []
-    cur_sq, cur_fits, cur_k, cur_full = best_sq, best_fits, best_k, best_full
+    accepted_steps: list[tuple[str, Model, dict]] = []
+    bar = _bar(progress)
     rnd = 0
     while pool:
         rnd += 1
+        sigma = noise_sigma(ctx, current)
+        if abs(HUBER_K * sigma - ctx.c) > 0.1 * ctx.c:
+            # the model explains more: tighten the threshold and refit it under it, so that no
+            # candidate is credited with what the tighter threshold alone gains
+            ctx = Context(robot, train, fl, HUBER_K * sigma, ctx.sigma)
+            current = _refit(ctx, current)
+            if accepted_steps:
+                accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
         results = []
-        for n in pool:
-            eff = build_effect(n, robot, train)
-            trial = accepted_effects + [eff]
-            sq, fits, full = _cv(robot, train, geo_patterns, trial, fl, ridge=geo_ridge, geo_free=geo_free)
-            k = int(full.free.sum())
-            t, pen_ok, ok = _compare(cur_sq, sq, cur_k, k, n_obs)
-            gain = _rmse_mm(cur_sq, n_obs) - _rmse_mm(sq, n_obs)
-            results.append((ok, t, n, sq, fits, k, gain, pen_ok, full, eff))
-            say(f"round {rnd}: {n:<20} {k:>3} params  CV RMSE {_rmse_mm(sq, n_obs):.4f} mm  gain {gain:+.4f} mm  "
-                f"t = {t:.1f}")
-        # among candidates that pass, the one with the lowest penalised CV error wins (t only
-        # says an improvement is real; a look-alike effect can have a similar t and a smaller gain)
-        results.sort(key=lambda r: (r[0], -float(r[3].mean()) * (1 + 2 * r[5] / n_obs) if r[0] else r[1]),
-                     reverse=True)
-        ok, t, n, sq, fits, k, gain, pen_ok, full, eff = results[0]
-        for r_ in results:
-            # measured on the held-out rows after the decision, for the report only
-            test_gain = None
-            if test is not None:
-                cur_te, _ = _stats(robot, cur_full, accepted_effects, test)
-                cand_te, _ = _stats(robot, r_[8], accepted_effects + [r_[9]], test)
-                test_gain = cur_te["mean_mm"] - cand_te["mean_mm"]
-            cand_report.append({"name": r_[2], "round": rnd, "n_params": r_[5], "cv_rmse_mm": _rmse_mm(r_[3], n_obs),
-                                "cv_gain_mm": r_[6], "t": r_[1], "penalised_ok": r_[7], "test_gain_mm": test_gain,
-                                "accepted": bool(r_[0] and r_[2] == n)})
-        if not ok:
+        for n in list(pool):
+            if bar is not None:
+                bar.set_description(f"round {rnd}: {n}")
+            res = _try(ctx, current, n, robot, train, test, n_obs, say, rnd)
+            if bar is not None:
+                bar.update(1)
+            if res.get("covered"):
+                pool.remove(n)
+            results.append(res)
+        passing = [r for r in results if r.get("ok")]
+        winner = min(passing, key=lambda r: penalised(r["model"].scores, r["model"].k, n_obs)) if passing else None
+        if winner is not None:
+            # candidates gaining within 2 % of the winner's gain are ties: the fewest parameters,
+            # then the registry's order (the plainer effect) takes the round
+            gain = float(current.scores.mean() - winner["model"].scores.mean())
+            ties = [r for r in passing if float(current.scores.mean() - r["model"].scores.mean()) >= 0.98 * gain]
+            winner = min(ties, key=lambda r: (r["model"].k, names.index(r["name"])))
+        for r in results:
+            entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
+            if "model" in r:
+                entry["test_gain_mm"] = _test_gain(robot, current, r["model"], test)
+                flags += _extrapolation(r["model"].effects[-1], test)
+            cand_report.append(entry)
+        if winner is None:
             break
-        accepted_effects.append(eff)
-        stage_fits.append(full)
-        cur_sq, cur_fits, cur_k, cur_full = sq, fits, k, full
-        pool.remove(n)
-        say(f"accepted {n}")
+        current = _refresh(ctx, winner["model"], n_obs)
+        accepted_steps.append((winner["name"], current, winner["entry"]))
+        if not current.effects[-1].selectable:  # a family stays a candidate: it may gain modes later
+            pool.remove(winner["name"])
+        say(f"accepted {winner['name']}" + (f" ({', '.join(winner['entry'].get('added_modes', []))})"
+                                            if winner["entry"].get("added_modes") else ""))
+    if bar is not None:
+        bar.close()
+    # the final model, refitted until the Huber threshold has followed its own residual: rows it
+    # now explains to the noise shrink the threshold, and outliers pull less
+    for _ in range(3):
+        sigma = noise_sigma(ctx, current)
+        if abs(HUBER_K * sigma - ctx.c) <= 0.1 * ctx.c:
+            break
+        ctx = Context(robot, train, fl, HUBER_K * sigma, ctx.sigma)
+        current = _refit(ctx, current)
     timings["diagnosis"] = time.perf_counter() - t2
+    if accepted_steps:
+        accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
+    geo_model = best if accepted_steps else current
+    add_stage("geometric", geo_model.k, geo_model.params, [], cv=rmse_mm(best.scores, n_obs),
+              extra={"prior_mm": best.prior_mm, "k_eff": geo_model.k})
 
-    # final fit with the accepted effects, stage by stage (each stage adds one effect)
-    params_by_stage = []
-    prev_params = params
-    for i, eff in enumerate(accepted_effects):
-        effs = accepted_effects[: i + 1]
-        p = stage_fits[i]
-        for e in effs:  # copy fitted values into the effect objects
-            a = p.names.index(e.param_names[0])
-            e.theta = p.values[a:a + e.n_params].clone()
-        st_tr, e_tr = _stats(robot, p, effs, train)
-        st_te, e_te = _stats(robot, p, effs, test)
-        gain_test = None
-        if st_te is not None and stages[-1].get("test"):
-            gain_test = stages[-1]["test"]["mean_mm"] - st_te["mean_mm"]
-        ev_text, ev_data = _evidence(robot, p, eff, effs[:-1], train)
-        accepted.append({"name": eff.name, "joints": list(eff.joints), "n_params": eff.n_params,
-                         "cv_gain_mm": next(c["cv_gain_mm"] for c in cand_report if c.get("accepted") and c["name"] == eff.name),
-                         "test_gain_mm": gain_test, "evidence": ev_text,
-                         "params": {n: float(v) for n, v, f in zip(p.names, p.values.tolist(), p.free.tolist())
+    accepted = []
+    evidence = {}
+    seen_names: set[str] = set()
+    for name, m, entry in accepted_steps:
+        eff = m.effects[-1]
+        _, parts = split_params(m.params, robot, m.effects)
+        for e, p in zip(m.effects, parts):
+            e.theta = p.values.clone()
+        stage = f"+{name}" if name not in seen_names else f"+{name} ({', '.join(entry.get('added_modes', []))})"
+        seen_names.add(name)
+        s = add_stage(stage, m.k, m.params, m.effects, cv=rmse_mm(m.scores, n_obs))
+        prev = stages[-2]
+        gain = None if "test" not in s or "test" not in prev else prev["test"]["mean_mm"] - s["test"]["mean_mm"]
+        ev_text, ev_data = evidence_for(robot, m, train)
+        evidence[stage.lstrip("+")] = ev_data
+        accepted.append({"name": name, "stage": stage, "joints": list(eff.joints), "n_params": eff.n_params,
+                         "modes": [lab for lab, _ in eff.modes()], "added_modes": entry.get("added_modes", []),
+                         "extends": entry.get("extends", []), "cv_gain_mm": entry["cv_gain_mm"],
+                         "test_gain_mm": gain, "evidence": ev_text, "found": eff.describe(),
+                         "params": {n: float(v) for n, v, f in zip(m.params.names, m.params.values.tolist(),
+                                                                     m.params.free.tolist())
                                     if n.startswith(eff.name + ".") and f},
-                         "units": {n: u for n, u in zip(eff.param_names, eff.param_units)}})
-        stages.append(_stage(f"+{eff.name}", int(p.free.sum()), st_tr, st_te))
-        errors[f"+{eff.name}"] = {"train": e_tr, "test": e_te}
-        params_by_stage.append((p, ev_data))
-        prev_params = p
-    params = prev_params
-    evidence = {eff.name: ev for eff, (_, ev) in zip(accepted_effects, params_by_stage)}
+                         "standard_errors": {n: v for n, v in m.info.get("se", {}).items() if n.startswith(eff.name + ".")},
+                         "units": dict(zip(eff.param_names, eff.param_units))})
 
-    # 4. residual ELM: kept only when it passes the same rule in CV
+    # 5. residual ELM
     t3 = time.perf_counter()
     elm_model = None
     if elm and len(train) >= 20:
-        from .elm import ELM
-
         H = elm_hidden or max(8, min(64, len(train) // 4))
-        sq_elm = _elm_cv(robot, train, cur_fits, accepted_effects, fl, H, 1e-3, seed)
+        sq_elm = _elm_cv(ctx, current, H, seed)
         k_elm = H * 3 * len(train.marker_names)
-        t, pen_ok, ok = _compare(cur_sq, sq_elm, cur_k, cur_k + k_elm, n_obs)
-        gain = _rmse_mm(cur_sq, n_obs) - _rmse_mm(sq_elm, n_obs)
-        cand_report.append({"name": "residual_elm", "n_params": k_elm, "cv_rmse_mm": _rmse_mm(sq_elm, n_obs),
+        t, pen_ok, ok = compare(current.scores, sq_elm, current.k, current.k + k_elm, n_obs)
+        gain = rmse_mm(current.scores, n_obs) - rmse_mm(sq_elm, n_obs)
+        cand_report.append({"name": "residual_elm", "n_params": k_elm, "cv_rmse_mm": rmse_mm(sq_elm, n_obs),
                             "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "accepted": ok})
-        say(f"residual ELM ({H} hidden): CV RMSE {_rmse_mm(sq_elm, n_obs):.4f} mm  gain {gain:+.4f} mm  t = {t:.1f}"
+        say(f"residual ELM ({H} hidden): CV {rmse_mm(sq_elm, n_obs):.4f} mm  gain {gain:+.4f} mm  t = {t:.1f}"
             f"  {'kept' if ok else 'not kept'}")
         if ok:
-            r = torch.nan_to_num(_residuals(robot, params, accepted_effects, train))
-            elm_model = ELM(n_hidden=H, ridge=1e-3, seed=seed).fit(_elm_inputs(train), r)
-            st_tr, e_tr = _stats(robot, params, accepted_effects, train, elm_model)
-            st_te, e_te = _stats(robot, params, accepted_effects, test, elm_model)
-            stages.append(_stage("+residual_elm", int(params.free.sum()) + k_elm, st_tr, st_te))
-            errors["+residual_elm"] = {"train": e_tr, "test": e_te}
+            r = _clipped(residual_matrix(robot, current.params, current.effects, train), ctx.c)
+            elm_model = ELM(n_hidden=H, ridge=1e-3, seed=seed).fit(elm_inputs(train), r)
+            add_stage("+residual_elm", current.k + k_elm, current.params, current.effects, elm_model)
     timings["residual_elm"] = time.perf_counter() - t3
+
+    # 6. suspects: listed, never dropped
+    sigma = noise_sigma(ctx, current)
+    e3, rows = observation_errors(ctx, current.params, current.effects, train)
+    err = e3.norm(dim=-1)
+    cols = train.seen.nonzero()[:, 1]
+    bad = torch.nonzero(err > OUTLIER_K * math.sqrt(3) * sigma).flatten()
+    suspects = [{"row": int(rows[i]), "marker": train.marker_names[int(cols[i])], "error_mm": float(err[i] * 1e3)}
+                for i in bad[torch.argsort(err[bad], descending=True)].tolist()]
+    if suspects:
+        say(f"{len(suspects)} suspect observation(s) beyond {OUTLIER_K:g}·√3·σ̂ = "
+            f"{1e3 * OUTLIER_K * math.sqrt(3) * sigma:.3f} mm (down-weighted by the Huber loss, kept): rows "
+            + ", ".join(str(s["row"]) for s in suspects[:10]) + (" …" if len(suspects) > 10 else ""))
     timings["total"] = time.perf_counter() - t0
 
     if noise_mm is None and "marker_std_mm" in train.covariates:
         noise_mm = float(train.covariates["marker_std_mm"].median())
-    return LoopResult(robot=robot, params=params, effects=accepted_effects, elm=elm_model, stages=stages,
-                      accepted=accepted, candidates=cand_report, geometric={"chosen": best_set[0], "sets": geo_choice},
+    return LoopResult(robot=robot, params=current.params, effects=current.effects, elm=elm_model, stages=stages,
+                      accepted=accepted, candidates=cand_report,
+                      geometric={"chosen": best.label, "sets": geo_choice, "prior_mm": best.prior_mm},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
-                      timings=timings, errors=errors, evidence=evidence, elm_covariates=_elm_covariates(train),
-                      geometric_fits=geo_fits)
+                      timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
+                      geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
+                      suspects=suspects, flags=flags, prior_mm=best.prior_mm)
 
 
-def _stage(name: str, k: int, train: dict | None, test: dict | None, cv_rmse_mm: float | None = None) -> dict:
-    s = {"name": name, "n_params": k, "train": train}
-    if test is not None:
-        s["test"] = test
-    if cv_rmse_mm is not None:
-        s["cv_rmse_mm"] = cv_rmse_mm
-    return s
+def _bar(progress: bool):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(desc="diagnosis", unit="candidate")
+
+
+def _try(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int, say, rnd: int) -> dict:
+    """One candidate effect against ``current``: its start (modes chosen), fit, CV and the rule;
+    under a geometric prior, the prior is re-chosen among its neighbours with the effect."""
+    covering = [e.name for e in current.effects if name in getattr(e, "supersedes", ()) and e.name != name]
+    if covering:
+        return {"name": name, "covered": True,
+                "entry": {"name": name, "reason": f"its modes are part of the accepted {covering[0]}"}}
+    eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params])
+    # a family replaces what it extends: an effect it supersedes, or itself accepted with fewer modes
+    superseded = [e for e in current.effects if e.name in eff.supersedes or (eff.selectable and e.name == name)]
+    start = effect_start(ctx, current, eff, superseded)
+    if start["effect"] is None:
+        say(f"round {rnd}: {name:<20} {start['reason']}")
+        return {"name": name, "entry": {"name": name, "reason": start["reason"], "selection": start["selection"]}}
+    if start["prior_mm"] is None:
+        best = evaluate(ctx, f"+{name}", start["params"], start["effects"], None, info=start["info"])
+    else:  # with the effect in, the geometry may want another prior: its CV chooses again
+        best = evaluate_prior(ctx, f"+{name}", start["params"], start["effects"], start["prior_mm"], info=start["info"])
+    t, pen_ok, ok = compare(current.scores, best.scores, current.k, best.k, n_obs)
+    gain = rmse_mm(current.scores, n_obs) - rmse_mm(best.scores, n_obs)
+    modes = [lab for lab, _ in best.effects[-1].modes()] if best.effects[-1].selectable else []
+    before = {lab for e in superseded for lab, _ in e.modes()}
+    added = [lab for lab in modes if lab not in before]
+    say(f"round {rnd}: {name:<20} {best.k:>5.1f} params  CV {rmse_mm(best.scores, n_obs):.4f} mm  gain {gain:+.4f} mm"
+        f"  t = {t:.1f}" + (f"  modes: {', '.join(modes)}" if modes else ""))
+    entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": rmse_mm(best.scores, n_obs),
+             "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "modes": modes, "added_modes": added,
+             "extends": [e.name for e in superseded], "selection": start["selection"]}
+    if best.prior_mm is not None:
+        entry["prior_mm"] = best.prior_mm
+    return {"name": name, "ok": ok, "model": best, "entry": entry}
+
+
+def _refit(ctx: Context, m: Model) -> Model:
+    """``m`` fitted again under the context's threshold, every candidate parameter judged again:
+    with less noise left, parameters the rounds before could not see may be seen now."""
+    again = m.params.clone()
+    again.free[: ctx.robot.n_params] = m.info["candidates"]
+    again.free[ctx.robot.n_params:] = True
+    return evaluate(ctx, m.label, again, m.effects, m.prior_mm, info=m.info)
+
+
+def _refresh(ctx: Context, m: Model, n_obs: int) -> Model:
+    """The accepted model with its new effect's features recomputed at the geometry fitted with
+    it: the rigid fit it started from had absorbed part of the effect into the geometry (a mean
+    joint deflection into a zero offset), and the gravity torques depend on those angles."""
+    geo = m.params.values[: ctx.robot.n_params]
+    eff = m.effects[-1].at_geometry(geo)
+    eff.theta = m.effects[-1].theta.clone()
+    again = evaluate(ctx, m.label, m.params, m.effects[:-1] + [eff], m.prior_mm, info=m.info)
+    return again if penalised(again.scores, again.k, n_obs) <= penalised(m.scores, m.k, n_obs) else m
+
+
+def _test_gain(robot, current: Model, cand: Model, test) -> float | None:
+    """Held-out mean gain of a candidate over the current model (measured after the decision)."""
+    if test is None:
+        return None
+    a, _ = stage_stats(robot, current.params, current.effects, test)
+    b, _ = stage_stats(robot, cand.params, cand.effects, test)
+    return a["mean_mm"] - b["mean_mm"]
+
+
+def _clipped(r: Tensor, c: float | None) -> Tensor:
+    """``(N, 3M)`` residuals with each observation shortened to at most ``c`` (Huber's
+    pseudo-observations: a least-squares learner fitted to them is as robust as the loss), NaN -> 0."""
+    r3 = torch.nan_to_num(r).reshape(r.shape[0], -1, 3)
+    if c is not None:
+        n = r3.norm(dim=-1, keepdim=True)
+        r3 = r3 * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
+    return r3.reshape(r.shape)
+
+
+def _elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> Tensor:
+    """Cross-validated per-row scores of the current model plus a residual ELM fitted per fold."""
+    robot, data = ctx.robot, ctx.data
+    out = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
+    for f, p in zip(ctx.folds, current.fold_fits):
+        mask = torch.ones(len(data), dtype=torch.bool)
+        mask[f] = False
+        tr, va = data.subset(mask), data.subset(f)
+        r_tr = _clipped(residual_matrix(robot, p, current.effects, tr), ctx.c)
+        model = ELM(n_hidden=n_hidden, ridge=1e-3, seed=seed).fit(elm_inputs(tr), r_tr)
+        left = (residual_matrix(robot, p, current.effects, va) - model.predict(elm_inputs(va))).reshape(len(va), -1, 3)
+        seen = va.seen
+        rows = torch.nonzero(seen)[:, 0]
+        out[f] = row_scores(left[seen].norm(dim=-1), rows, len(va), ctx.c)
+    return out

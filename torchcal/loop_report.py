@@ -3,9 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
-from .loop import SIGNATURE_AXIS, LoopResult
+from .loop import LoopResult
 from .report import histogram_figure, write_json
 
 __all__ = ["write_loop_report"]
@@ -34,28 +32,34 @@ def _histograms(res: LoopResult, path: Path, split: str) -> bool:
     return True
 
 
+def _unit_scale(label: str) -> tuple[str, float]:
+    """Display a plot axis in a readable unit: rad -> mrad, m -> mm."""
+    for u, (v, f) in {"[rad]": ("[mrad]", 1e3), "[m]": ("[mm]", 1e3)}.items():
+        if label.endswith(u):
+            return label[: -len(u)] + v, f
+    return label, 1.0
+
+
 def _evidence_plot(name: str, ev: dict, path: Path) -> bool:
-    """The residual of the model without the effect, projected on each joint, against the
-    effect's physical signature (with the fitted effect overlaid)."""
+    """Per mode: the partial residual projected on the mode's displacement against the mode's
+    physical signature, with the fitted mode overlaid."""
     if not ev:
         return False
     plt = _plt()
-    keys = list(ev)[:6]
-    fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.2), dpi=110, squeeze=False)
-    xl, xu = SIGNATURE_AXIS.get(name, ("signature", ""))
-    for ax, k in zip(axes[0], keys):
+    keys = list(ev)
+    cols = min(3, len(keys))
+    rows = (len(keys) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.3 * rows), dpi=110, squeeze=False)
+    for ax, k in zip(axes.flat, keys):
         e = ev[k]
-        x = e["x"]
-        if "fitted" in e:
-            ax.scatter(x, [v * 1e3 for v in e["residual"]], s=6, alpha=0.6, label="residual on joint")
-            ax.scatter(x, [v * 1e3 for v in e["fitted"]], s=4, alpha=0.8, label="fitted effect")
-            ax.set_ylabel("joint deflection [mrad]")
-            ax.set_xlabel(f"{xl} [{xu}]")
-        else:
-            ax.scatter(x, e["residual"], s=6, alpha=0.6)
-            ax.set_xlabel(e.get("xlabel", ""))
-            ax.set_ylabel(e.get("ylabel", ""))
+        ylabel, f = _unit_scale(e["ylabel"])
+        ax.scatter(e["x"], [v * f for v in e["residual"]], s=6, alpha=0.5, label="partial residual")
+        ax.scatter(e["x"], [v * f for v in e["fitted"]], s=4, alpha=0.9, label="fitted")
+        ax.set_xlabel(e["xlabel"], fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
         ax.set_title(f"{k} (r = {e['r']:.2f})", fontsize=9)
+    for ax in list(axes.flat)[len(keys):]:
+        ax.axis("off")
     axes[0][0].legend(fontsize=7)
     fig.suptitle(f"evidence for {name}", fontsize=10)
     fig.tight_layout()
@@ -64,13 +68,17 @@ def _evidence_plot(name: str, ev: dict, path: Path) -> bool:
     return True
 
 
-def _stats_cell(d: dict | None, k: str) -> str:
+def _cell(d: dict | None, k: str) -> str:
     return "–" if not d or k not in d else f"{d[k]:.4f}"
+
+
+def _num(v, fmt: str = ".4f") -> str:
+    return "–" if v is None else format(v, fmt)
 
 
 def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> Path:
     """Write ``report.json``, ``report.md``, ``errors_test.png`` / ``errors_train.png`` and one
-    ``evidence_<effect>.png`` per accepted effect into ``out_dir``."""
+    ``evidence_<stage>.png`` per accepted effect into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rep = res.report()
@@ -78,7 +86,8 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
         rep["command"] = command
     write_json(out / "report.json", rep)
     figs = {s: _histograms(res, out / f"errors_{s}.png", s) for s in ("train", "test")}
-    ev_figs = {n: _evidence_plot(n, ev, out / f"evidence_{n}.png") for n, ev in res.evidence.items()}
+    safe = lambda n: "".join(c if c.isalnum() or c in "_-" else "_" for c in n)  # noqa: E731
+    ev_figs = {n: _evidence_plot(n, ev, out / f"evidence_{safe(n)}.png") for n, ev in res.evidence.items()}
 
     L = [f"# Calibration loop: {res.robot.name}", ""]
     if command:
@@ -91,48 +100,85 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
           "|---|---|---|---|---|---|---|---|"]
     for s in res.stages:
         tr, te = s.get("train"), s.get("test")
-        L.append(f"| {s['name']} | {s['n_params']} | {_stats_cell(tr, 'mean_mm')} | {_stats_cell(tr, 'std_mm')} | "
-                 f"{_stats_cell(tr, 'max_mm')} | {_stats_cell(te, 'mean_mm')} | {_stats_cell(te, 'std_mm')} | "
-                 f"{_stats_cell(te, 'max_mm')} |")
+        L.append(f"| {s['name']} | {s['n_params']} | {_cell(tr, 'mean_mm')} | {_cell(tr, 'std_mm')} | "
+                 f"{_cell(tr, 'max_mm')} | {_cell(te, 'mean_mm')} | {_cell(te, 'std_mm')} | {_cell(te, 'max_mm')} |")
     for split in ("test", "train"):
         if figs.get(split):
             L += ["", f"![error histograms, {split}](errors_{split}.png)"]
+    L += ["", "## Noise and outliers", "",
+          f"Robust noise estimate of the final model: σ̂ = {_num(res.noise_sigma_mm)} mm per axis (1.4826 × the median "
+          f"absolute deviation of the residual components). Every fit uses the Huber loss; the last threshold was "
+          f"{_num(res.huber_mm)} mm on the Euclidean error of an observation.", ""]
+    if res.suspects:
+        L += [f"{len(res.suspects)} suspect observation(s), farther from the final model than 5·√3·σ̂. They stay in "
+              "the data: the Huber loss limits their pull, and the comparisons score them as a constant. Check them "
+              "(a bumped reflector, a mislabelled marker, a row out of sync).", "",
+              "| row (0-based, training file order) | marker | error (mm) |", "|---|---|---|"]
+        L += [f"| {s['row']} | {s['marker']} | {s['error_mm']:.3f} |" for s in res.suspects[:50]]
+        if len(res.suspects) > 50:
+            L.append(f"| … | {len(res.suspects) - 50} more in report.json | |")
+    else:
+        L.append("No observation lies farther than 5·√3·σ̂ from the final model.")
     L += ["", "## Geometric parameter set (chosen by cross-validation)", "",
-          "| set | parameters | CV RMSE (mm) | t | accepted |", "|---|---|---|---|---|"]
+          "| set | parameters (effective) | CV RMSE (mm) | t | accepted |", "|---|---|---|---|---|"]
     for g in res.geometric["sets"]:
-        t = g.get("t")
-        L.append(f"| {g['name']} | {g['n_params']} | {g['cv_rmse_mm']:.4f} | {'–' if t is None else f'{t:.1f}'} | "
-                 f"{'yes' if g['accepted'] else 'no'} |")
+        k = g.get("k_eff", g["n_params"])
+        acc = "yes" if g.get("accepted") else ("no" if "accepted" in g else "– (scale not chosen)")
+        L.append(f"| {g['name']} | {k:.1f} | {g['cv_rmse_mm']:.4f} | {_num(g.get('t'), '.1f')} | {acc} |")
     L += ["", f"Chosen: **{res.geometric['chosen']}**. A larger set is taken only when it passes the rule below, "
-              "which is what guards a small data set against over-fitting.", "",
-          "## Effects", ""]
+              "which is what guards a small data set against over-fitting."]
+    if res.prior_mm is not None:
+        L += ["", f"The full set carries a Gaussian prior on every geometric error (not the instrument frame nor the "
+                  f"marker points) of σ = {res.prior_mm:g} mm for lengths and {res.prior_mm:g} mrad for angles, its "
+                  "scale chosen among the tried ones by the penalised CV error. The parameter count is the "
+                  "effective one, tr((JᵀJ + W²)⁻¹ JᵀJ)."]
+    L += ["", "## What was found", ""]
     if res.accepted:
         for a in res.accepted:
             tg = a.get("test_gain_mm")
-            L += [f"### {a['name']} ({', '.join(a['joints']) or 'all links'})", "",
-                  f"- cross-validated gain {a['cv_gain_mm']:+.4f} mm (RMSE); held-out gain "
+            stage = a.get("stage", "+" + a["name"])
+            L += [f"### {stage}", ""]
+            if a.get("extends"):
+                L += [f"Extends the accepted {', '.join(a['extends'])}: its modes are kept and these are added: "
+                      f"{', '.join(a.get('added_modes') or [])}.", ""]
+            L += [f"- {x}" for x in a.get("found", [])]
+            L += [f"- cross-validated gain {a['cv_gain_mm']:+.4f} mm (RMSE); held-out gain "
                   f"{'–' if tg is None else f'{tg:+.4f} mm (mean)'}",
                   f"- evidence: {a['evidence']}"]
-            if ev_figs.get(a["name"]):
-                L += ["", f"![evidence for {a['name']}](evidence_{a['name']}.png)"]
-            L += ["", "| parameter | value | unit |", "|---|---|---|"]
-            L += [f"| {n} | {v:.6g} | {a.get('units', {}).get(n, '')} |" for n, v in a["params"].items()]
+            key = stage.lstrip("+")
+            if ev_figs.get(key):
+                L += ["", f"![evidence for {key}](evidence_{safe(key)}.png)"]
+            se = a.get("standard_errors", {})
+            L += ["", "| parameter | value | standard error | unit |", "|---|---|---|---|"]
+            L += [f"| {n} | {v:.6g} | {_num(se.get(n), '.3g')} | {a.get('units', {}).get(n, '')} |"
+                  for n, v in a["params"].items()]
             L.append("")
     else:
         L += ["No effect passed the rule: the geometric model explains the data to within what the "
               "cross-validation can tell from noise.", ""]
+    if res.flags:
+        L += ["## Flags", ""]
+        for f in res.flags:
+            L.append(f"- {f['effect']} reads `{f['covariate']}`: training range {f['train_range'][0]:.6g} … "
+                     f"{f['train_range'][1]:.6g}, held-out {f['test_range'][0]:.6g} … {f['test_range'][1]:.6g} "
+                     f"({100 * f['fraction_outside']:.0f} % of held-out rows outside): {f['note']}.")
+        L.append("")
     L += ["## Every candidate examined", "",
-          "CV columns decided; the held-out gain (mean, mm) was measured afterwards and steered nothing.", "",
-          "| round | candidate | parameters | CV RMSE (mm) | CV gain (mm) | t | held-out gain (mm) | accepted |",
-          "|---|---|---|---|---|---|---|---|"]
+          "CV columns decided; the held-out gain (mean, mm) was measured afterwards and steered nothing. A family "
+          "(per joint, link or direction) lists the modes its selection kept.", "",
+          "| round | candidate | parameters | CV RMSE (mm) | CV gain (mm) | t | held-out gain (mm) | accepted | modes / reason |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for c in res.candidates:
         if c.get("applicable") is False:
-            L.append(f"| – | {c['name']} | – | – | – | – | – | not applicable: {c.get('reason', '')} |")
+            L.append(f"| – | {c['name']} | – | – | – | – | – | no | not applicable: {c.get('reason', '')} |")
             continue
-        tg = c.get("test_gain_mm")
+        if "t" not in c:
+            L.append(f"| {c.get('round', '–')} | {c['name']} | – | – | – | – | – | no | {c.get('reason', '')} |")
+            continue
+        modes = ", ".join(c.get("added_modes") or c.get("modes") or [])
         L.append(f"| {c.get('round', '–')} | {c['name']} | {c.get('n_params', '–')} | {c.get('cv_rmse_mm', float('nan')):.4f} | "
                  f"{c.get('cv_gain_mm', float('nan')):+.4f} | {c.get('t', float('nan')):.1f} | "
-                 f"{'–' if tg is None else f'{tg:+.4f}'} | {'yes' if c.get('accepted') else 'no'} |")
+                 f"{_num(c.get('test_gain_mm'), '+.4f')} | {'yes' if c.get('accepted') else 'no'} | {modes} |")
     L += ["", "Rule: " + rep["rule"] + ".", "",
           "Residual ELM: " + ("kept (it passed the rule)." if res.elm is not None else
                               "not kept: it did not improve the cross-validated error significantly, so what is "

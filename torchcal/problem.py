@@ -7,10 +7,11 @@ import math
 import torch
 from torch import Tensor
 
+from .measurement import Loss, PositionResidual
 from .optim import Problem
 from .params import ParamSet
 
-__all__ = ["CalibrationProblem"]
+__all__ = ["CalibrationProblem", "EffectCalibrationProblem"]
 
 
 class CalibrationProblem(Problem):
@@ -66,18 +67,22 @@ class EffectCalibrationProblem(Problem):
 
     ``params`` holds the robot's K geometric entries followed by every effect's parameters
     (:func:`torchcal.effects.effect_params`); its free flags choose what moves. The model:
-    ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics, position maps
-    (thermal) applied, then the instrument frame.
+    ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics plus ``Σ Δp_effect``,
+    then the instrument frame.
 
-    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values,
-    times the per-row position scale of position effects); effect columns by central
-    differences, all perturbations evaluated in one population call.
+    Args:
+        loss: a :class:`~torchcal.measurement.Loss` per observation (Huber in the loop).
+        prior: ``(len(params),)`` weights ``w_i ≥ 0`` (m per unit of the parameter): a Gaussian
+            prior ``x_i ~ N(0, (σ_noise / w_i)²)`` enters as the residual ``w_i x_i`` of every free
+            parameter with ``w_i > 0`` (MAP); 0 = no prior.
+
+    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values;
+    position effects do not depend on the geometry, whose features are computed once); effect
+    columns by central differences, all perturbations evaluated in one population call.
     """
 
     def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6,
-                 ridge: float = 0.0):
-        from .measurement import Loss, PositionResidual
-
+                 prior: Tensor | None = None):
         idx = params.free_index
         if idx.numel() == 0:
             raise ValueError("no free parameter")
@@ -89,7 +94,7 @@ class EffectCalibrationProblem(Problem):
             raise ValueError("params must start with the robot's geometric parameters (robot.params())")
         self.loss = loss or Loss("l2")
         blk = PositionResidual(robot, data)
-        self._rows, self._cols, self._meas = blk._rows, blk._cols, blk._meas
+        self.rows, self.cols, self.measured = blk._rows, blk._cols, blk._meas  # (n_obs,) (n_obs,) (n_obs, 3)
         self.obs_cols_measured = blk.obs_index[:, 1]  # index into data.marker_names
         self.n_obs = blk.n_obs
         self.m = 3 * self.n_obs
@@ -102,16 +107,15 @@ class EffectCalibrationProblem(Problem):
         if o != len(params):
             raise ValueError(f"params has {len(params)} entries, the robot and effects need {o}")
         self.fd_step = fd_step
-        # ridge: prior residuals sqrt(ridge) * e for every free joint error (lengths in m, angles
-        # through a 1 m lever), pulling what the data barely sees to 0; the base frame and the
-        # marker offsets are unknowns of the set-up, not errors of the robot, and stay unpulled
-        self.ridge = float(ridge)
-        setup = ("base.",) + tuple(f"{m}." for m in robot.marker_names)
-        geo_err = torch.tensor([not n.startswith(setup) for n in params.names[: self.K]]
-                               + [False] * (len(params) - self.K), device=params.free.device)
-        self._ridge_idx = torch.nonzero(geo_err & params.free).flatten() if self.ridge > 0 else None
-        if self._ridge_idx is not None:
-            self.m += int(self._ridge_idx.numel())
+        self._prior = None
+        if prior is not None:
+            w = torch.as_tensor(prior, dtype=params.values.dtype, device=params.values.device)
+            if w.shape != (len(params),):
+                raise ValueError(f"prior weights must have shape ({len(params)},), got {tuple(w.shape)}")
+            pick = torch.nonzero((w > 0) & params.free).flatten()
+            if pick.numel():
+                self._prior = (pick, w[pick])
+                self.m += int(pick.numel())
         free = params.free.clone()
         self._geo_free = torch.nonzero(free[: self.K]).flatten()
         self._eff_free = torch.nonzero(free[self.K:]).flatten() + self.K
@@ -119,66 +123,53 @@ class EffectCalibrationProblem(Problem):
     def full(self, X: Tensor) -> Tensor:
         return self.params.expand(X)
 
-    def _positions(self, full: Tensor) -> tuple[Tensor, Tensor | None]:
-        """``(P, n_obs, 3)`` model positions (instrument frame) and the per-row scale of
-        position effects (or None)."""
-        geo = full[:, : self.K]
+    def joint_values(self, full: Tensor) -> Tensor:
+        """``(P, N, dof)`` commands plus the joint deflections of the effects."""
         q = self.data.q[None].expand(full.shape[0], -1, -1)
-        dq = None
-        scale = None
         for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
-            if e.kind == "joint":
-                d = e.joint_delta(full[:, a:b], prep)
-                dq = d if dq is None else dq + d
-        if dq is not None:
-            q = q + dq
-        p = self.robot.positions(q, geo, check=False, base=False)  # (P, N, M, 3)
+            d = e.joint_delta(full[:, a:b], prep)
+            if d is not None:
+                q = q + d
+        return q
+
+    def positions(self, full: Tensor) -> Tensor:
+        """``(P, n_obs, 3)`` model positions of the observed markers (m, instrument frame)."""
+        geo = full[:, : self.K]
+        p = self.robot.positions(self.joint_values(full), geo, check=False, base=False)  # (P, N, M, 3)
         for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
-            if e.kind == "position":
-                s = e.row_scale(full[:, a:b], prep)
-                scale = s if scale is None else scale * s
-                p = e.position_map(p, full[:, a:b], prep)
+            d = e.position_delta(full[:, a:b], prep)
+            if d is not None:
+                p = p + d
         Rb, tb = self.robot.base_transform(geo)
         p = tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
-        return p[:, self._rows, self._cols], scale
+        return p[:, self.rows, self.cols]
 
     def errors(self, full: Tensor) -> Tensor:
         """``(P, n_obs)`` Euclidean errors (m)."""
-        p, _ = self._positions(full)
-        return (p - self._meas).norm(dim=-1)
+        return (self.positions(full) - self.measured).norm(dim=-1)
 
     def residuals(self, X: Tensor) -> Tensor:
         full = self.full(X)
-        p, _ = self._positions(full)
-        r = p - self._meas
+        r = self.positions(full) - self.measured
         if self.loss.kind != "l2":
             fac, _ = self.loss.scales((r * r).sum(-1))
             r = r * fac[..., None]
         r = r.reshape(r.shape[0], -1)
-        if self._ridge_idx is not None:
-            r = torch.cat([r, math.sqrt(self.ridge) * full[:, self._ridge_idx]], -1)
+        if self._prior is not None:
+            idx, w = self._prior
+            r = torch.cat([r, w * full[:, idx]], -1)
         return r
 
-    def jacobian(self, x: Tensor) -> Tensor:
+    def data_jacobian(self, x: Tensor) -> Tensor:
+        """``(3 n_obs, n_free)`` Jacobian of the raw position errors (no loss, no prior rows)."""
         full = self.full(x)[None]
-        cols = []
+        J = torch.zeros(3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
+        pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         if self._geo_free.numel():
-            geo = full[0, : self.K]
-            q = self.data.q
-            for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
-                if e.kind == "joint":
-                    q = q + e.joint_delta(full[:, a:b], prep)[0]
-            Jg = self.robot.param_jacobian(q, geo, kind="position", check=False)[self._rows, self._cols]  # (n, 3, K)
-            scale = None
-            for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
-                if e.kind == "position":
-                    s = e.row_scale(full[:, a:b], prep)[0]
-                    scale = s if scale is None else scale * s
-            if scale is not None:  # p_w = R_b (s p) + t_b: every column but base.x/y/z scales by s
-                fac = scale[self._rows][:, None, None].expand_as(Jg).clone()
-                fac[..., :3] = 1.0
-                Jg = Jg * fac
-            cols.append((self._geo_free, Jg[..., self._geo_free].reshape(-1, self._geo_free.numel())))
+            q = self.joint_values(full)[0]
+            Jg = self.robot.param_jacobian(q, full[0, : self.K], kind="position", check=False)[self.rows, self.cols]
+            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = Jg[..., self._geo_free].reshape(
+                -1, self._geo_free.numel())
         if self._eff_free.numel():
             k = self._eff_free.numel()
             h = self.fd_step * torch.clamp(full[0, self._eff_free].abs(), min=1.0)
@@ -186,22 +177,26 @@ class EffectCalibrationProblem(Problem):
             ar = torch.arange(k, device=full.device)
             E[ar, self._eff_free] = h
             E[ar + k, self._eff_free] = -h
-            p, _ = self._positions(full + E)
+            p = self.positions(full + E)
             d = (p[:k] - p[k:]) / (2 * h)[:, None, None]  # (k, n, 3)
-            cols.append((self._eff_free, d.permute(1, 2, 0).reshape(-1, k)))
-        # assemble in the order of the free parameters
-        free_full = self.params.free_index
-        pos = {int(v): i for i, v in enumerate(free_full.tolist())}
-        J = torch.zeros(self.m, free_full.numel(), dtype=full.dtype, device=full.device)  # incl. ridge rows
-        for idx, block in cols:
-            J[: 3 * self.n_obs, [pos[int(v)] for v in idx.tolist()]] = block
+            J[:, [pos[int(v)] for v in self._eff_free.tolist()]] = d.permute(1, 2, 0).reshape(-1, k)
+        return J
+
+    def observation_weights(self, x: Tensor) -> Tensor:
+        """``(n_obs,)`` the loss's IRLS factor per observation at ``x`` (1 for l2)."""
+        if self.loss.kind == "l2":
+            return torch.ones(self.n_obs, dtype=x.dtype, device=x.device)
+        r = self.positions(self.full(x)[None])[0] - self.measured
+        return self.loss.scales((r * r).sum(-1))[1]
+
+    def jacobian(self, x: Tensor) -> Tensor:
+        J = self.data_jacobian(x)
         if self.loss.kind != "l2":
-            p, _ = self._positions(full)
-            r = p[0] - self._meas
-            _, jfac = self.loss.scales((r * r).sum(-1))
-            J[: 3 * self.n_obs] = J[: 3 * self.n_obs] * jfac.repeat_interleave(3)[:, None]
-        if self._ridge_idx is not None:
-            n = self._ridge_idx.numel()
-            rows = torch.arange(3 * self.n_obs, 3 * self.n_obs + n, device=J.device)
-            J[rows, [pos[int(v)] for v in self._ridge_idx.tolist()]] = math.sqrt(self.ridge)
+            J = J * self.observation_weights(x).repeat_interleave(3)[:, None]
+        if self._prior is not None:
+            idx, w = self._prior
+            pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
+            P = torch.zeros(idx.numel(), J.shape[1], dtype=J.dtype, device=J.device)
+            P[torch.arange(idx.numel(), device=J.device), [pos[int(v)] for v in idx.tolist()]] = w
+            J = torch.cat([J, P], 0)
         return J
