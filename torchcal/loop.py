@@ -35,7 +35,7 @@ from .elm import ELM
 from .io import Measurements
 from .loop_evidence import evidence_for
 from .loop_fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
-                       geometric_start, noise_sigma, observation_errors, split_params)
+                       geometric_start, noise_sigma, observation_errors, rescore, split_params)
 from .params import ParamSet
 from .report import error_stats
 from .selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
@@ -301,12 +301,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         m = probe if pats is None else evaluate(ctx, name, geometric_start(robot, train, pats), [], None)
         m.label = name
         geo_fits[name] = m.params
-        entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": rmse_mm(m.scores, n_obs)}
+        entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
         if best is None:
             entry["accepted"] = True
             best = m
         else:
-            t, _, ok = compare(best.scores, m.scores, best.k, m.k, n_obs)
+            t, _, ok = _compare_at(ctx, best, m, n_obs)
             entry.update({"t": t, "accepted": ok})
             if ok:
                 best = m
@@ -321,13 +321,13 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             name = f"prior {mt.prior_mm:g} mm/mrad"
             geo_fits[name] = mt.params
             geo_choice.append({"name": name, "n_params": int(mt.params.free.sum()), "k_eff": mt.k,
-                               "prior_mm": mt.prior_mm, "cv_rmse_mm": rmse_mm(mt.scores, n_obs),
+                               "prior_mm": mt.prior_mm, "cv_rmse_mm": mt.cv_rmse_mm(n_obs),
                                "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
-        t, _, ok = compare(best.scores, m.scores, best.k, m.k, n_obs)
+        t, _, ok = _compare_at(ctx, best, m, n_obs)
         m.label = f"prior {m.prior_mm:g} mm/mrad"
         next(g for g in geo_choice if g["name"] == m.label).update({"t": t, "accepted": ok})
         say(f"geometric {m.label:<26} (scale chosen by CV among {sorted(x.prior_mm for x in tried)})  k_eff "
-            f"{m.k:>5.1f}  CV {rmse_mm(m.scores, n_obs):.4f} mm  t = {t:.1f}  {'accepted' if ok else 'rejected'}")
+            f"{m.k:>5.1f}  CV {m.cv_rmse_mm(n_obs):.4f} mm  t = {t:.1f}  {'accepted' if ok else 'rejected'}")
         if ok:
             best = m
     timings["geometric"] = time.perf_counter() - t1
@@ -404,7 +404,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     if accepted_steps:
         accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
     geo_model = best if accepted_steps else current
-    add_stage("geometric", geo_model.k, geo_model.params, [], cv=rmse_mm(best.scores, n_obs),
+    add_stage("geometric", geo_model.k, geo_model.params, [], cv=best.cv_rmse_mm(n_obs),
               extra={"prior_mm": best.prior_mm, "k_eff": geo_model.k})
 
     accepted = []
@@ -417,7 +417,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             e.theta = p.values.clone()
         stage = f"+{name}" if name not in seen_names else f"+{name} ({', '.join(entry.get('added_modes', []))})"
         seen_names.add(name)
-        s = add_stage(stage, m.k, m.params, m.effects, cv=rmse_mm(m.scores, n_obs))
+        s = add_stage(stage, m.k, m.params, m.effects, cv=m.cv_rmse_mm(n_obs))
         prev = stages[-2]
         gain = None if "test" not in s or "test" not in prev else prev["test"]["mean_mm"] - s["test"]["mean_mm"]
         ev_text, ev_data = evidence_for(robot, m, train)
@@ -425,7 +425,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         accepted.append({"name": name, "stage": stage, "joints": list(eff.joints), "n_params": eff.n_params,
                          "modes": [lab for lab, _ in eff.modes()], "added_modes": entry.get("added_modes", []),
                          "extends": entry.get("extends", []), "cv_gain_mm": entry["cv_gain_mm"],
-                         "test_gain_mm": gain, "evidence": ev_text, "found": eff.describe(),
+                         "test_gain_mm": gain, "evidence": ev_text,
+                         "found": eff.describe(free=m.params.free[len(m.params) - eff.n_params:]),
                          "params": {n: float(v) for n, v, f in zip(m.params.names, m.params.values.tolist(),
                                                                      m.params.free.tolist())
                                     if n.startswith(eff.name + ".") and f},
@@ -437,10 +438,10 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     elm_model = None
     if elm and len(train) >= 20:
         H = elm_hidden or max(8, min(64, len(train) // 4))
-        sq_elm = _elm_cv(ctx, current, H, seed)
+        sc_elm, sq_elm = _elm_cv(ctx, current, H, seed)
         k_elm = H * 3 * len(train.marker_names)
-        t, pen_ok, ok = compare(current.scores, sq_elm, current.k, current.k + k_elm, n_obs)
-        gain = rmse_mm(current.scores, n_obs) - rmse_mm(sq_elm, n_obs)
+        t, pen_ok, ok = compare(current.scores, sc_elm, current.k, current.k + k_elm, n_obs)
+        gain = current.cv_rmse_mm(n_obs) - rmse_mm(sq_elm, n_obs)
         cand_report.append({"name": "residual_elm", "n_params": k_elm, "cv_rmse_mm": rmse_mm(sq_elm, n_obs),
                             "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "accepted": ok})
         say(f"residual ELM ({H} hidden): CV {rmse_mm(sq_elm, n_obs):.4f} mm  gain {gain:+.4f} mm  t = {t:.1f}"
@@ -503,18 +504,29 @@ def _try(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int
     else:  # with the effect in, the geometry may want another prior: its CV chooses again
         best = evaluate_prior(ctx, f"+{name}", start["params"], start["effects"], start["prior_mm"], info=start["info"])
     t, pen_ok, ok = compare(current.scores, best.scores, current.k, best.k, n_obs)
-    gain = rmse_mm(current.scores, n_obs) - rmse_mm(best.scores, n_obs)
+    gain = current.cv_rmse_mm(n_obs) - best.cv_rmse_mm(n_obs)
     modes = [lab for lab, _ in best.effects[-1].modes()] if best.effects[-1].selectable else []
     before = {lab for e in superseded for lab, _ in e.modes()}
     added = [lab for lab in modes if lab not in before]
-    say(f"round {rnd}: {name:<20} {best.k:>5.1f} params  CV {rmse_mm(best.scores, n_obs):.4f} mm  gain {gain:+.4f} mm"
+    say(f"round {rnd}: {name:<20} {best.k:>5.1f} params  CV {best.cv_rmse_mm(n_obs):.4f} mm  gain {gain:+.4f} mm"
         f"  t = {t:.1f}" + (f"  modes: {', '.join(modes)}" if modes else ""))
-    entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": rmse_mm(best.scores, n_obs),
+    entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": best.cv_rmse_mm(n_obs),
              "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "modes": modes, "added_modes": added,
              "extends": [e.name for e in superseded], "selection": start["selection"]}
     if best.prior_mm is not None:
         entry["prior_mm"] = best.prior_mm
     return {"name": name, "ok": ok, "model": best, "entry": entry}
+
+
+def _compare_at(ctx: Context, best: Model, m: Model, n_obs: int) -> tuple[float, bool, bool]:
+    """The rule between ``best`` and ``m``, scored with ``best``'s own Huber threshold: scores
+    are held constant beyond a multiple of the threshold, so a threshold set by a better model
+    would make every error of a coarse one look alike."""
+    c = HUBER_K * noise_sigma(ctx, best)
+    if c <= ctx.c:
+        return compare(best.scores, m.scores, best.k, m.k, n_obs)
+    at = Context(ctx.robot, ctx.data, ctx.folds, c, ctx.sigma)
+    return compare(rescore(at, best), rescore(at, m), best.k, m.k, n_obs)
 
 
 def _refit(ctx: Context, m: Model) -> Model:
@@ -556,10 +568,12 @@ def _clipped(r: Tensor, c: float | None) -> Tensor:
     return r3.reshape(r.shape)
 
 
-def _elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> Tensor:
-    """Cross-validated per-row scores of the current model plus a residual ELM fitted per fold."""
+def _elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> tuple[Tensor, Tensor]:
+    """Cross-validated per-row scores (Huber, and plain squared errors) of the current model plus
+    a residual ELM fitted per fold."""
     robot, data = ctx.robot, ctx.data
     out = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
+    plain = torch.zeros_like(out)
     for f, p in zip(ctx.folds, current.fold_fits):
         mask = torch.ones(len(data), dtype=torch.bool)
         mask[f] = False
@@ -570,4 +584,5 @@ def _elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> Tensor:
         seen = va.seen
         rows = torch.nonzero(seen)[:, 0]
         out[f] = row_scores(left[seen].norm(dim=-1), rows, len(va), ctx.c)
-    return out
+        plain[f] = row_scores(left[seen].norm(dim=-1), rows, len(va), None)
+    return out, plain

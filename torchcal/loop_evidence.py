@@ -59,5 +59,6 @@ def evidence_for(robot, model, data) -> tuple[str, dict]:
     if not out:
         return "no mode moved the markers enough to plot", out
     best = max(out.items(), key=lambda kv: abs(kv[1]["r"]) if kv[1]["r"] == kv[1]["r"] else -1)
-    return (f"partial residual along {best[1]['words']} follows the fitted {best[1]['ylabel'].split(' [')[0]} "
-            f"against {best[1]['xlabel'].split(' [')[0]} (r = {best[1]['r']:.2f})", out)
+    what, against = best[1]["ylabel"].split(" [")[0], best[1]["xlabel"].split(" [")[0]
+    return (f"{best[1]['words']}: the partial residual follows the fitted {what} against the {against} "
+            f"(r = {best[1]['r']:.2f})", out)

@@ -27,7 +27,7 @@ from .measurement import Loss
 from .params import ParamSet
 from .problem import EffectCalibrationProblem
 from .registration import register_base
-from .selection import HUBER_K, LinearCV, effective_params, penalised, robust_sigma, row_scores
+from .selection import HUBER_K, LinearCV, effective_params, penalised, rmse_mm, robust_sigma, row_scores
 
 __all__ = ["Context", "Model", "geometric_start", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
            "folds_of",
@@ -61,7 +61,9 @@ class Context:
 class Model:
     """A fitted candidate: ``params`` (geometry then each effect's parameters; ``free`` = what
     was fitted), its effects, the geometric prior σ (mm and mrad; None = none), the effective
-    number of parameters ``k``, cross-validated per-row ``scores`` (m²) and the fold fits."""
+    number of parameters ``k``, cross-validated per-row ``scores`` (m², what decides), plain
+    cross-validated squared errors per row ``sq`` (m², what a person reads as an RMSE) and the
+    fold fits."""
 
     label: str
     params: ParamSet
@@ -71,6 +73,11 @@ class Model:
     scores: Tensor
     fold_fits: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
+    sq: Tensor | None = None
+
+    def cv_rmse_mm(self, n_obs: int) -> float:
+        """Plain cross-validated RMSE per observation (mm)."""
+        return rmse_mm(self.sq if self.sq is not None else self.scores, n_obs)
 
 
 def folds_of(n: int, k: int, seed: int, groups: Tensor | None = None) -> list[Tensor]:
@@ -167,6 +174,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     info = dict(info or {})
     info["se"] = standard_errors(J, pf, full.free_names, noise_sigma_of(ctx, full, effects, k))
     scores = torch.zeros(len(ctx.data), dtype=ctx.robot.dtype, device=ctx.robot.device)
+    sq = torch.zeros_like(scores)
     fits = []
     for f in ctx.folds:
         mask = torch.ones(len(ctx.data), dtype=torch.bool)
@@ -174,10 +182,11 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
         p = _fit(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
         e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))
         scores[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
+        sq[f] = row_scores(e.norm(dim=-1), rows, len(f), None)
         fits.append(p)
     # the free set before identifiability: later fits judge it again, with the noise they see then
     info.setdefault("candidates", start.free[: ctx.robot.n_params].clone())
-    return Model(label, full, list(effects), prior_mm, k, scores, fits, info)
+    return Model(label, full, list(effects), prior_mm, k, scores, fits, info, sq)
 
 
 def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm: float,

@@ -98,7 +98,7 @@ class EffectCalibrationProblem(Problem):
         self.obs_cols_measured = blk.obs_index[:, 1]  # index into data.marker_names
         self.n_obs = blk.n_obs
         self.m = 3 * self.n_obs
-        self._prep = [e.prepare(data.q, data.covariates) for e in self.effects]
+        self._prep = [e.prepare(data.q, e.clamped(data.covariates)) for e in self.effects]
         offs, o = [], self.K
         for e in self.effects:
             offs.append((o, o + e.n_params))

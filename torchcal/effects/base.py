@@ -244,21 +244,26 @@ class Effect:
         """What a mode is, in words (for reports)."""
         return f"{self.description} at {label}"
 
-    def describe(self, theta: Tensor | None = None) -> list[str]:
-        """One sentence per mode with its fitted size, for the report."""
+    def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
+        """One sentence per mode with its fitted size, for the report; ``free`` ``(k,)`` bool:
+        parameters the fit identified (the others say nothing and are left out)."""
         th = self.theta if theta is None else theta
         names = [n for n, _ in self.param_info()]
         units = self.param_units
         out = []
         for label, cols in self.modes():
-            vals = ", ".join(f"{names[i]} = {float(th[i]):.4g} {units[i]}" for i in cols)
-            out.append(f"{self.mode_words(label)}: {vals}")
+            cols = [i for i in cols if free is None or bool(free[i])]
+            if cols:
+                vals = ", ".join(f"{names[i]} = {float(th[i]):.4g} {units[i]}" for i in cols)
+                out.append(f"{self.mode_words(label)}: {vals}")
         return out
 
     # -- deployment -------------------------------------------------------------------------
-    def _clamped(self, covariates: dict[str, Tensor]) -> dict[str, Tensor]:
+    def clamped(self, covariates: dict[str, Tensor]) -> dict[str, Tensor]:
         """Time covariates held inside their training range: a time trend learnt on one day
-        says nothing of another, so it must never extrapolate."""
+        says nothing of another, so it must never extrapolate. Every evaluation of a bound
+        effect (fit, cross-validation, held-out rows, deployment) reads its covariates through
+        this."""
         out = dict(covariates)
         for c, (lo, hi) in self.covariate_range.items():
             if c in out and c in TIME_COVARIATES:
@@ -268,13 +273,13 @@ class Effect:
     def joint_correction(self, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor:
         """``Δq (N, dof)`` for commands ``q`` with the fitted parameters (the hook
         :class:`~torchcal.model.CalibratedModel` calls before FK)."""
-        d = self.joint_delta(self.theta[None], self.prepare(q, self._clamped(covariates or {})))
+        d = self.joint_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return torch.zeros_like(q) if d is None else d[0]
 
     def position_correction(self, p: Tensor, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor:
         """``p (N, M, 3)`` robot-base marker positions (m) -> displaced, with the fitted
         parameters (the hook :class:`~torchcal.model.CalibratedModel` calls after FK)."""
-        d = self.position_delta(self.theta[None], self.prepare(q, self._clamped(covariates or {})))
+        d = self.position_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return p if d is None else p + d[0]
 
     @property

@@ -351,10 +351,13 @@ class GravityDeformation(Effect):
     def mode_words(self, label: str) -> str:
         return next(m["words"] for m in self._modes if m["label"] == label)
 
-    def describe(self, theta: Tensor | None = None) -> list[str]:
+    def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
+        seen = (lambda i: True) if free is None else (lambda i: bool(free[i]))  # noqa: E731
         out = []
         for k, m in enumerate(self._modes):
+            if not seen(k):
+                continue
             c = float(th[k])
             if m["kind"] == "rot":
                 what = "overturning moment" if m["frame"] == 0 else "gravity moment"
@@ -364,12 +367,14 @@ class GravityDeformation(Effect):
         if self.has_payload:
             K = len(self._modes)
             mass = float(th[K])
-            s = (th[K + 1:K + 4] / mass * 1e3).tolist() if abs(mass) > 1e-9 else [float("nan")] * 3
-            out.append(f"unknown payload on {self.tool_link}: {mass:.3g} kg with its centre of mass at "
-                       f"({s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f}) mm in that link's frame")
-            tx, ty = float(th[K + 4]), float(th[K + 5])
-            out.append(f"gravity leans {1e3 * tx:.3g} / {1e3 * ty:.3g} mrad off the base's vertical "
-                       "(the base is not quite level)")
+            if seen(K):
+                s = (th[K + 1:K + 4] / mass * 1e3).tolist() if abs(mass) > 1e-9 else [float("nan")] * 3
+                out.append(f"unknown payload on {self.tool_link}: {mass:.3g} kg with its centre of mass at "
+                           f"({s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f}) mm in that link's frame")
+            if seen(K + 4) or seen(K + 5):
+                tx, ty = float(th[K + 4]), float(th[K + 5])
+                out.append(f"gravity leans {1e3 * tx:.3g} mrad (about y) and {1e3 * ty:.3g} mrad (about x) off the "
+                           "base's vertical: the base is not quite level")
         return out
 
 
@@ -454,9 +459,9 @@ class JointCompliance(GravityDeformation):
     def from_linear(self, coef):
         return coef.clone() if self.lumped else super().from_linear(coef)
 
-    def describe(self, theta=None):
+    def describe(self, theta=None, free=None):
         if not self.lumped:
-            return super().describe(theta)
+            return super().describe(theta, free)
         return [f"{j} deflects with the gravity torque (lumped link masses: {4 * len(self._lump_links())} "
                 "products of compliance and mass moment)" for j in self.joints]
 

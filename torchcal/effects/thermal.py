@@ -142,7 +142,7 @@ class ThermalDrift(Effect):
             return f"the offset of marker {what} on its link grows with {cov}"
         return f"the link carrying {what} (its origin vector) grows with {cov}"
 
-    def describe(self, theta: Tensor | None = None) -> list[str]:
+    def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
         return [f"{self.mode_words(m)} by {float(th[i]) * 1e6:.3g} µm/m per {self.unit}"
-                for i, m in enumerate(self._mode_labels)]
+                for i, m in enumerate(self._mode_labels) if free is None or bool(free[i])]
