@@ -58,7 +58,7 @@ def main(argv=None) -> dict:
         elm, res = tune_elm(X["train"], Y["train"], X["val"], Y["val"], "mma", 40, options=opts, seed=s)
         times.append(time.perf_counter() - t0)
     model = CalibratedModel(robot, robot.params(), residual=elm)
-    corr = Corrector(model)
+    corr = Corrector(model, frame="instrument")
 
     g = torch.Generator().manual_seed(123)
     q_big = sample_q(a.big, g)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import shutil
 import sys
 from pathlib import Path
 
@@ -44,6 +45,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()):
+        if not (out / "truth.json").is_file():
+            raise SystemExit(f"{out} holds files that are not a previous demo's; choose another --out")
+        shutil.rmtree(out)  # the demo's own earlier output: make demo runs again
     out.mkdir(parents=True, exist_ok=True)
     urdf = ROOT / "urdf" / "kuka_kr5_arc.urdf"
     robot = Robot.from_urdf(urdf, markers=["smr@flange=0,0,0"])  # reflector: an unknown point on the flange
@@ -82,10 +87,10 @@ def main() -> None:
     model = torchcal.load(out / "model")
     qt = random_configs(robot, args.targets, g)
     targets = real.reach(qt)[:, 0]  # reachable target positions (m, tracker frame)
-    corr = Corrector(model).correct(targets, q0=qt)
+    corr = Corrector(model, frame="instrument").correct(targets, q0=qt)
     # without torchcal: nominal kinematics, the tracker frame registered (the controller's own model)
     registered = torchcal.CalibratedModel(robot, register_base(robot, train))
-    nominal = Corrector(registered).correct(targets, q0=qt)
+    nominal = Corrector(registered, frame="instrument").correct(targets, q0=qt)
     reached = real.reach(corr.q)[:, 0]
     reached_nom = real.reach(nominal.q)[:, 0]
     e_after = (reached - targets).norm(dim=-1) * 1e3

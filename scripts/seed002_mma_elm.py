@@ -190,7 +190,7 @@ def rmse_per_output(pred: torch.Tensor, Y: torch.Tensor) -> dict:
 
 def correction_errors(model: CalibratedModel, sim: SimulatedRobot, q_t: torch.Tensor, T_t: torch.Tensor):
     """Mean absolute position error (mm) before / after correction on the *simulated* robot."""
-    res = Corrector(model, tol_mm=1e-4).correct(T_t, q0=q_t)
+    res = Corrector(model, tol_mm=1e-4, frame="instrument").correct(T_t, q0=q_t)
     before = (sim.pose(q_t)[:, :3, 3] - T_t[:, :3, 3]).norm(dim=-1) * 1e3
     after = (sim.pose(res.q)[:, :3, 3] - T_t[:, :3, 3]).norm(dim=-1) * 1e3
     return before, after, res

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate
+from torchcal.transforms import quat_to_matrix
 from torchcal.io import Measurements
 from torchcal.measurement import PositionResidual
 from torchcal.robots import SHIPPED, shipped
@@ -294,14 +295,24 @@ def test_report_shape_and_saved_files(tmp_path):
     assert params["values"] == res.params.values.tolist()
     assert "| geometric |" in (out / "report.md").read_text()
 
-    # the exported URDF, loaded back with the marker link, reproduces the calibrated positions
+    # the exported URDF, loaded back with the marker link, reproduces the calibrated positions in
+    # the robot's own base frame; instrument.json holds where the instrument saw that frame
     back = Robot.from_urdf(out / "calibrated.urdf", markers=["marker_flange"])
-    assert back.joint_names == robot.joint_names
+    assert back.joint_names == robot.joint_names and back.root == robot.root
     q = torch.cat([data.q, test.q])
     p_back = back.positions(q)[:, 0]
-    p_cal = robot.positions(q, res.params.values)[:, 0]
+    p_cal = robot.positions(q, res.params.values, base=False)[:, 0]
     assert float((p_back - p_cal).abs().max()) < 1e-9
-    assert float((p_cal - robot.positions(q)[:, 0]).abs().max()) > 1.0  # the base frame (metres) is in it
+    inst = json.loads((out / "instrument.json").read_text())
+    R = quat_to_matrix(torch.tensor(inst["quaternion_wxyz"], dtype=torch.float64))
+    p_inst = p_back @ R.T + torch.tensor(inst["translation_m"], dtype=torch.float64)
+    assert float((p_inst - robot.positions(q, res.params.values)[:, 0]).abs().max()) < 1e-9
+    with pytest.raises(FileExistsError, match="not empty"):
+        res.save(tmp_path / "out")  # nothing is overwritten without force
+    res.save(tmp_path / "out", force=True, with_instrument=True)
+    back = Robot.from_urdf(out / "calibrated.urdf", markers=["marker_flange"])
+    assert back.root == "instrument"
+    assert float((back.positions(q)[:, 0] - robot.positions(q, res.params.values)[:, 0]).abs().max()) < 1e-9
 
 
 # ---------------------------------------------------------------------------------------------

@@ -204,7 +204,7 @@ def test_correction_with_exact_model_reaches_targets(kr5):
     sim = SimRobot(kr5)
     q_t = region(50, 6)
     T_t = kr5.fk(q_t)[:, 0]
-    res = Corrector(CalibratedModel(kr5, sim.truth, effects=[sim.effect]), tol_mm=1e-4).correct(T_t, q0=q_t)
+    res = Corrector(CalibratedModel(kr5, sim.truth, effects=[sim.effect]), tol_mm=1e-4, frame="instrument").correct(T_t, q0=q_t)
     assert bool(res.converged.all()), res.summary()
     assert float(res.predicted_error_mm.max()) <= 1e-4 and float(res.predicted_rot_error_mrad.max()) <= 1e-3
     reached = sim.pose(res.q)
@@ -221,13 +221,13 @@ def test_correction_drives_simulated_robot_closer(kr5):
     model = CalibratedModel(kr5, kr5.params(), residual=ELM(40, seed=0).fit(q, Y))
     q_t = region(80, 8)
     T_t = kr5.fk(q_t)[:, 0]  # nominal IK of these targets gives q_t: the uncorrected commands
-    res = Corrector(model).correct(T_t, q0=q_t)
+    res = Corrector(model, frame="instrument").correct(T_t, q0=q_t)
     assert bool(res.converged.all()), res.summary()
     before = (sim.pose(q_t)[:, :3, 3] - T_t[:, :3, 3]).norm(dim=-1)
     after = (sim.pose(res.q)[:, :3, 3] - T_t[:, :3, 3]).norm(dim=-1)
     assert float(after.mean()) < 0.3 * float(before.mean())
     # position-only targets work the same way
-    rp = Corrector(model).correct(T_t[:, :3, 3], q0=q_t)
+    rp = Corrector(model, frame="instrument").correct(T_t[:, :3, 3], q0=q_t)
     after_p = (sim.pose(rp.q)[:, :3, 3] - T_t[:, :3, 3]).norm(dim=-1)
     assert bool(rp.converged.all()) and float(after_p.mean()) < 0.3 * float(before.mean())
 
@@ -236,7 +236,7 @@ def test_correction_reports_unreachable_targets(kr5):
     q_t = region(4, 9)
     T_t = kr5.fk(q_t)[:, 0]
     T_t[1, :3, 3] = torch.tensor([2.8, 0.0, 0.5], dtype=torch.float64)
-    res = Corrector(CalibratedModel(kr5)).correct(T_t, q0=q_t)
+    res = Corrector(CalibratedModel(kr5), frame="instrument").correct(T_t, q0=q_t)
     assert res.reason[1] == "unreachable" and not bool(res.converged[1])
     assert bool(res.converged[[0, 2, 3]].all())
     assert float(res.predicted_error_mm[1]) > 100

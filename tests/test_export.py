@@ -15,7 +15,7 @@ TIAGO_MARKERS = ["hand_BL@wrist_ft_tool_link=0.05,0.03,0.1", "hand_BR@wrist_ft_t
 
 
 def _reload_and_compare(robot: Robot, params: torch.Tensor, q: torch.Tensor, path) -> Robot:
-    xml = robot.export_urdf(params, path)
+    xml = robot.export_urdf(params, path, with_instrument=True)
     assert path.read_text() == xml
     back = Robot.from_urdf(path, markers=[f"marker_{m}" for m in robot.marker_names])
     assert sorted(back.joint_names) == sorted(robot.joint_names)
@@ -147,8 +147,8 @@ def test_export_refuses_existing_base_link(tree_urdf, make_params, tmp_path):
     robot = Robot.from_urdf(xml, markers=["tool"])
     p = make_params(robot, seed=71)
     with pytest.raises(ValueError, match="'instrument' already exists.*base_link="):
-        robot.export_urdf(p, tmp_path / "x.urdf")
-    robot.export_urdf(p, tmp_path / "y.urdf", base_link="mocap")
+        robot.export_urdf(p, tmp_path / "x.urdf", with_instrument=True)
+    robot.export_urdf(p, tmp_path / "y.urdf", base_link="mocap", with_instrument=True)
     back = Robot.from_urdf(tmp_path / "y.urdf", markers=["marker_tool"])
     assert back.root == "mocap"
 
@@ -173,3 +173,19 @@ def test_to_urdf_string_dh(request, make_q, make_params, name):
     cal = Robot.from_urdf(robot.to_urdf_string(p), markers=[end])
     np.testing.assert_allclose(cal.fk(q).numpy(), robot.fk(q, p_joints).numpy(), atol=1e-12, rtol=0)
     assert float((robot.fk(q, p_joints) - robot.fk(q)).abs().max()) > 1e-3
+
+
+def test_export_keeps_the_robots_root_by_default(tree_urdf, make_params, make_q, tmp_path):
+    """The instrument registration is the cell's, not the robot's: by default it stays out of the
+    URDF, whose calibrated kinematics then equal the robot's in its own base frame."""
+    robot = Robot.from_urdf(tree_urdf, markers=["tool", "m1@link4=0.01,0.02,0.03"])
+    p = make_params(robot, seed=37)
+    assert float(p[:6].abs().max()) > 0.1  # a real instrument frame
+    q = make_q(robot, 6, seed=38)
+    xml = robot.export_urdf(p, tmp_path / "own_root.urdf", note="geometric part only")
+    assert "<!-- geometric part only -->" in xml
+    back = Robot.from_urdf(tmp_path / "own_root.urdf", markers=[f"marker_{m}" for m in robot.marker_names])
+    assert back.root == robot.root
+    cols = [robot.joint_names.index(n) for n in back.joint_names]
+    np.testing.assert_allclose(back.positions(q[:, cols]).numpy(), robot.positions(q, p, base=False).numpy(),
+                               atol=1e-12, rtol=0)

@@ -10,7 +10,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcal.cli_correct import correct_main, main as cli_main, matrix_to_quat, quat_to_matrix
+from torchcal.cli import main as torchcal_main
+from torchcal.cli_correct import correct_main, matrix_to_quat, quat_to_matrix
+
+
+def cli_main(argv):
+    return torchcal_main(["correct", *argv])
 from torchcal.elm import ELM
 from torchcal.model import CalibratedModel, register_effect
 from torchcal.persist import FORMAT_VERSION, load, save
@@ -146,8 +151,12 @@ def test_shipped_kr5_model_reproduces_stored_corrections(tmp_path):
     assert m.robot.name == "kuka_kr5_arc" and m.residual is not None
     assert m.robot.urdf_hash() == shipped("kuka_kr5_arc").urdf_hash()
     out = tmp_path / "corrected.csv"
-    rc = cli_main(["--model", str(SHIPPED_MODEL), "--targets", str(SHIPPED_MODEL / "targets.csv"), "--out", str(out)])
-    assert rc == 0
+    # the stored targets are in the model's instrument frame; one of them is unreachable
+    args = ["--model", str(SHIPPED_MODEL), "--targets", str(SHIPPED_MODEL / "targets.csv"), "--out", str(out),
+            "--frame", "instrument"]
+    assert cli_main(args) == 3  # a failed target fails the command by default
+    out.unlink()
+    assert cli_main(args + ["--allow-failures"]) == 0
     got, want = _read(out), _read(SHIPPED_MODEL / "expected_corrections.csv")
     assert len(got) == len(want) and got[0].keys() == want[0].keys()
     joints = m.robot.joint_names
@@ -169,7 +178,8 @@ def test_cli_errors_are_reported(tmp_path):
     mm.write_text("x,y,z\n1000,200,500\n")
     with pytest.raises(ValueError, match="looks like millimetres"):
         correct_main(argparse.Namespace(model=str(tmp_path / "m"), targets=str(mm), out=str(tmp_path / "o.csv"),
-                                        tol_mm=1e-3, tol_mrad=1e-3, max_outer=10, strict=False, threads=1))
+                                        tol_mm=1e-3, tol_mrad=1e-3, max_outer=10, allow_failures=False, threads=1,
+                                        frame="instrument", force=False))
 
 
 def test_cli_with_covariates_and_effects(tmp_path):
@@ -186,7 +196,7 @@ def test_cli_with_covariates_and_effects(tmp_path):
         rows.append(",".join(repr(float(v)) for v in vals))
     (tmp_path / "t.csv").write_text("\n".join(rows) + "\n")
     assert cli_main(["--model", str(tmp_path / "m"), "--targets", str(tmp_path / "t.csv"),
-                     "--out", str(tmp_path / "o.csv"), "--strict"]) == 0
+                     "--out", str(tmp_path / "o.csv"), "--frame", "instrument"]) == 0
     out = _read(tmp_path / "o.csv")
     assert [r["reason"] for r in out] == ["ok", "ok"]
     got = torch.tensor([[float(r[j]) for j in robot.joint_names] for r in out], dtype=torch.float64)

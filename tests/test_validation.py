@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.io import load_measurements
+from torchcal.io import UnitsError, load_measurements
 
 
 @pytest.fixture
@@ -181,6 +181,13 @@ def test_paramset_from_another_robot(tree_robot, kr5, modified_arm):
 JOINTS = ["yaw_joint", "pitch_joint", "slide_joint", "roll_joint", "finger_a_joint"]
 
 
+@pytest.fixture
+def tree_two(tree_urdf):
+    """The tree robot with the two markers the files below measure (a declared marker without
+    columns is an error)."""
+    return Robot.from_urdf(tree_urdf, markers=["tool", "m1@finger_a=0.01,0.02,0.03"])
+
+
 def _csv(tmp_path, header, rows, name="meas.csv"):
     path = tmp_path / name
     path.write_text("\n".join([",".join(header)] + [",".join(map(str, r)) for r in rows]) + "\n")
@@ -198,12 +205,12 @@ def _good_rows():
 GOOD_HEADER = JOINTS + ["tool.x", "tool.y", "tool.z", "m1.x", "m1.y", "m1.z", "temperature", "direction"]
 
 
-def test_good_measurement_file(tree_robot, tmp_path, no_warnings):
+def test_good_measurement_file(tree_two, tmp_path, no_warnings):
     path = _csv(tmp_path, GOOD_HEADER, _good_rows())
-    data = load_measurements(path, tree_robot)
+    data = load_measurements(path, tree_two)
     assert len(data) == 3
-    assert data.joint_names == tree_robot.joint_names
-    assert data.marker_names == ["tool", "m1"]  # robot order, only the measured markers
+    assert data.joint_names == tree_two.joint_names
+    assert data.marker_names == ["tool", "m1"]
     torch.testing.assert_close(data.q[1], torch.tensor([-0.2, 0.4, 0.10, -0.5, 0.0], dtype=torch.float64))
     assert data.positions.shape == (3, 2, 3)
     assert bool(torch.isnan(data.positions[1, 1]).all())
@@ -214,92 +221,103 @@ def test_good_measurement_file(tree_robot, tmp_path, no_warnings):
     assert data.quaternions is None
 
 
-def test_missing_joint_column_suggests_close_name(tree_robot, tmp_path):
+def test_missing_joint_column_suggests_close_name(tree_two, tmp_path):
     header = [("pitch_jnt" if c == "pitch_joint" else c) for c in GOOD_HEADER]
     with pytest.raises(ValueError) as e:
-        load_measurements(_csv(tmp_path, header, _good_rows()), tree_robot)
+        load_measurements(_csv(tmp_path, header, _good_rows()), tree_two)
     msg = str(e.value)
     assert "no column for joint(s) 'pitch_joint'" in msg
     assert "is 'pitch_jnt' meant?" in msg
     assert "exactly as in the URDF" in msg
 
 
-def test_unknown_marker_column(tree_robot, tmp_path):
+def test_unknown_marker_column(tree_two, tmp_path):
     header = [c.replace("m1.", "m7.") for c in GOOD_HEADER]
     with pytest.raises(ValueError) as e:
-        load_measurements(_csv(tmp_path, header, _good_rows()), tree_robot)
+        load_measurements(_csv(tmp_path, header, _good_rows()), tree_two)
     msg = str(e.value)
     assert "['m7']" in msg and "does not have" in msg
     assert "m7@LINK" in msg  # how to declare it
 
 
-def test_non_numeric_cell_gives_line_and_column(tree_robot, tmp_path):
+def test_non_numeric_cell_gives_line_and_column(tree_two, tmp_path):
     rows = _good_rows()
     rows[1][6] = "0.1O"  # a letter O typed for a zero
     with pytest.raises(ValueError) as e:
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_robot)
+        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_two)
     msg = str(e.value)
     assert "line 3" in msg and "column 'tool.y'" in msg and "'0.1O' is not a number" in msg
 
 
 @pytest.mark.parametrize("cell", ["", "nan", "inf"])
-def test_nan_in_joint_column(tree_robot, tmp_path, cell):
+def test_nan_in_joint_column(tree_two, tmp_path, cell):
     rows = _good_rows()
     rows[2][2] = cell
     with pytest.raises(ValueError) as e:
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_robot)
+        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_two)
     msg = str(e.value)
     assert "line 4" in msg and "'slide_joint'" in msg and "drop the row" in msg
 
 
-def test_partial_marker_coordinates(tree_robot, tmp_path):
+def test_partial_marker_coordinates(tree_two, tmp_path):
     rows = _good_rows()
     rows[0][9] = ""  # m1.y missing in the first data row
     with pytest.raises(ValueError) as e:
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_robot)
+        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_two)
     msg = str(e.value)
     assert "line 2" in msg and "'m1'" in msg and "some of x/y/z but not all" in msg
     assert "leave all three empty" in msg
 
 
-def test_partial_marker_columns(tree_robot, tmp_path):
+def test_partial_marker_columns(tree_two, tmp_path):
     header = [c for c in GOOD_HEADER if c != "tool.z"]
     rows = [r[:7] + r[8:] for r in _good_rows()]
     with pytest.raises(ValueError, match=r"marker 'tool' has some position columns but not \['tool\.z'\]"):
-        load_measurements(_csv(tmp_path, header, rows), tree_robot)
+        load_measurements(_csv(tmp_path, header, rows), tree_two)
 
 
-def test_millimetre_coordinates_warn(tree_robot, tmp_path):
+def test_millimetre_coordinates_stop_unless_declared(tree_two, tmp_path):
     rows = _good_rows()
     for r in rows:
+        r[2] = 1000 * r[2]  # the prismatic slide, in mm like the positions
         for k in range(5, 11):
             if r[k] != "":
                 r[k] = 1000 * r[k]
-    with pytest.warns(UserWarning, match="millimetres.*divide by 1000"):
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_robot)
+    path = _csv(tmp_path, GOOD_HEADER, rows)
+    with pytest.raises(UnitsError, match="millimetres.*divide by 1000.*--units mm"):
+        load_measurements(path, tree_two)
+    mm = load_measurements(path, tree_two, units=["mm"])
+    ref = load_measurements(_csv(tmp_path, GOOD_HEADER, _good_rows(), name="m.csv"), tree_two)
+    torch.testing.assert_close(mm.positions, ref.positions, equal_nan=True)
+    torch.testing.assert_close(mm.q, ref.q)
 
 
-def test_degree_joint_values_warn(tree_robot, tmp_path):
+def test_degree_joint_values_stop_unless_declared(tree_two, tmp_path):
     rows = _good_rows()
     for r in rows:
         r[0] = round(math.degrees(r[0]) * 5, 3)  # yaw in degrees: 28.6, -57.3, 85.9
-    with pytest.warns(UserWarning, match=r"'yaw_joint'.*degrees"):
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows), tree_robot)
+    path = _csv(tmp_path, GOOD_HEADER, rows)
+    with pytest.raises(UnitsError, match=r"'yaw_joint'.*degrees.*π/180.*--units deg"):
+        load_measurements(path, tree_two)
+    deg = load_measurements(path, tree_two, units=["deg"])
+    # revolute columns converted, the prismatic slide untouched
+    assert deg.q[:, 0].tolist() == pytest.approx([math.radians(r[0]) for r in rows])
+    assert deg.q[:, 2].tolist() == pytest.approx([r[2] for r in rows])
 
 
-def test_measurement_file_problems(tree_robot, tmp_path):
+def test_measurement_file_problems(tree_two, tmp_path):
     with pytest.raises(FileNotFoundError, match="measurement file not found"):
-        load_measurements(tmp_path / "absent.csv", tree_robot)
+        load_measurements(tmp_path / "absent.csv", tree_two)
     with pytest.raises(ValueError, match="header but no rows"):
-        load_measurements(_csv(tmp_path, GOOD_HEADER, [], name="empty.csv"), tree_robot)
+        load_measurements(_csv(tmp_path, GOOD_HEADER, [], name="empty.csv"), tree_two)
     rows = _good_rows()
     rows[1] = rows[1][:-1]
     with pytest.raises(ValueError, match="line 3: 12 cells but the header has 13 columns"):
-        load_measurements(_csv(tmp_path, GOOD_HEADER, rows, name="short.csv"), tree_robot)
+        load_measurements(_csv(tmp_path, GOOD_HEADER, rows, name="short.csv"), tree_two)
     with pytest.raises(ValueError, match=r"duplicate column names \['tool\.x'\]"):
         load_measurements(_csv(tmp_path, GOOD_HEADER + ["tool.x"], [r + [0] for r in _good_rows()],
-                               name="dup.csv"), tree_robot)
+                               name="dup.csv"), tree_two)
     header = JOINTS + ["temperature"]
     with pytest.raises(ValueError, match=r"no marker columns; expected '<marker>\.x'"):
         load_measurements(_csv(tmp_path, header, [r[:5] + [20.0] for r in _good_rows()], name="nomk.csv"),
-                          tree_robot)
+                          tree_two)

@@ -16,7 +16,9 @@ from .params import ParamSet
 from .fitting import fit_identified
 from .problem import CalibrationProblem
 from .registration import register_base
-from .report import error_stats, histogram_figure, write_json
+from .outputs import atomic_write_text, staged_dir
+from .report import error_details, error_figure, error_stats, stage_problems, write_json
+from .transforms import matrix_to_quat, so3_exp
 
 __all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
 
@@ -44,6 +46,28 @@ def _position_errors(robot, params: Tensor, data: Measurements | None) -> Tensor
     if data is None or len(data) == 0:
         return torch.zeros(0)
     return PositionResidual(robot, data).errors(params[None])[0]
+
+
+def _errors(robot, params: Tensor, train: Measurements, test: Measurements | None) -> dict:
+    out = {}
+    for split, d in (("train", train), ("test", test)):
+        det = error_details(robot, params, d) if d is not None and len(d) else None
+        out[split] = _position_errors(robot, params, d)
+        if det is not None:
+            out[f"{split}_details"] = det
+    return out
+
+
+def write_instrument(robot, params: ParamSet, path) -> None:
+    """The instrument registration (instrument frame <- robot base) as JSON: translation in
+    metres and rotation as a unit quaternion (w, x, y, z)."""
+    b = params.values[:6]
+    R = so3_exp(b[3:])
+    write_json(path, {"frame": "instrument <- robot base: p_instrument = R p_base + t",
+                      "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
+                      "rotation_vector_rad": b[3:].tolist(),
+                      "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
+                              "saw it"})
 
 
 @dataclass
@@ -75,6 +99,17 @@ class CalibrationResult:
     wall_time_s: float = 0.0
     errors: dict = field(default_factory=dict)  # stage -> {"train": Tensor, "test": Tensor} (m)
 
+    def __repr__(self) -> str:
+        last = self.stages[-1]
+        te = f", held-out mean {last['test']['mean_mm']:.4f} mm" if last.get("test") else ""
+        return (f"CalibrationResult({self.robot.name}, {self.method}: {len(self.std_errors)} parameters fitted, "
+                f"{len(self.unidentifiable)} not identifiable; training mean {last['train']['mean_mm']:.4f} mm{te})")
+
+    def problems(self) -> list[str]:
+        """Reasons not to trust this calibration, in words (empty when none): worse than the
+        nominal model on its own training rows, or held-out rows that do not fit this robot."""
+        return stage_problems(self.stages)
+
     def report(self) -> dict:
         """The JSON-serialisable report (shape shared with ``torchcal loop``)."""
         ident = self.params.free_names
@@ -90,7 +125,7 @@ class CalibrationResult:
             "solver": {"method": self.solver.method, "fun": self.solver.fun, "n_iter": self.solver.n_iter,
                        "n_evals": self.solver.n_evals, "wall_time_s": self.solver.wall_time_s,
                        "converged": self.solver.converged, "message": self.solver.message},
-            "wall_time_s": self.wall_time_s,
+            "wall_time_s": self.wall_time_s, "problems": self.problems(),
         }
 
     def markdown(self) -> str:
@@ -119,23 +154,32 @@ class CalibrationResult:
                       f"{s.wall_time_s:.3f} s; {s.message}", ""]
         return "\n".join(lines)
 
-    def save(self, out_dir) -> Path:
-        """Write ``calibrated.urdf``, ``params.json``, ``report.json``, ``report.md`` and
-        ``errors.png`` into ``out_dir``."""
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        self.robot.export_urdf(self.params, out / "calibrated.urdf")
-        write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
-                                         "values": self.params.values.tolist(),
-                                         "free": self.params.free.tolist(),
-                                         "std_errors": self.std_errors})
-        write_json(out / "report.json", self.report())
-        (out / "report.md").write_text(self.markdown())
-        for split in ("train", "test"):
-            st = [(name, e[split]) for name, e in self.errors.items() if e.get(split) is not None and e[split].numel()]
-            if st:
-                histogram_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"), split=split)
-        return out
+    def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
+        """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
+        instrument frame as its root), ``instrument.json``, ``params.json``, ``report.json``,
+        ``report.md`` and the error figures into ``out_dir``, built under a temporary name.
+        Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
+        says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename."""
+        if self.problems():
+            raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
+        with staged_dir(out_dir, force) as out:
+            self.robot.export_urdf(self.params, out / "calibrated.urdf", with_instrument=with_instrument)
+            write_instrument(self.robot, self.params, out / "instrument.json")
+            write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
+                                             "values": self.params.values.tolist(),
+                                             "free": self.params.free.tolist(),
+                                             "std_errors": self.std_errors})
+            write_json(out / "report.json", self.report())
+            atomic_write_text(out / "report.md", self.markdown())
+            for split in ("train", "test"):
+                st = [(name, e[f"{split}_details"]) for name, e in self.errors.items()
+                      if e.get(split) is not None and e[split].numel()]
+                if st:
+                    error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
+                                 title=f"{self.robot.name}: position error", split=split)
+            if extra is not None:
+                extra(out)
+        return Path(out_dir)
 
 
 def _select_free(params: ParamSet, free) -> ParamSet:
@@ -273,9 +317,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     if test is not None:
         geo["test"] = stage_stats(robot, p.values, test)
     stages.append(geo)
-    errors = {"nominal": {"train": _position_errors(robot, nominal, data), "test": _position_errors(robot, nominal, test)},
-              "geometric": {"train": _position_errors(robot, p.values, data),
-                            "test": _position_errors(robot, p.values, test)}}
+    errors = {"nominal": _errors(robot, nominal, data, test), "geometric": _errors(robot, p.values, data, test)}
     return CalibrationResult(robot=robot, params=p, std_errors=std_errors, unidentifiable=unident, stages=stages,
                              solver=s, method=method, n_train=len(data), n_test=0 if test is None else len(test),
                              start=start, identifiability=report, loss=loss if loss_obj is None else repr(loss_obj),

@@ -1,47 +1,39 @@
-"""Command line: ``torchcal calibrate …`` and ``torchcal simulate …``."""
+"""Command line: ``torchcal calibrate | loop | simulate | correct`` (also ``python -m torchcal``).
+
+Every command refuses to overwrite what exists (``--force`` to replace it), checks that its
+output can be written before it works, writes under temporary names, and records in each output
+directory the exact options (``run.yaml``, which ``--config`` reads back) and the provenance of
+the result (``provenance.json``). Messages go to stderr through :mod:`logging` (``--quiet``,
+``--verbose``); tables and results to stdout.
+"""
 from __future__ import annotations
 
 import argparse
+import logging
+import shlex
 import sys
+import time
 from pathlib import Path
 
-__all__ = ["main"]
+import torch
 
+from . import __version__
+from .calibrate import SWARM_METHODS, calibrate, write_instrument
+from .cli_common import (add_common, expand_config, fraction, int_at_least, nonnegative_float, robot_and_data,
+                         run_record, setup_logging)
+from .cli_correct import add_correct_parser
+from .effects import EFFECTS
+from .io import UnitsError
+from .loop import run_loop
+from .loop_report import write_loop_report
+from .outputs import check_out_dir, check_out_file
+from .persist import save
+from .robot import Robot
+from .sim import SimConfig, simulate_with_effects, write_dataset
 
-def _robot(urdf: str, markers: list[str] | None, data_csv: str | None):
-    from .io import _read_csv, marker_columns_in
-    from .robot import Robot
-    from .urdf import urdf_links
+__all__ = ["main", "build_parser"]
 
-    if not markers:
-        if data_csv is None:
-            raise SystemExit("give --marker (a link name or NAME@LINK=x,y,z)")
-        header, _ = _read_csv(data_csv)
-        cols = marker_columns_in(header)
-        links = set(urdf_links(urdf))
-        unknown = [c for c in cols if c not in links]
-        if unknown:
-            raise SystemExit(f"marker column(s) {unknown} are not links of {urdf}; declare each as an unknown point "
-                             f"on a link, e.g. --marker {unknown[0]}@LINK or --marker {unknown[0]}@LINK=0.05,0,0.1 (m)")
-        if not cols:
-            raise SystemExit(f"{data_csv} has no '<marker>.x/.y/.z' columns")
-        markers = cols
-    return Robot.from_urdf(urdf, markers=markers)
-
-
-def _load(a):
-    """Robot, training and held-out data from the common options."""
-    import torch
-
-    from .io import load_measurements
-
-    torch.set_num_threads(a.threads)
-    robot = _robot(a.robot, a.marker, a.data)
-    train = load_measurements(a.data, robot)
-    test = load_measurements(a.test, robot) if a.test else None
-    if test is None and a.holdout:
-        train, test = train.split(a.holdout, seed=a.seed)
-    return robot, train, test
+logger = logging.getLogger("torchcal")
 
 
 def _print_stages(stages: list[dict], has_test: bool) -> None:
@@ -56,123 +48,165 @@ def _print_stages(stages: list[dict], has_test: bool) -> None:
         print(f"{s['name']:<{w}}{s['n_params']:>7}" + "".join(f"{v:>12.4f}" for v in vals) + "   [mm]")
 
 
-def _calibrate(a) -> int:
-    from .calibrate import SWARM_METHODS, calibrate
+def _inputs(a) -> dict:
+    return {"urdf": a.robot, "data": a.data, "test": getattr(a, "test", None)}
 
-    robot, train, test = _load(a)
-    progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty())
+
+def _refuse(cmd: str, problems: list[str]) -> int:
+    for p in problems:
+        print(f"torchcal {cmd}: error: {p}", file=sys.stderr)
+    print(f"torchcal {cmd}: nothing was written", file=sys.stderr)
+    return 2
+
+
+def _calibrate(a, argv) -> int:
+    check_out_dir(a.out, a.force)
+    torch.set_num_threads(a.threads)
+    t0 = time.perf_counter()
+    robot, train, test = robot_and_data(a)
+    progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty()
+                                                          and not a.quiet)
     res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
                     progress=progress, polish=a.polish, free=a.free or None)
-    out = res.save(a.out)
+    logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
+    if res.problems():
+        return _refuse("calibrate", res.problems())
+    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument,
+                   extra=lambda d: run_record(a, d, _inputs(a), argv))
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
     _print_stages(res.stages, test is not None)
     print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
     return 0
 
 
-def _loop(a) -> int:
-    import shlex
-
-    from .loop import run_loop
-    from .loop_report import write_loop_report
-
-    robot, train, test = _load(a)
+def _loop(a, argv) -> int:
+    check_out_dir(a.out, a.force)
+    torch.set_num_threads(a.threads)
+    robot, train, test = robot_and_data(a)
+    progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
     res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
-                   noise_mm=a.noise_mm)
-    out = Path(a.out)
-    cmd = "torchcal " + " ".join(shlex.quote(x) for x in sys.argv[1:]) if a.command is None else a.command
-    write_loop_report(res, out, command=cmd)
-    try:
-        from .persist import save
+                   noise_mm=a.noise_mm, progress=progress, log=None)
+    for k, v in res.timings.items():
+        logger.info(f"stage {k}: {v:.1f} s")
+    if res.problems():
+        return _refuse("loop", res.problems())
+    from .outputs import staged_dir
 
-        save(res.model(), out / "model")
-        saved = f"; model in {out / 'model'}"
-    except Exception as e:  # the report is still worth having
-        saved = f"; the model could not be saved: {e}"
+    cmd = "torchcal " + " ".join(shlex.quote(x) for x in argv) if a.command is None else a.command
+    with staged_dir(a.out, a.force) as d:
+        write_loop_report(res, d, command=cmd)
+        geo = robot.params(res.params.values[: robot.n_params])
+        note = None
+        if res.effects:
+            note = ("geometric part only: the calibrated model also applies " + "; ".join(
+                f"{e.name} ({', '.join(lab for lab, _ in e.modes())})" for e in res.effects) +
+                ". Those act through the saved model (torchcal.load('model'), torchcal correct), not through "
+                "this URDF")
+        robot.export_urdf(geo, d / "calibrated.urdf", with_instrument=a.with_instrument, note=note)
+        write_instrument(robot, geo, d / "instrument.json")
+        prov = run_record(a, d, _inputs(a), argv)
+        model = res.model()
+        model.meta.update({"provenance": prov, "options": (d / "run.yaml").read_text()})
+        save(model, d / "model")
+    out = Path(a.out)
     _print_stages(res.stages, test is not None)
-    print(f"effects found: {[e['name'] for e in res.accepted] or 'none'}; report in {out / 'report.md'}{saved}")
+    print(f"effects found: {[e['name'] for e in res.accepted] or 'none'}; report in {out / 'report.md'}; calibrated "
+          f"URDF {out / 'calibrated.urdf'}" + (" (geometric part)" if res.effects else "") + f"; model in {out / 'model'}")
+    if res.suspects:
+        print(f"{len(res.suspects)} suspect observation(s), listed in the report (kept in the data)")
     return 0
 
 
-def _simulate(a) -> int:
-    import torch
-
-    from .robot import Robot
-    from .sim import SimConfig, simulate_with_effects, write_dataset
-
+def _simulate(a, argv) -> int:
+    out = Path(a.out)
+    truth = out.with_suffix(".truth.json")
+    check_out_file(out, a.force)
+    check_out_file(truth, a.force)
     torch.set_num_threads(1)
     robot = Robot.from_urdf(a.robot, markers=a.marker or None)
     cfg = SimConfig(n=a.poses, noise=a.noise_mm * 1e-3, base_distance=a.base_distance, seed=a.seed,
                     length_error=a.length_error_mm * 1e-3, angle_error=a.angle_error_mrad * 1e-3)
-    data, truth, effects = simulate_with_effects(robot, cfg, a.effect)
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_dataset(out, data, truth, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
-    print(f"wrote {len(data)} rows to {out} and the truth to {out.with_suffix('.truth.json')} (keep it away from the solver)")
+    data, tr, effects = simulate_with_effects(robot, cfg, a.effect)
+    write_dataset(out, data, tr, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
+    print(f"wrote {len(data)} rows to {out} and the truth to {truth} (keep it away from the solver)")
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def _data_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", required=True, help="URDF file")
+    p.add_argument("--data", required=True, help="training CSV: joint columns (rad / m) + <marker>.x/.y/.z (m)")
+    p.add_argument("--test", help="held-out CSV (measured only, never fitted)")
+    p.add_argument("--holdout", type=fraction, default=0.0, help="without --test: fraction of rows held out")
+    p.add_argument("--marker", action="append", help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. "
+                                                     "Default: the marker columns of --data that are link names")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-instrument", action="store_true",
+                   help="calibrated URDF rooted in the instrument frame (default: the robot's own root; the "
+                        "registration goes to instrument.json)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bar (default: on in a terminal)")
+    p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    add_common(p)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     ap = argparse.ArgumentParser(prog="torchcal", description="Robot calibration on torch tensors.")
+    ap.add_argument("--version", action="version", version=f"torchcal {__version__} (torch {torch.__version__})")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     c = sub.add_parser("calibrate", help="identify geometric errors from a measurement CSV")
-    c.add_argument("--robot", required=True, help="URDF file")
-    c.add_argument("--data", required=True, help="training CSV: joint columns + <marker>.x/.y/.z in m")
-    c.add_argument("--test", help="held-out CSV (measured only, never fitted)")
-    c.add_argument("--holdout", type=float, default=0.0, help="without --test: fraction of rows held out")
-    c.add_argument("--marker", action="append", help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. "
-                                                     "Default: the marker columns of --data that are link names")
     c.add_argument("--method", default="lm", choices=["lm", "gn", "lbfgs", "pso", "ldpso-bt", "cpso", "ga", "ma", "mma",
                                                       "hybrid"])
     c.add_argument("--kind", default="position", choices=["position", "pose"])
     c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"])
     c.add_argument("--free", action="append", help="glob pattern of parameters to identify (repeatable)")
     c.add_argument("--polish", action="store_true", help="after a swarm method, polish with LM")
-    c.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar (default: on for swarm methods in a terminal)")
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--threads", type=int, default=1)
-    c.add_argument("--out", required=True, help="output directory")
+    _data_options(c)
     c.set_defaults(func=_calibrate)
 
     lp = sub.add_parser("loop", help="calibrate, trace the residual to the effect the model lacks, add it, report")
-    lp.add_argument("--robot", required=True, help="URDF file")
-    lp.add_argument("--data", required=True, help="training CSV")
-    lp.add_argument("--test", help="held-out CSV (only measured)")
-    lp.add_argument("--holdout", type=float, default=0.0, help="without --test: fraction of rows held out")
-    lp.add_argument("--marker", action="append", help="LINK or NAME@LINK[=x,y,z] (m); repeatable")
-    lp.add_argument("--candidates", nargs="*", help="effects to consider (default: all the data allows)")
-    lp.add_argument("--folds", type=int, default=5)
-    lp.add_argument("--noise-mm", type=float, help="instrument noise for the report (mean error, mm)")
+    lp.add_argument("--candidates", nargs="*", choices=sorted(EFFECTS), metavar="EFFECT",
+                    help=f"effects to consider (default: all the data allows): {', '.join(sorted(EFFECTS))}")
+    lp.add_argument("--folds", type=int_at_least(2), default=5, help="cross-validation folds (≥ 2)")
+    lp.add_argument("--noise-mm", type=nonnegative_float, help="instrument noise for the report (mean error, mm)")
     lp.add_argument("--no-elm", action="store_true", help="skip the residual ELM stage")
-    lp.add_argument("--seed", type=int, default=0)
-    lp.add_argument("--threads", type=int, default=1)
     lp.add_argument("--command", help=argparse.SUPPRESS)
-    lp.add_argument("--out", required=True, help="output directory (report, figures, model/)")
+    _data_options(lp)
     lp.set_defaults(func=_loop)
 
     s = sub.add_parser("simulate", help="simulate laser-tracker measurements with geometric errors")
     s.add_argument("--robot", required=True)
     s.add_argument("--marker", action="append")
-    s.add_argument("--poses", type=int, default=100)
-    s.add_argument("--noise-mm", type=float, default=0.02)
-    s.add_argument("--length-error-mm", type=float, default=0.5)
-    s.add_argument("--angle-error-mrad", type=float, default=1.0)
-    s.add_argument("--base-distance", type=float, default=3.0, help="instrument distance from the base (m)")
+    s.add_argument("--poses", type=int_at_least(1), default=100)
+    s.add_argument("--noise-mm", type=nonnegative_float, default=0.02)
+    s.add_argument("--length-error-mm", type=nonnegative_float, default=0.5)
+    s.add_argument("--angle-error-mrad", type=nonnegative_float, default=1.0)
+    s.add_argument("--base-distance", type=nonnegative_float, default=3.0, help="instrument distance from the base (m)")
     s.add_argument("--effect", action="append", default=[], help="physical effect to simulate (repeatable): "
                    "joint_compliance, backlash, cyclic_joint_error, joint_scale, thermal_drift")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--out", required=True, help="CSV path; the truth goes beside it as .truth.json")
+    add_common(s, units=False)
     s.set_defaults(func=_simulate)
 
-    from .cli_correct import add_correct_parser
-
     add_correct_parser(sub)
-    a = ap.parse_args(argv)
+    return ap, sub.choices
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap, sub = build_parser()
     try:
-        return a.func(a)
-    except (ValueError, FileNotFoundError, KeyError) as e:
+        argv = expand_config(argv, sub)
+    except SystemExit as e:
+        print(e, file=sys.stderr)
+        return 2
+    a = ap.parse_args(argv)
+    setup_logging(a)
+    try:
+        return a.func(a, argv)
+    except (ValueError, UnitsError, FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError,
+            KeyError) as e:
         print(f"torchcal {a.cmd}: error: {e}", file=sys.stderr)
         return 2
 

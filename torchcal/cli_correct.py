@@ -2,7 +2,8 @@
 
 Targets CSV (header row, one target per row):
 
-* ``x, y, z``: target position (m) in the model's instrument frame (required);
+* ``x, y, z``: target position (m), in the robot's base frame (``--frame base``, the default) or
+  in the instrument frame the model was calibrated in (``--frame instrument``) (required);
 * ``qw, qx, qy, qz``: target orientation as a unit quaternion (optional; all four or none;
   without them the targets are positions only);
 * a column per joint (the model's joint names, rad / m): IK start for that target (optional;
@@ -12,68 +13,32 @@ Targets CSV (header row, one target per row):
 Output CSV: the target columns, the corrected command per joint, ``converged`` (1/0),
 ``reason`` (``ok``, ``unreachable``, ``joint_limits``, ``singular``, ``not_converged``,
 ``max_outer``), ``predicted_error_mm`` and, for pose targets, ``predicted_rot_error_mrad``.
-Numbers are written with full float64 precision (``repr``).
+Numbers are written with full float64 precision (``repr``). The command exits with status 3
+when any target fails (``--allow-failures``: 0), and never overwrites a file (``--force``), least
+of all the targets file.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import io
 import math
 import sys
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-__all__ = ["add_correct_parser", "correct_main", "main", "read_targets", "write_corrections",
-           "quat_to_matrix", "matrix_to_quat"]
+from .cli_common import add_common, int_at_least, positive_float
+from .correct import Corrector
+from .io import UnitsError, read_csv
+from .outputs import atomic_write_text, check_out_file
+from .persist import load
+from .transforms import matrix_to_quat, quat_to_matrix
+
+__all__ = ["add_correct_parser", "correct_main", "read_targets", "write_corrections", "quat_to_matrix",
+           "matrix_to_quat"]
 
 _POS, _QUAT = ("x", "y", "z"), ("qw", "qx", "qy", "qz")
-
-
-def quat_to_matrix(qt: Tensor) -> Tensor:
-    """``(..., 4)`` quaternion ``(w, x, y, z)`` (normalised here) ``-> (..., 3, 3)``."""
-    qt = qt / qt.norm(dim=-1, keepdim=True)
-    w, x, y, z = qt.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
-def matrix_to_quat(R: Tensor) -> Tensor:
-    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's
-    method: the largest of the four candidates is computed first, so it is accurate everywhere)."""
-    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    t = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
-    k = t.argmax(-1)
-    s = torch.sqrt(t.gather(-1, k[..., None]).clamp(min=1e-300))[..., 0] * 2  # 4 |component k|
-    cand = [
-        torch.stack([s / 4, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s], -1),
-        torch.stack([(r21 - r12) / s, s / 4, (r01 + r10) / s, (r02 + r20) / s], -1),
-        torch.stack([(r02 - r20) / s, (r01 + r10) / s, s / 4, (r12 + r21) / s], -1),
-        torch.stack([(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, s / 4], -1),
-    ]
-    q = torch.stack(cand, -2).gather(-2, k[..., None, None].expand(*k.shape, 1, 4))[..., 0, :]
-    q = torch.where(q[..., :1] < 0, -q, q)
-    return q / q.norm(dim=-1, keepdim=True)
-
-
-def _read(path) -> tuple[list[str], list[list[str]]]:
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"targets file not found: {p}")
-    with open(p, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
-    if len(rows) < 2:
-        raise ValueError(f"{p}: needs a header row (x,y,z[,qw,qx,qy,qz]) and at least one target row")
-    header = [h.strip() for h in rows[0]]
-    for i, r in enumerate(rows[1:], start=2):
-        if len(r) != len(header):
-            raise ValueError(f"{p}, line {i}: {len(r)} cells but the header has {len(header)} columns")
-    return header, rows[1:]
 
 
 def read_targets(path, robot, covariates: list[str] | None = None):
@@ -83,7 +48,9 @@ def read_targets(path, robot, covariates: list[str] | None = None):
         ``(targets, q0, cov, has_quat)``: ``targets (N, 4, 4)`` or ``(N, 3)`` (m), ``q0 (N, dof)``
         or ``None``, ``cov`` dict ``name -> (N,)`` or ``None``, and whether orientations were given.
     """
-    header, rows = _read(path)
+    header, rows = read_csv(path, "targets file")
+    if not rows:
+        raise ValueError(f"{path}: needs a header row (x,y,z[,qw,qx,qy,qz]) and at least one target row")
     col = {h: i for i, h in enumerate(header)}
     missing = [c for c in _POS if c not in col]
     if missing:
@@ -108,8 +75,8 @@ def read_targets(path, robot, covariates: list[str] | None = None):
 
     p = torch.stack([num(c) for c in _POS], -1)
     if float(p.abs().max()) > 50:
-        raise ValueError(f"{path}: target positions reach {float(p.abs().max()):.1f}, which looks like "
-                         "millimetres; torchcal expects metres")
+        raise UnitsError(f"{path}: target positions reach {float(p.abs().max()):.1f}, which looks like "
+                         "millimetres; torchcal expects metres: divide by 1000")
     has_quat = bool(nq)
     if has_quat:
         qt = torch.stack([num(c) for c in _QUAT], -1)
@@ -144,19 +111,19 @@ def write_corrections(path, targets: Tensor, res, robot) -> None:
         ["converged", "reason", "predicted_error_mm"] + (["predicted_rot_error_mrad"] if pose else [])
     p = targets[:, :3, 3] if pose else targets
     qt = matrix_to_quat(targets[:, :3, :3]) if pose else None
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        for i in range(p.shape[0]):
-            row = [repr(float(v)) for v in p[i]]
-            if pose:
-                row += [repr(float(v)) for v in qt[i]]
-            row += [repr(float(v)) for v in res.q[i]]
-            row += [int(bool(res.converged[i])), res.reason[i], repr(float(res.predicted_error_mm[i]))]
-            if pose:
-                row.append(repr(float(res.predicted_rot_error_mrad[i])))
-            w.writerow(row)
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for i in range(p.shape[0]):
+        row = [repr(float(v)) for v in p[i]]
+        if pose:
+            row += [repr(float(v)) for v in qt[i]]
+        row += [repr(float(v)) for v in res.q[i]]
+        row += [int(bool(res.converged[i])), res.reason[i], repr(float(res.predicted_error_mm[i]))]
+        if pose:
+            row.append(repr(float(res.predicted_rot_error_mrad[i])))
+        w.writerow(row)
+    atomic_write_text(path, buf.getvalue())
 
 
 def add_correct_parser(sub) -> argparse.ArgumentParser:
@@ -169,39 +136,35 @@ def add_correct_parser(sub) -> argparse.ArgumentParser:
     c.add_argument("--targets", required=True,
                    help="targets CSV: x,y,z (m) [, qw,qx,qy,qz] [, joint columns = IK start]")
     c.add_argument("--out", required=True, help="output CSV: targets, corrected joint commands, status")
-    c.add_argument("--tol-mm", type=float, default=1e-3, help="tolerance on the predicted position error (mm)")
-    c.add_argument("--tol-mrad", type=float, default=1e-3, help="tolerance on the predicted rotation error (mrad)")
-    c.add_argument("--max-outer", type=int, default=10, help="correction rounds at most")
-    c.add_argument("--strict", action="store_true", help="exit with status 3 when any target fails")
-    c.add_argument("--threads", type=int, default=1)
+    c.add_argument("--frame", choices=Corrector.FRAMES, default="base",
+                   help="frame of the targets: the robot's base frame (default) or the instrument frame the model "
+                        "was calibrated in")
+    c.add_argument("--tol-mm", type=positive_float, default=1e-3, help="tolerance on the predicted position error (mm)")
+    c.add_argument("--tol-mrad", type=positive_float, default=1e-3,
+                   help="tolerance on the predicted rotation error (mrad)")
+    c.add_argument("--max-outer", type=int_at_least(1), default=10, help="correction rounds at most")
+    c.add_argument("--allow-failures", action="store_true",
+                   help="exit with status 0 even when some targets fail (default: status 3)")
+    add_common(c, units=False)
     c.set_defaults(func=correct_main)
     return c
 
 
-def correct_main(a: argparse.Namespace) -> int:
+def correct_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Run ``torchcal correct`` with parsed arguments (see :func:`add_correct_parser`)."""
-    from .correct import Corrector
-    from .persist import load
-
+    check_out_file(a.out, a.force, inputs=(a.targets,))
     torch.set_num_threads(a.threads)
     model = load(a.model)
     targets, q0, cov, _ = read_targets(a.targets, model.robot, model.required_covariates)
-    res = Corrector(model, tol_mm=a.tol_mm, tol_mrad=a.tol_mrad, max_outer=a.max_outer).correct(targets, q0, cov)
+    res = Corrector(model, tol_mm=a.tol_mm, tol_mrad=a.tol_mrad, max_outer=a.max_outer,
+                    frame=a.frame).correct(targets, q0, cov)
     write_corrections(a.out, targets, res, model.robot)
     n, ok = len(res.reason), int(res.converged.sum())
     fails = {k: v for k, v in res.summary().items() if k != "ok"}
-    print(f"{model.robot.name}: corrected {ok}/{n} targets"
+    print(f"{model.robot.name}: corrected {ok}/{n} targets ({a.frame} frame)"
           + (f"; failed: {fails}" if fails else "") + f"; wrote {a.out}")
-    return 3 if (a.strict and ok < n) else 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry: ``python -m torchcal.cli_correct --model DIR --targets CSV --out CSV``
-    (the same as ``torchcal correct …``)."""
-    from .cli import main as cli_main
-
-    return cli_main(["correct", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    if ok < n and not a.allow_failures:
+        print(f"torchcal correct: {n - ok} target(s) failed (rows with converged = 0 in {a.out}); "
+              "pass --allow-failures to exit with status 0 anyway", file=sys.stderr)
+        return 3
+    return 0

@@ -81,10 +81,19 @@ class Corrector:
         ik_options: passed to :func:`torchcal.ik.solve_ik` (``rot_weight``, ``max_iter``,
             ``restarts`` for the first IK, ``limits`` ...). The IK tolerances default to 1/1000
             of the correction tolerances so that IK never limits the correction.
+        frame: the frame targets are given in: ``"base"`` (default: the robot's own base frame,
+            as a cell's programs know it) or ``"instrument"`` (the frame the model was calibrated
+            in, e.g. the laser tracker's).
     """
 
+    FRAMES = ("base", "instrument")
+
     def __init__(self, model: CalibratedModel, marker: str | None = None, tol_mm: float = 1e-3,
-                 tol_mrad: float = 1e-3, max_outer: int = 10, ik_options: dict | None = None):
+                 tol_mrad: float = 1e-3, max_outer: int = 10, ik_options: dict | None = None,
+                 frame: str = "base"):
+        if frame not in self.FRAMES:
+            raise ValueError(f"frame must be one of {self.FRAMES}, got {frame!r}")
+        self.frame = frame
         if not isinstance(model, CalibratedModel):
             raise TypeError(f"model must be a CalibratedModel, got {type(model).__name__}")
         if not (tol_mm > 0 and tol_mrad > 0):
@@ -105,8 +114,7 @@ class Corrector:
         """Commands that make the model's predicted pose of the marker equal the targets.
 
         Args:
-            targets: ``(N, 4, 4)`` poses or ``(N, 3)`` positions (m), instrument frame (the frame
-                the model was calibrated in).
+            targets: ``(N, 4, 4)`` poses or ``(N, 3)`` positions (m), in the corrector's ``frame``.
             q0: ``(N, dof)`` or ``(dof,)`` IK start (choose the branch); default the middle of
                 the joint limits with random restarts.
             covariates: the model's covariates, ``name -> (N,)`` (or ``(N, C)``), if any.
@@ -115,6 +123,10 @@ class Corrector:
         """
         model, robot = self.model, self.model.robot
         R_t, p_t = _targets(robot, targets)
+        if self.frame == "base":  # into the instrument frame the model predicts in
+            Rb, tb = robot.base_transform(model.params.values)
+            p_t = p_t @ Rb.T + tb
+            R_t = None if R_t is None else Rb @ R_t
         pose = R_t is not None
         N = p_t.shape[0]
         if pose:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import difflib
+import io
 import math
 import os
 import warnings
@@ -19,7 +20,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Measurements", "load_measurements", "save_measurements", "marker_columns_in"]
+from .outputs import atomic_write_text
+
+__all__ = ["Measurements", "load_measurements", "save_measurements", "marker_columns_in", "read_csv", "UNITS",
+           "UnitsError"]
+
+UNITS = ("deg", "mm")
+
+
+class UnitsError(ValueError):
+    """Values that look like degrees or millimetres where torchcal expects radians and metres."""
 
 _POS = (".x", ".y", ".z")
 _QUAT = (".qw", ".qx", ".qy", ".qz")
@@ -58,6 +68,13 @@ class Measurements:
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
+
+    def __repr__(self) -> str:
+        seen = ", ".join(f"{m}: {int(n)}" for m, n in zip(self.marker_names, self.seen.sum(0).tolist()))
+        cov = f", covariates {sorted(self.covariates)}" if self.covariates else ""
+        src = f" from {self.source}" if self.source else ""
+        return (f"Measurements({len(self)} rows × {len(self.joint_names)} joints, markers seen {{{seen}}}{cov}{src}; "
+                "q in rad / m, positions in m)")
 
     @property
     def seen(self) -> Tensor:
@@ -109,15 +126,25 @@ def marker_columns_in(header: list[str]) -> list[str]:
     return out
 
 
-def _read_csv(path) -> tuple[list[str], list[list[str]]]:
+def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list[str]]]:
+    """Header and rows of a comma-separated file, checked: an Excel byte-order mark is dropped,
+    a semicolon-separated file (Excel in many locales) is named as such, every row has the
+    header's number of cells, column names are unique."""
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"measurement file not found: {p}")
-    with open(p, newline="") as fh:
-        rows = list(csv.reader(fh))
+        raise FileNotFoundError(f"{what} not found: {p}")
+    try:
+        with open(p, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: strip Excel's BOM
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not UTF-8 text ({e}); save the file as CSV UTF-8") from None
     rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
     if not rows:
         raise ValueError(f"{p}: the file is empty; it needs a header row and one row per pose")
+    if len(rows[0]) == 1 and rows[0][0].count(";") >= 2:
+        raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales); torchcal reads "
+                         "comma-separated files with '.' as the decimal point: save it as 'CSV UTF-8 (comma "
+                         "delimited)' or convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(out)")
     header = [h.strip() for h in rows[0]]
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -138,16 +165,27 @@ def _number(cell: str, line: int, col: str, path) -> float:
         raise ValueError(f"{path}, line {line}, column {col!r}: {cell!r} is not a number") from None
 
 
-def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | None = None) -> Measurements:
+def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | None = None,
+                      units: list[str] | tuple[str, ...] = ()) -> Measurements:
     """Read a measurement CSV and check it against ``robot``.
 
-    Every actuated joint of the robot must have a column (named as in the URDF). Marker
-    columns must name markers of the robot (declare unknown points with
-    ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or ``--marker`` on the command line).
-    Raises ``ValueError`` saying exactly what is wrong; warns when values look like degrees
-    or millimetres.
+    Every actuated joint of the robot must have a column (named as in the URDF), every marker
+    of the robot its ``.x/.y/.z`` columns. Marker columns must name markers of the robot
+    (declare unknown points with ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or
+    ``--marker`` on the command line).
+
+    Args:
+        units: ``"deg"``: revolute joint columns are in degrees; ``"mm"``: positions and prismatic
+            joints are in millimetres. Both are converted. Without them, values that look like
+            degrees or millimetres raise :class:`UnitsError`, which says how to convert: a wrong
+            unit gives a wrong calibration, not a warning.
+    Raises ``ValueError`` saying exactly what is wrong; warns about rows that repeat another
+    row exactly (they count twice; cross-validation keeps them in one fold).
     """
-    header, rows = _read_csv(path)
+    bad_units = [u for u in units if u not in UNITS]
+    if bad_units:
+        raise ValueError(f"unknown unit(s) {bad_units}; declare 'deg' (joint angles) and/or 'mm' (positions)")
+    header, rows = read_csv(path)
     if not rows:
         raise ValueError(f"{path}: the file has a header but no rows")
     joints = list(robot.joint_names)
@@ -174,6 +212,10 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     if not measured:
         raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' for one of "
                          f"{robot_markers}")
+    absent = [m for m in robot_markers if m not in markers_in_file]
+    if absent:
+        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no '<marker>.x/.y/.z' columns for "
+                         f"them (it has {markers_in_file}); declare only the markers that were measured")
     for m in measured:
         absent = [m + s for s in _POS if m + s not in cols]
         if absent:
@@ -209,10 +251,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     seen = ~np.isnan(P).any(-1)
     if not seen.any():
         raise ValueError(f"{path}: no marker was seen in any row")
-    med = float(np.median(np.abs(P[seen]))) if seen.any() else 0.0
-    if med > 20.0:
-        warnings.warn(f"{path}: marker coordinates have median |value| {med:.0f}; that looks like millimetres. "
-                      "torchcal expects metres (divide by 1000)", stacklevel=2)
+    Q, P = _units(path, robot, Q, P, seen, units)
+    _warn_duplicates(path, data)
     Qt = None
     if has_quat:
         Qt = np.full((N, len(measured), 4), np.nan)
@@ -233,6 +273,42 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
                         None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path))
 
 
+def _units(path, robot, Q: np.ndarray, P: np.ndarray, seen: np.ndarray, units) -> tuple[np.ndarray, np.ndarray]:
+    """Convert declared units; refuse values that look like degrees or millimetres otherwise."""
+    rev = np.array([u == "rad" for u in robot.joint_units])
+    if "deg" in units:
+        Q = np.where(rev, np.deg2rad(Q), Q)
+    if "mm" in units:
+        Q = np.where(rev, Q, Q / 1000.0)
+        P = P / 1000.0
+    lo, hi = (x.cpu().numpy() for x in robot.joint_limits)
+    for j, n in enumerate(robot.joint_names):
+        v = float(np.abs(Q[:, j]).max())
+        span = max(abs(lo[j]), abs(hi[j])) if np.isfinite(lo[j]) and np.isfinite(hi[j]) else 0.0
+        if rev[j] and v > max(2.2 * np.pi, 1.5 * span):
+            raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.1f}, which looks like degrees; torchcal "
+                             "expects radians: convert (rad = deg × π/180) or declare the unit (--units deg, "
+                             "load_measurements(..., units=['deg']))")
+        if not rev[j] and v > max(5.0, 3 * span):
+            raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.1f}, which looks like "
+                             "millimetres; torchcal expects metres: divide by 1000 or declare --units mm")
+    med = float(np.median(np.abs(P[seen])))
+    if med > 20.0:
+        raise UnitsError(f"{path}: marker coordinates have median |value| {med:.0f}, which looks like millimetres; "
+                         "torchcal expects metres: divide by 1000 or declare the unit (--units mm, "
+                         "load_measurements(..., units=['mm']))")
+    return Q, P
+
+
+def _warn_duplicates(path, data: np.ndarray) -> None:
+    _, first, counts = np.unique(np.nan_to_num(data, nan=np.inf), axis=0, return_index=True, return_counts=True)
+    n_dup = int((counts - 1).sum())
+    if n_dup:
+        lines = sorted(int(i) + 2 for i, c in zip(first, counts) if c > 1)[:5]
+        warnings.warn(f"{path}: {n_dup} row(s) repeat another row exactly (first at line(s) {lines}); each copy counts "
+                      "in the fit, and cross-validation keeps copies in one fold", stacklevel=3)
+
+
 def save_measurements(path: str | os.PathLike, data: Measurements, digits: int = 17) -> None:
     """Write measurements in the format :func:`load_measurements` reads (NaN -> empty cell)."""
     header = list(data.joint_names)
@@ -249,8 +325,9 @@ def save_measurements(path: str | os.PathLike, data: Measurements, digits: int =
         header.append(c)
         cols.append(v)
     M = torch.stack([c.detach().cpu().double() for c in cols], 1).numpy()
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        for row in M:
-            w.writerow(["" if not np.isfinite(v) else f"{v:.{digits}g}" for v in row])
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in M:
+        w.writerow(["" if not np.isfinite(v) else f"{v:.{digits}g}" for v in row])
+    atomic_write_text(path, buf.getvalue())

@@ -32,12 +32,14 @@ from torch import Tensor
 
 from .effects import EFFECTS, build_effect
 from .elm import ELM
+from .identifiability import analyse_jacobian
 from .io import Measurements
 from .loop_evidence import evidence_for
 from .loop_fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
                        geometric_start, noise_sigma, observation_errors, rescore, split_params)
 from .params import ParamSet
-from .report import error_stats
+from .problem import EffectCalibrationProblem
+from .report import error_details, error_stats, stage_problems
 from .selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
 
 __all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "stage_stats",
@@ -92,23 +94,40 @@ class LoopResult:
     suspects: list = field(default_factory=list)
     flags: list = field(default_factory=list)
     prior_mm: float | None = None
+    parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
+    observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
+
+    def __repr__(self) -> str:
+        last = self.stages[-1]
+        te = f", held-out mean {last['test']['mean_mm']:.4f} mm" if last.get("test") else ""
+        return (f"LoopResult({self.robot.name}: {' → '.join(s['name'] for s in self.stages)}; training mean "
+                f"{last['train']['mean_mm']:.4f} mm{te}; {len(self.suspects)} suspect observation(s))")
+
+    def problems(self) -> list[str]:
+        """Reasons not to trust this model, in words: a final model worse than the nominal one on
+        its own training rows, or held-out rows that do not belong to this robot. Empty when none."""
+        return stage_problems(self.stages)
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
                 "noise_floor_mm": self.noise_floor_mm, "noise_sigma_mm": self.noise_sigma_mm,
                 "huber_threshold_mm": self.huber_mm, "stages": self.stages, "effects": self.accepted,
                 "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
-                "suspect_rows": self.suspects, "flags": self.flags,
+                "suspect_rows": self.suspects, "flags": self.flags, "parameters": self.parameters,
+                "observability": self.observability, "problems": self.problems(),
                 "rule": f"accept when the paired t statistic of the cross-validated per-row Huber-score "
                         f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
                         f"parameters); a family's modes are added one by one under the same rule with the "
                         f"threshold raised for the number of modes tried",
                 "residual_elm": self.elm is not None, "timings_s": self.timings}
 
-    def model(self):
-        """A deployable :class:`~torchcal.model.CalibratedModel`."""
+    def model(self, *, force: bool = False):
+        """A deployable :class:`~torchcal.model.CalibratedModel`; refused (``ValueError``) when
+        :meth:`problems` says the model cannot be trusted, unless ``force``."""
         from .model import CalibratedModel
 
+        if self.problems() and not force:
+            raise ValueError("this calibration is not fit to deploy: " + "; ".join(self.problems()))
         geo = self.robot.params(self.params.values[: self.robot.n_params])
         geo.free = self.params.free[: self.robot.n_params].clone()
         residual = self.elm
@@ -125,22 +144,27 @@ def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | Non
                 ) -> tuple[dict | None, Tensor]:
     """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
     model on ``data``."""
+    st, d = _stage(robot, params, effects, data, elm)
+    return st, d["e"]
+
+
+def _stage(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None) -> tuple[dict | None, dict]:
+    """:func:`stage_stats` and the error details a figure needs (:func:`torchcal.report.error_details`)."""
     if data is None or len(data) == 0:
-        return None, torch.zeros(0)
+        z = torch.zeros(0)
+        return None, {"e": z, "xyz": z.reshape(0, 3), "dist": z}
     ctx = Context(robot, data, [], None, 1.0)
     e3, rows = observation_errors(ctx, params, effects, data)
-    cols = data.seen.nonzero()[:, 1]
     if elm is not None:
         r = residual_matrix(robot, params, effects, data)
         left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
-        seen = ~torch.isnan(left).any(-1)
-        e = left[seen].norm(dim=-1)
-        cols = torch.nonzero(seen)[:, 1]
-    else:
-        e = e3.norm(dim=-1)
+        e3 = -left[data.seen]
+    d = error_details(robot, params.values[: robot.n_params], data, e3)
+    cols = data.seen.nonzero()[:, 1]
+    e = d["e"]
     out = error_stats(e)
     out["per_marker"] = {m: error_stats(e[cols == k]) for k, m in enumerate(data.marker_names) if bool((cols == k).any())}
-    return out, e
+    return out, d
 
 
 def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements) -> Tensor:
@@ -269,8 +293,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     stages, errors = [], {}
 
     def add_stage(name: str, k: float, params, effects, elm_model=None, cv=None, extra=None):
-        st_tr, e_tr = stage_stats(robot, params, effects, train, elm_model)
-        st_te, e_te = stage_stats(robot, params, effects, test, elm_model)
+        st_tr, e_tr = _stage(robot, params, effects, train, elm_model)
+        st_te, e_te = _stage(robot, params, effects, test, elm_model)
         s = {"name": name, "n_params": int(round(k)), "train": st_tr}
         if st_te is not None:
             s["test"] = st_te
@@ -278,7 +302,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             s["cv_rmse_mm"] = cv
         s.update(extra or {})
         stages.append(s)
-        errors[name] = {"train": e_tr, "test": e_te}
+        errors[name] = {"train": e_tr["e"], "test": e_te["e"], "train_details": e_tr, "test_details": e_te}
         return s
 
     add_stage("nominal", 0, geo0, [])
@@ -468,13 +492,33 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     if noise_mm is None and "marker_std_mm" in train.covariates:
         noise_mm = float(train.covariates["marker_std_mm"].median())
+    for p in stage_problems(stages):
+        say("warning: " + p)
+    parameters, observability = _parameter_table(ctx, current)
     return LoopResult(robot=robot, params=current.params, effects=current.effects, elm=elm_model, stages=stages,
                       accepted=accepted, candidates=cand_report,
                       geometric={"chosen": best.label, "sets": geo_choice, "prior_mm": best.prior_mm},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
-                      suspects=suspects, flags=flags, prior_mm=best.prior_mm)
+                      suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
+                      observability=observability)
+
+
+def _parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
+    """The final model's identified parameters (value, unit, standard error) and the condition
+    number and observability indices (O1-O4) of their Jacobian."""
+    p = m.params
+    se = m.info.get("se", {})
+    table = [{"name": n, "value": float(v), "unit": u, "std_error": se.get(n)}
+             for n, v, u, f in zip(p.names, p.values.tolist(), p.units, p.free.tolist()) if f]
+    prob = EffectCalibrationProblem(ctx.robot, p, m.effects, ctx.data)
+    rep = analyse_jacobian(prob.data_jacobian(prob.x0), p.free_names, [p.units[i] for i in p.free_index.tolist()],
+                           markers=ctx.robot.marker_names)
+    fin = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
+    return table, {"condition": fin(rep.condition), "O1": fin(rep.O1), "O2": fin(rep.O2), "O3": fin(rep.O3),
+                   "O4": fin(rep.O4), "rank": rep.rank, "n_params": rep.n_params,
+                   "not_seen_by_data": list(rep.dropped)}
 
 
 def _bar(progress: bool):

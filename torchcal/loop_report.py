@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .loop import LoopResult
-from .report import histogram_figure, write_json
+from .report import error_figure, write_json
 
 __all__ = ["write_loop_report"]
 
@@ -19,16 +19,17 @@ def _plt():
 
 
 def _histograms(res: LoopResult, path: Path, split: str) -> bool:
-    """Error histograms before / geometric / full model in one figure, as calibration papers
-    show them."""
+    """Errors before / geometric / full model in one figure: histograms, per axis, cumulative
+    distribution with the 95th percentile and the noise floor, error against reach."""
     names = list(res.errors)
     pick = list(dict.fromkeys(n for n in (names[0], "geometric", names[-1]) if n in res.errors))
     label = {names[0]: "before (base registration only)", "geometric": "geometric calibration"}
-    stages = [(label.get(n, "full model: " + n.lstrip("+")), res.errors[n][split]) for n in pick
+    stages = [(label.get(n, "full model: " + n.lstrip("+")), res.errors[n][f"{split}_details"]) for n in pick
               if res.errors[n].get(split) is not None and res.errors[n][split].numel()]
     if not stages:
         return False
-    histogram_figure(stages, path, title=f"{res.robot.name}: error before / geometric / full model", split=split)
+    error_figure(stages, path, title=f"{res.robot.name}: error before / geometric / full model", split=split,
+                 noise_floor_mm=res.noise_floor_mm)
     return True
 
 
@@ -68,6 +69,38 @@ def _evidence_plot(name: str, ev: dict, path: Path) -> bool:
     return True
 
 
+def _shown(v: float | None, unit: str) -> tuple[str, str]:
+    """A value in a readable unit: m -> mm, rad -> mrad, rad/(N*m) -> µrad/(N·m)."""
+    f, u = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N*m)": (1e6, "µrad/(N·m)"), "m/N": (1e9, "µm/kN")
+            }.get(unit, (1.0, unit))
+    return ("–" if v is None else f"{v * f:.6g}"), u
+
+
+def _parameter_section(res: LoopResult) -> list[str]:
+    """Every identified parameter of the final model with its standard error, and how well its
+    set is conditioned."""
+    if not res.parameters:
+        return []
+    L = ["## Identified parameters of the final model", "",
+         "Standard errors from the robust noise estimate and the Jacobian at the solution (a prior's pull "
+         "included).", "", "| parameter | value | standard error | unit |", "|---|---|---|---|"]
+    for p in res.parameters:
+        v, u = _shown(p["value"], p["unit"])
+        e, _ = _shown(p.get("std_error"), p["unit"])
+        L.append(f"| {p['name']} | {v} | {e} | {u} |")
+    o = res.observability or {}
+    if o:
+        L += ["", f"Condition number of the identified set (unit-norm columns): {_num(o.get('condition'), '.4g')}; "
+                  f"observability indices O1 = {_num(o.get('O1'), '.4g')}, O2 = {_num(o.get('O2'), '.4g')}, "
+                  f"O3 = {_num(o.get('O3'), '.4g')}, O4 = {_num(o.get('O4'), '.4g')} (rank {o.get('rank')} of "
+                  f"{o.get('n_params')} free parameters"
+                  + (f"; held by the prior alone: {', '.join(o['not_seen_by_data'][:8])}"
+                     + (" …" if len(o['not_seen_by_data']) > 8 else "") if o.get("not_seen_by_data") else "") + ")."]
+    if res.problems():
+        L += ["", "**Not fit to deploy:** " + "; ".join(res.problems())]
+    return L + [""]
+
+
 def _cell(d: dict | None, k: str) -> str:
     return "–" if not d or k not in d else f"{d[k]:.4f}"
 
@@ -104,7 +137,7 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
                  f"{_cell(tr, 'max_mm')} | {_cell(te, 'mean_mm')} | {_cell(te, 'std_mm')} | {_cell(te, 'max_mm')} |")
     for split in ("test", "train"):
         if figs.get(split):
-            L += ["", f"![error histograms, {split}](errors_{split}.png)"]
+            L += ["", f"![errors, {split}: histogram, per axis, cumulative with p95, against reach](errors_{split}.png)"]
     L += ["", "## Noise and outliers", "",
           f"Robust noise estimate of the final model: σ̂ = {_num(res.noise_sigma_mm)} mm per axis (1.4826 × the median "
           f"absolute deviation of the residual components). Every fit uses the Huber loss; the last threshold was "
@@ -156,6 +189,7 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
     else:
         L += ["No effect passed the rule: the geometric model explains the data to within what the "
               "cross-validation can tell from noise.", ""]
+    L += _parameter_section(res)
     if res.flags:
         L += ["## Flags", ""]
         for f in res.flags:

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from .io import Measurements
-from .transforms import skew, so3_log
+from .transforms import quat_to_matrix, skew, so3_log
 
 __all__ = ["Loss", "PositionResidual", "PoseResidual", "DistanceResidual", "ResidualBlock"]
 
@@ -139,14 +139,6 @@ class PositionResidual(ResidualBlock):
         return p[self._rows, self._cols] - self._meas, J[self._rows, self._cols]
 
 
-def _quat_to_matrix(qt: Tensor) -> Tensor:
-    w, x, y, z = qt.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
-
-
 def _so3_left_jacobian_inv(phi: Tensor) -> Tensor:
     """Inverse left Jacobian of SO(3): ``d log(E) = J_l⁻¹(log E) ω`` for ``dE = skew(ω) E``."""
     th2 = (phi * phi).sum(-1)
@@ -179,7 +171,7 @@ class PoseResidual(ResidualBlock):
         mk_t = torch.tensor(mk, device=robot.device)
         self._rows, self._cols = self.obs_index[:, 0], mk_t[self.obs_index[:, 1]]
         self._meas_p = data.positions[seen]
-        self._meas_R = _quat_to_matrix(data.quaternions[seen])
+        self._meas_R = quat_to_matrix(data.quaternions[seen])
         self.rot_weight = float(rot_weight)
 
     def _raw(self, params: Tensor) -> Tensor:

@@ -287,8 +287,8 @@ class CalibratedModel:
         return T
 
     # -- persistence helpers -----------------------------------------------------------------
-    def save(self, directory) -> Any:
+    def save(self, directory, *, force: bool = False) -> Any:
         """Same as :func:`torchcal.persist.save`."""
         from .persist import save
 
-        return save(self, directory)
+        return save(self, directory, force=force)

@@ -12,7 +12,12 @@ A model directory holds three files:
   without the original file.
 
 Loading for a robot whose URDF hash, joints or markers differ from the saved ones is refused:
-a model corrects one robot description, not another.
+a model corrects one robot description, not another. ``model.json`` records the SHA-256 of the
+tensor file, and a model whose tensors changed (a flipped byte changes every command it gives)
+is refused too; a truncated or malformed file is named in the error.
+
+:func:`save` never replaces an existing model directory unless ``force=True``, and builds the
+directory under a temporary name: an interrupted save leaves nothing half-written.
 """
 from __future__ import annotations
 
@@ -24,8 +29,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
 from .elm import ELM
 from .model import ERROR_NAMES, CalibratedModel, effect_class, effect_type
+from .outputs import sha256_file, staged_dir
 from .params import ParamSet
 
 __all__ = ["save", "load", "FORMAT", "FORMAT_VERSION"]
@@ -66,20 +75,24 @@ def _dumps(obj, indent: int = 0) -> str:
     return json.dumps(obj, allow_nan=False)
 
 
-def save(model: CalibratedModel, directory: str | os.PathLike) -> Path:
-    """Write ``model`` to ``directory`` (created if needed; existing model files are replaced).
+def save(model: CalibratedModel, directory: str | os.PathLike, *, force: bool = False) -> Path:
+    """Write ``model`` to ``directory``.
 
+    Args:
+        force: replace an existing, non-empty ``directory`` (refused otherwise).
     Returns:
         the directory path.
     """
-    from safetensors.torch import save_file
-
     if not isinstance(model, CalibratedModel):
         raise TypeError(f"save() takes a CalibratedModel, got {type(model).__name__}")
     robot = model.robot
     text = _urdf_text(robot)
-    out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
+    with staged_dir(directory, force) as tmp:
+        _write(model, robot, text, tmp)
+    return Path(directory)
+
+
+def _write(model: CalibratedModel, robot, text: str, out: Path) -> None:
     tensors: dict[str, Tensor] = {}
     p = model.params
     tensors["params.values"] = p.values
@@ -128,9 +141,9 @@ def save(model: CalibratedModel, directory: str | os.PathLike) -> Path:
     }
     contig = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     save_file(contig, str(out / _TENSORS), metadata={"format": FORMAT, "format_version": str(FORMAT_VERSION)})
+    meta["tensors_sha256"] = sha256_file(out / _TENSORS)
     (out / _URDF).write_bytes(text.encode())
     (out / _JSON).write_text(_dumps(meta) + "\n")
-    return out
 
 
 def _read_meta(d: Path) -> dict:
@@ -138,8 +151,12 @@ def _read_meta(d: Path) -> dict:
     if not f.is_file():
         raise FileNotFoundError(f"{d} is not a torchcal model directory: {f.name} is missing "
                                 f"(a model directory holds {_JSON}, {_TENSORS} and {_URDF}; write one with torchcal.save)")
-    meta = json.loads(f.read_text())
-    if meta.get("format") != FORMAT:
+    try:
+        meta = json.loads(f.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{f} is not valid JSON ({e}); the model file is truncated or was edited: save the "
+                         "model again") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise ValueError(f"{f} is not a torchcal model (format {meta.get('format')!r})")
     v = int(meta.get("format_version", 0))
     if v > FORMAT_VERSION:
@@ -177,8 +194,6 @@ def load(directory: str | os.PathLike, robot=None, *, device: torch.device | str
         the :class:`~torchcal.model.CalibratedModel`; predictions equal the saved model's bit for
         bit on the same device.
     """
-    from safetensors.torch import load_file
-
     from .robot import Robot
     from .tree import Marker
 
@@ -202,9 +217,24 @@ def load(directory: str | os.PathLike, robot=None, *, device: torch.device | str
         robot = Robot.from_urdf(text, markers=markers, dtype=dtype, device=device or "cpu")
         _check_robot(robot, meta, d)
     dev = robot.device
-    t = load_file(str(d / _TENSORS), device="cpu")
+    tf = d / _TENSORS
+    if not tf.is_file():
+        raise FileNotFoundError(f"{tf} is missing; a model directory holds {_JSON}, {_TENSORS} and {_URDF}")
+    want = meta.get("tensors_sha256")
+    if want is not None and sha256_file(tf) != want:
+        raise ValueError(f"{tf} does not match the SHA-256 recorded in {d / _JSON}: the tensors changed since the "
+                         "model was saved (a copy error, a flipped byte, an edit), and a changed model gives wrong "
+                         "commands; restore the file or save the model again")
+    try:
+        t = load_file(str(tf), device="cpu")
+    except (SafetensorError, OSError, ValueError) as e:
+        raise ValueError(f"{tf} cannot be read as a safetensors file ({e}); it is truncated or corrupt: restore it "
+                         "or save the model again") from None
     t = {k: v.to(dev) for k, v in t.items()}
-    names = meta["params"]["names"]
+    try:
+        names = meta["params"]["names"]
+    except (KeyError, TypeError):
+        raise ValueError(f"{d / _JSON} lacks the parameter names; the file is incomplete: save the model again") from None
     if names != robot.param_names:
         raise ValueError(f"the saved parameters ({len(names)}) do not match the robot's ({robot.n_params}); "
                          "the model was saved for another robot layout")

@@ -8,7 +8,29 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["error_stats", "write_json", "histogram_figure"]
+__all__ = ["error_stats", "write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
+           "FOREIGN_RATIO"]
+
+# held-out rows this many times worse than the training rows do not come from the same robot
+FOREIGN_RATIO = 20.0
+
+
+def stage_problems(stages: list[dict]) -> list[str]:
+    """Reasons not to trust a calibration, in words, from its stage statistics (first: nominal,
+    last: final): the final model worse than the nominal one on its own training rows, or
+    held-out rows that fit far worse than the training rows. Empty when none."""
+    out = []
+    nom, fin = stages[0], stages[-1]
+    if fin["train"]["mean_mm"] > nom["train"]["mean_mm"]:
+        out.append(f"the calibrated model ({fin['train']['mean_mm']:.4f} mm) is worse than the nominal one "
+                   f"({nom['train']['mean_mm']:.4f} mm) on its own training rows: the fit failed (check the joint "
+                   "order and units of the data, the declared markers, and the method's settings)")
+    tr, te = fin["train"]["mean_mm"], (fin.get("test") or {}).get("mean_mm")
+    if te is not None and te > FOREIGN_RATIO * max(tr, 1e-9):
+        out.append(f"the held-out rows do not belong to this robot's model: their error ({te:.3f} mm) is "
+                   f"{te / tr:.0f}× the training error ({tr:.4f} mm); are they from another robot, another set-up "
+                   "(the instrument moved), or another marker?")
+    return out
 
 
 def error_stats(err_m: Tensor) -> dict:
@@ -65,6 +87,71 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     ax.set_ylabel("observations")
     ax.set_title(f"{title} ({split})")
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def error_details(robot, params: Tensor, data, errors_xyz: Tensor | None = None) -> dict:
+    """Per observation of ``data``: the position error vector ``xyz (n, 3)`` (model − measured,
+    m, instrument frame; computed from ``params (K,)`` unless given), its norm ``e (n,)`` and the
+    marker's distance from the robot base ``dist (n,)`` (m)."""
+    seen = data.seen
+    mk = [robot.marker_names.index(m) for m in data.marker_names]
+    p = robot.positions(data.q, params, check=False)[:, mk][seen]
+    xyz = p - data.positions[seen] if errors_xyz is None else errors_xyz
+    dist = robot.positions(data.q, params, check=False, base=False)[:, mk][seen].norm(dim=-1)
+    return {"e": xyz.norm(dim=-1), "xyz": xyz, "dist": dist}
+
+
+def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position error", split: str = "train",
+                 noise_floor_mm: float | None = None) -> None:
+    """Four panels a person checks a calibration with, for several stages (``(label, details)``,
+    details from :func:`error_details`): the error histogram; the per-axis errors of the last
+    stage; the cumulative distribution with each stage's 95th percentile and the noise floor
+    marked; the error against the marker's distance from the robot base."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    data = [(lab, {k: v.detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
+                   for k, v in d.items()}) for lab, d in stages if d["e"].numel()]
+    if not data:
+        return
+    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110)
+    e_all = np.concatenate([d["e"] for _, d in data])
+    hi = float(e_all.max())
+    lo = float(np.percentile(e_all[e_all > 0], 1)) if (e_all > 0).any() else hi
+    log = hi > 30 * max(lo, 1e-12)  # stages a thousandfold apart: only a log axis shows both
+    bins = np.geomspace(max(lo, 1e-6) * 0.8, hi * 1.05, 50) if log else np.linspace(0, hi * 1.02 + 1e-12, 40)
+    for lab, d in data:
+        ax[0, 0].hist(d["e"], bins=bins, alpha=0.55, label=f"{lab}: mean {d['e'].mean():.3f}, max {d['e'].max():.3f} mm")
+        xs = np.sort(d["e"])
+        ax[1, 0].plot(xs, np.arange(1, len(xs) + 1) / len(xs), label=lab)
+        p95 = float(np.percentile(d["e"], 95))
+        ax[1, 0].axvline(p95, ls=":", lw=1, color=ax[1, 0].lines[-1].get_color())
+        ax[1, 0].annotate(f"p95 {p95:.3f}", (p95, 0.95), fontsize=7, rotation=90, va="top", ha="right")
+        ax[1, 1].scatter(d["dist"], d["e"], s=5, alpha=0.5, label=lab)
+    if log:
+        for a in (ax[0, 0], ax[1, 0], ax[1, 1]):
+            a.set_xscale("log") if a is not ax[1, 1] else a.set_yscale("log")
+    if noise_floor_mm is not None:
+        ax[1, 0].axvline(noise_floor_mm, color="k", lw=1.2, label=f"noise floor {noise_floor_mm:.3f} mm")
+    lab, last = data[-1]
+    ax[0, 1].boxplot([last["xyz"][:, i] for i in range(3)], showfliers=True)
+    ax[0, 1].set_xticks([1, 2, 3], ["x", "y", "z"])
+    ax[0, 1].axhline(0, color="k", lw=0.6)
+    ax[0, 0].set(xlabel="Euclidean position error [mm]", ylabel="observations", title="error histogram")
+    ax[0, 1].set(ylabel="error per axis, model − measured [mm]", title=f"per axis: {lab} (instrument frame)")
+    ax[1, 0].set(xlabel="Euclidean position error [mm]", ylabel="fraction of observations",
+                 title="cumulative distribution, 95th percentile dotted")
+    ax[1, 1].set(xlabel="marker distance from the robot base [m]", ylabel="Euclidean position error [mm]",
+                 title="error against reach")
+    for a in (ax[0, 0], ax[1, 0], ax[1, 1]):
+        a.legend(fontsize=7)
+    fig.suptitle(f"{title} ({split})")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

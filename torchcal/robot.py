@@ -54,7 +54,8 @@ def _origin_attrs(T: np.ndarray) -> dict[str, str]:
     return {"xyz": " ".join(repr(float(v) + 0.0) for v in T[:3, 3]), "rpy": " ".join(repr(float(v)) for v in rpy)}
 
 
-def _edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, root: str) -> str:
+def _edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, root: str,
+               note: str | None = None) -> str:
     """The original URDF text with new joint origins and added marker/base links. Editing the
     XML (rather than re-writing a parsed model) keeps everything kinematics does not read:
     mimic tags, transmissions, gazebo blocks, comments."""
@@ -88,6 +89,8 @@ def _edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, ro
         ET.SubElement(j, "parent", link=base_link)
         ET.SubElement(j, "child", link=root)
         ET.SubElement(j, "origin", _origin_attrs(base))
+    if note:
+        rob.insert(0, ET.Comment(" " + note.replace("--", "—") + " "))
     ET.indent(tree, space="  ")
     return '<?xml version="1.0"?>\n' + ET.tostring(rob, encoding="unicode") + "\n"
 
@@ -895,19 +898,25 @@ class Robot:
             base[:3, :3], base[:3, 3] = so3_exp(b[3:]).numpy(), b[:3].numpy()
         return base, mks
 
-    def export_urdf(self, params, path, *, base_link: str = "instrument") -> str:
-        """Write a URDF whose nominal kinematics equal this robot's calibrated kinematics.
+    def export_urdf(self, params, path, *, with_instrument: bool = False, base_link: str = "instrument",
+                    note: str | None = None) -> str:
+        """Write a URDF whose nominal kinematics equal this robot's calibrated kinematics, in the
+        robot's own base frame.
 
         Joint origins carry the identified errors and zero offsets. Each marker becomes a fixed
-        link ``marker_<name>`` on its link; a non-zero base frame becomes a new root link
-        ``base_link`` (the instrument frame). Returns the XML text. When the robot came from a
+        link ``marker_<name>`` on its link. The instrument registration (the base frame
+        parameters) is left out, so that the root stays the robot's; with ``with_instrument`` a
+        non-zero base frame becomes a new root link ``base_link`` (the instrument frame).
+        ``note`` goes into an XML comment. Returns the XML text. When the robot came from a
         URDF, everything else in it (inertials, meshes, limits, mimic tags, transmissions) is
         kept as it was; only joint origins change.
         """
         joints = self.calibrated_joints(params)
         base, mks = self._extra_frames(params)
+        if not with_instrument:
+            base = None
         if self._urdf_text is not None:
-            xml = _edit_urdf(self._urdf_text, joints, mks, base, base_link, self.root)
+            xml = _edit_urdf(self._urdf_text, joints, mks, base, base_link, self.root, note)
             Path(path).write_text(xml)
             return xml
         extra = [JointSpec(name=f"marker_{mk.name}_joint", type="fixed", parent=mk.link, child=f"marker_{mk.name}",

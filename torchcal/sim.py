@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from .io import Measurements, save_measurements
+from .outputs import atomic_write_text
 from .params import ParamSet
 
 __all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset"]
@@ -89,8 +90,8 @@ def write_dataset(path_csv, data: Measurements, truth: ParamSet | None = None, t
     save_measurements(path_csv, data)
     if truth is not None:
         tp = Path(truth_path or Path(path_csv).with_suffix(".truth.json"))
-        tp.write_text(json.dumps({"names": truth.names, "units": truth.units, "values": truth.values.tolist(),
-                                  "meta": meta or {}}, indent=1) + "\n")
+        atomic_write_text(tp, json.dumps({"names": truth.names, "units": truth.units, "values": truth.values.tolist(),
+                                          "meta": meta or {}}, indent=1) + "\n")
 
 
 # ---------------------------------------------------------------------------- effects

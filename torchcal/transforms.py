@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
+__all__ = ["quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
            "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
 
 
@@ -154,3 +154,33 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> tuple[Ten
     D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
     R = Vh.T @ D @ U.T
     return R, cd - R @ cs
+
+
+def quat_to_matrix(qt: Tensor) -> Tensor:
+    """``(..., 4)`` quaternion ``(w, x, y, z)`` (normalised here) ``-> (..., 3, 3)``."""
+    qt = qt / qt.norm(dim=-1, keepdim=True)
+    w, x, y, z = qt.unbind(-1)
+    return torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def matrix_to_quat(R: Tensor) -> Tensor:
+    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's
+    method: the largest of the four candidates is computed first, so it is accurate everywhere)."""
+    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    t = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
+    k = t.argmax(-1)
+    s = torch.sqrt(t.gather(-1, k[..., None]).clamp(min=1e-300))[..., 0] * 2  # 4 |component k|
+    cand = [
+        torch.stack([s / 4, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s], -1),
+        torch.stack([(r21 - r12) / s, s / 4, (r01 + r10) / s, (r02 + r20) / s], -1),
+        torch.stack([(r02 - r20) / s, (r01 + r10) / s, s / 4, (r12 + r21) / s], -1),
+        torch.stack([(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, s / 4], -1),
+    ]
+    q = torch.stack(cand, -2).gather(-2, k[..., None, None].expand(*k.shape, 1, 4))[..., 0, :]
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q / q.norm(dim=-1, keepdim=True)

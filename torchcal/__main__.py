@@ -1,0 +1,4 @@
+"""``python -m torchcal``: the same as the ``torchcal`` command."""
+from .cli import main
+
+raise SystemExit(main())
