@@ -229,6 +229,11 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
     if len(data) == 0:
         raise ValueError("no training rows")
+    for d, what in ((data, "training"), (test, "held-out")):
+        if d is not None and (d.distances or (d.planes is not None and bool((d.planes >= 0).any()))):
+            raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
+                             "fits positions, partial ones included): use torchcal.run_loop / 'torchcal loop', which "
+                             "identifies the planes' poses and the fixed points with the robot")
     p = _select_free(params if params is not None else robot.params(), free)
     if not (set(data.marker_names) <= set(robot.marker_names)):
         raise ValueError(f"the data has markers {data.marker_names} but the robot has {robot.marker_names}")

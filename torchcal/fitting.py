@@ -7,6 +7,7 @@ from typing import Callable
 import torch
 
 from .identifiability import analyse_jacobian
+from .observations import SETUP_PREFIXES
 from .optim import Problem, Result, get_solver
 from .params import ParamSet
 
@@ -56,7 +57,10 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
         out.fix(*rep.dropped)
     if noise is not None and rep.identifiable:
         pos = [params.free_names.index(n) for n in rep.identifiable]
-        loose = imprecise(J[:, pos], rep.identifiable, [units[i] for i in pos], noise, plausible)
+        # the set-up's planes and fixed points are never dropped for imprecision (no plausible size):
+        # without them the observations that touch them mean nothing
+        lim = [units[i] if not params.free_names[i].startswith(SETUP_PREFIXES) else "set-up" for i in pos]
+        loose = imprecise(J[:, pos], rep.identifiable, lim, noise, plausible)
         for n, se in loose.items():
             out.fix(n)
             rep.dropped.append(n)

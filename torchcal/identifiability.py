@@ -55,12 +55,13 @@ __all__ = ["stacked_jacobian", "identifiability", "analyse_jacobian", "observabi
            "DEFAULT_PREFER", "resolve_free", "normalise_columns"]
 
 # Preference tiers (glob patterns), earliest kept first when parameters are interchangeable.
-# The base frame comes first: with measurements in an instrument frame it must always be
-# identified, and first-joint errors duplicate it. Then DH errors and joint zero offsets (the
+# The base frame comes first, with the other unknowns of the set-up (touched planes, fixed points):
+# with measurements in an instrument frame it must always be identified, and first-joint errors
+# duplicate it. Then DH errors and joint zero offsets (the
 # textbook parameters), then marker offsets (the tool point is usually unknown), and last the
 # six-per-joint origin errors of URDF robots, which duplicate the others most often.
 DEFAULT_PREFER: list[list[str]] = [
-    ["base.*"],
+    ["base.*", "plane.*", "pivot.*"],
     ["*.da", "*.dd", "*.dalpha", "*.dtheta", "*.offset"],
     ["<markers>"],  # placeholder: replaced by "<marker>.*" for each of the robot's markers
 ]

@@ -2,8 +2,19 @@
 marker, optional ``<marker>.qw/.qx/.qy/.qz`` orientation, and any other numeric column as a
 covariate (time, temperature, direction of last motion …).
 
-An empty marker cell means the marker was not seen in that row; the row still counts for
-the other markers.
+An empty cell means that value was not measured: a marker seen in one or two axes only (a
+motion-capture camera pair, a dial gauge) keeps the axes it has; the row still counts for the
+other markers.
+
+Measurements that are not positions:
+
+* ``<marker>.plane``: the marker touched a plane, named in the cell (any label: ``A``, ``table``,
+  ``1``; empty = no contact). Only the distance along the plane's normal is measured (zero at
+  contact); the plane's pose is unknown and identified with the robot. The marker's x/y/z cells
+  stay empty in that row.
+* ``<a>.dist.<b>`` (m): a distance measured from marker ``a``. When ``b`` is another marker, the
+  distance between the two in that row; otherwise ``b`` names a fixed point whose position is
+  unknown and identified (the pivot of a ball bar, the centre of a sphere the probe touches).
 """
 from __future__ import annotations
 
@@ -33,6 +44,8 @@ class UnitsError(ValueError):
 
 _POS = (".x", ".y", ".z")
 _QUAT = (".qw", ".qx", ".qy", ".qz")
+_PLANE = ".plane"
+_DIST = ".dist."
 
 
 @dataclass
@@ -45,6 +58,12 @@ class Measurements:
         quaternions: ``(N, M, 4)`` measured orientations (w, x, y, z) or ``None``; NaN = not seen.
         marker_names: the M markers, in the robot's marker order.
         covariates: other columns, name -> ``(N,)``.
+        planes: ``(N, M)`` integer index into ``plane_names`` of the plane each marker touched in
+            each row, -1 = none (or ``None``: no plane contacts).
+        plane_names: the planes' labels.
+        distances: ``(a, b) -> (N,)`` measured distances (m, NaN = not measured) from marker ``a``
+            to marker ``b`` in the same row, or to the fixed point named ``b`` when ``b`` is not a
+            marker of these rows.
     """
 
     q: Tensor
@@ -54,6 +73,9 @@ class Measurements:
     quaternions: Tensor | None = None
     covariates: dict[str, Tensor] = field(default_factory=dict)
     source: str | None = None
+    planes: Tensor | None = None
+    plane_names: list[str] = field(default_factory=list)
+    distances: dict[tuple[str, str], Tensor] = field(default_factory=dict)
 
     def __post_init__(self):
         N = self.q.shape[0]
@@ -65,30 +87,93 @@ class Measurements:
         for k, v in self.covariates.items():
             if v.shape != (N,):
                 raise ValueError(f"covariate {k!r} has shape {tuple(v.shape)}, expected ({N},)")
+        if self.planes is not None:
+            if self.planes.shape != (N, len(self.marker_names)) or self.planes.dtype != torch.long:
+                raise ValueError(f"planes must be an integer (N, M) = ({N}, {len(self.marker_names)}) tensor, got "
+                                 f"{self.planes.dtype} {tuple(self.planes.shape)}")
+            if self.planes.numel() and (int(self.planes.max()) >= len(self.plane_names) or int(self.planes.min()) < -1):
+                raise ValueError(f"planes must index plane_names ({len(self.plane_names)} planes) or be -1")
+            both = (self.planes >= 0) & ~torch.isnan(self.positions).all(-1)
+            if bool(both.any()):
+                i, m = torch.nonzero(both)[0].tolist()
+                raise ValueError(f"row {i}: marker {self.marker_names[m]!r} has a plane contact and a position; a "
+                                 "contact measures only the distance along the plane's normal: give one or the other")
+        for (a, b), v in self.distances.items():
+            if a not in self.marker_names:
+                raise ValueError(f"distance from {a!r}: not a marker of these rows ({self.marker_names})")
+            if a == b:
+                raise ValueError(f"distance from {a!r} to itself")
+            if v.shape != (N,):
+                raise ValueError(f"distance {a}.dist.{b} has shape {tuple(v.shape)}, expected ({N},)")
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
 
     def __repr__(self) -> str:
         seen = ", ".join(f"{m}: {int(n)}" for m, n in zip(self.marker_names, self.seen.sum(0).tolist()))
+        part = int((self.observed & ~self.seen).sum())
+        more = f", {part} partial" if part else ""
+        if self.planes is not None and bool((self.planes >= 0).any()):
+            more += f", {int((self.planes >= 0).sum())} contacts on planes {self.plane_names}"
+        if self.distances:
+            more += f", {sum(int(torch.isfinite(v).sum()) for v in self.distances.values())} distances"
         cov = f", covariates {sorted(self.covariates)}" if self.covariates else ""
         src = f" from {self.source}" if self.source else ""
-        return (f"Measurements({len(self)} rows × {len(self.joint_names)} joints, markers seen {{{seen}}}{cov}{src}; "
-                "q in rad / m, positions in m)")
+        return (f"Measurements({len(self)} rows × {len(self.joint_names)} joints, markers seen {{{seen}}}{more}{cov}"
+                f"{src}; q in rad / m, positions in m)")
 
     @property
     def seen(self) -> Tensor:
-        """``(N, M)`` bool: marker position measured in that row."""
+        """``(N, M)`` bool: marker position measured in that row, all three axes."""
         return ~torch.isnan(self.positions).any(-1)
+
+    @property
+    def axes_seen(self) -> Tensor:
+        """``(N, M, 3)`` bool: which position axes were measured."""
+        return ~torch.isnan(self.positions)
+
+    @property
+    def observed(self) -> Tensor:
+        """``(N, M)`` bool: at least one position axis of the marker measured in that row."""
+        return self.axes_seen.any(-1)
+
+    @property
+    def pivots(self) -> list[str]:
+        """Fixed points that distances are measured to (not markers), in order of appearance."""
+        out = []
+        for _, b in self.distances:
+            if b not in self.marker_names and b not in out:
+                out.append(b)
+        return out
+
+    @property
+    def n_values(self) -> int:
+        """Number of measured scalars: position axes, plane contacts and distances."""
+        n = int(self.axes_seen.sum())
+        if self.planes is not None:
+            n += int((self.planes >= 0).sum())
+        return n + sum(int(torch.isfinite(v).sum()) for v in self.distances.values())
+
+    @property
+    def positions_only(self) -> bool:
+        """Every observation is a full 3-D position (no partial axes, planes or distances)."""
+        return (bool((self.observed == self.seen).all()) and not self.distances
+                and (self.planes is None or not bool((self.planes >= 0).any())))
+
+    def _with(self, q, positions, markers, quaternions, covariates, planes, distances) -> "Measurements":
+        return Measurements(q, positions, markers, list(self.joint_names), quaternions, covariates, self.source,
+                            planes, list(self.plane_names), distances)
 
     def subset(self, idx) -> "Measurements":
         """Rows ``idx`` (indices or a bool mask)."""
         idx = torch.as_tensor(idx)
         if idx.dtype == torch.bool:
             idx = torch.nonzero(idx).flatten()
-        return Measurements(self.q[idx], self.positions[idx], list(self.marker_names), list(self.joint_names),
-                            None if self.quaternions is None else self.quaternions[idx],
-                            {k: v[idx] for k, v in self.covariates.items()}, self.source)
+        return self._with(self.q[idx], self.positions[idx], list(self.marker_names),
+                          None if self.quaternions is None else self.quaternions[idx],
+                          {k: v[idx] for k, v in self.covariates.items()},
+                          None if self.planes is None else self.planes[idx],
+                          {k: v[idx] for k, v in self.distances.items()})
 
     def select_markers(self, names: list[str]) -> "Measurements":
         """The same rows with only the markers ``names`` (in that order), e.g. one point of a
@@ -97,9 +182,11 @@ class Measurements:
         if missing:
             raise ValueError(f"no marker {missing}; these rows have {self.marker_names}")
         k = [self.marker_names.index(n) for n in names]
-        return Measurements(self.q, self.positions[:, k], list(names), list(self.joint_names),
-                            None if self.quaternions is None else self.quaternions[:, k], dict(self.covariates),
-                            self.source)
+        dist = {(a, b): v for (a, b), v in self.distances.items()
+                if a in names and (b in names or b not in self.marker_names)}
+        return self._with(self.q, self.positions[:, k], list(names),
+                          None if self.quaternions is None else self.quaternions[:, k], dict(self.covariates),
+                          None if self.planes is None else self.planes[:, k], dist)
 
     def split(self, holdout: float, seed: int = 0) -> tuple["Measurements", "Measurements"]:
         """Random split into (train, test) with ``holdout`` of the rows in test."""
@@ -112,18 +199,30 @@ class Measurements:
 
     def to(self, device=None, dtype=None) -> "Measurements":
         f = lambda t: None if t is None else t.to(device=device, dtype=dtype or t.dtype)  # noqa: E731
-        return Measurements(f(self.q), f(self.positions), list(self.marker_names), list(self.joint_names),
-                            f(self.quaternions), {k: f(v) for k, v in self.covariates.items()}, self.source)
+        return self._with(f(self.q), f(self.positions), list(self.marker_names), f(self.quaternions),
+                          {k: f(v) for k, v in self.covariates.items()},
+                          None if self.planes is None else self.planes.to(device=device),
+                          {k: f(v) for k, v in self.distances.items()})
 
 
 def marker_columns_in(header: list[str]) -> list[str]:
-    """Marker names that have position columns in a CSV header, in order of appearance."""
+    """Marker names that have measurement columns in a CSV header (position, plane contact, or a
+    distance measured from them), in order of appearance."""
     out = []
     for c in header:
-        for s in _POS:
-            if c.endswith(s) and c[: -len(s)] not in out:
-                out.append(c[: -len(s)])
+        name = None
+        for s in _POS + (_PLANE,):
+            if c.endswith(s):
+                name = c[: -len(s)]
+        if _DIST in c:
+            name = c.split(_DIST)[0]
+        if name and name not in out:
+            out.append(name)
     return out
+
+
+def _distance_columns(header: list[str]) -> dict[str, tuple[str, str]]:
+    return {c: tuple(c.split(_DIST, 1)) for c in header if _DIST in c}
 
 
 def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list[str]]]:
@@ -170,9 +269,9 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     """Read a measurement CSV and check it against ``robot``.
 
     Every actuated joint of the robot must have a column (named as in the URDF), every marker
-    of the robot its ``.x/.y/.z`` columns. Marker columns must name markers of the robot
-    (declare unknown points with ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or
-    ``--marker`` on the command line).
+    of the robot its ``.x/.y/.z`` columns (or plane / distance columns, see the module
+    docstring). Marker columns must name markers of the robot (declare unknown points with
+    ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or ``--marker`` on the command line).
 
     Args:
         units: ``"deg"``: revolute joint columns are in degrees; ``"mm"``: positions and prismatic
@@ -205,33 +304,44 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     robot_markers = list(robot.marker_names)
     unknown = [m for m in markers_in_file if m not in robot_markers]
     if unknown:
-        raise ValueError(f"{path}: marker column(s) for {unknown}, which the robot does not have (its markers: "
+        raise ValueError(f"{path}: measurement column(s) for {unknown}, which the robot does not have (its markers: "
                          f"{robot_markers}). Declare them, e.g. Robot.from_urdf(urdf, markers=['{unknown[0]}@LINK']) "
                          f"or --marker {unknown[0]}@LINK[=x,y,z]")
-    measured = [m for m in robot_markers if m in markers_in_file]
+    dist_cols = _distance_columns(header)
+    for c, (a_, b_) in dist_cols.items():
+        if not b_ or a_ == b_:
+            raise ValueError(f"{path}: distance column {c!r} must be named '<marker>.dist.<other marker or fixed "
+                             "point>'")
+    measured = [m for m in robot_markers if m in markers_in_file or any(b_ == m for _, b_ in dist_cols.values())]
     if not measured:
-        raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' for one of "
-                         f"{robot_markers}")
-    absent = [m for m in robot_markers if m not in markers_in_file]
+        raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' (or "
+                         f"'<marker>.plane', '<marker>.dist.<point>') for one of {robot_markers}")
+    absent = [m for m in robot_markers if m not in measured]
     if absent:
-        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no '<marker>.x/.y/.z' columns for "
-                         f"them (it has {markers_in_file}); declare only the markers that were measured")
+        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no columns for them (it has "
+                         f"{markers_in_file}); declare only the markers that were measured")
     for m in measured:
-        absent = [m + s for s in _POS if m + s not in cols]
-        if absent:
-            raise ValueError(f"{path}: marker {m!r} has some position columns but not {absent}")
+        have = [m + s for s in _POS if m + s in cols]
+        if have and len(have) < 3:
+            raise ValueError(f"{path}: marker {m!r} has position columns {have} but not "
+                             f"{[m + s for s in _POS if m + s not in cols]}; give all three columns (leave the cells "
+                             "of an axis that was not measured empty)")
     has_quat = [m for m in measured if any(m + s in cols for s in _QUAT)]
     for m in has_quat:
         absent = [m + s for s in _QUAT if m + s not in cols]
         if absent:
             raise ValueError(f"{path}: marker {m!r} has some orientation columns but not {absent}")
-    used = set(joints) | {m + s for m in measured for s in _POS} | {m + s for m in has_quat for s in _QUAT}
+    plane_cols = {m: m + _PLANE for m in measured if m + _PLANE in cols}
+    used = (set(joints) | {m + s for m in measured for s in _POS} | {m + s for m in has_quat for s in _QUAT}
+            | set(plane_cols.values()) | set(dist_cols))
     covariates = [c for c in header if c not in used]
     idx = {c: i for i, c in enumerate(header)}
+    numeric = [c for c in header if c not in plane_cols.values()]
     N = len(rows)
-    data = np.empty((N, len(header)))
+    data = np.full((N, len(header)), np.nan)
     for i, r in enumerate(rows):
-        for c, j in idx.items():
+        for c in numeric:
+            j = idx[c]
             data[i, j] = _number(r[j], i + 2, c, path)
     Q = data[:, [idx[j] for j in joints]]
     bad = np.argwhere(~np.isfinite(Q))
@@ -239,19 +349,38 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
         i, j = bad[0]
         raise ValueError(f"{path}, line {i + 2}: joint {joints[j]!r} is empty or not finite; every row needs all "
                          "joint values (drop the row if the robot state was not recorded)")
-    P = np.stack([data[:, [idx[m + s] for s in _POS]] for m in measured], 1)
-    partial = np.isnan(P).any(-1) & ~np.isnan(P).all(-1)
-    if partial.any():
-        i, m = np.argwhere(partial)[0]
-        raise ValueError(f"{path}, line {i + 2}: marker {measured[m]!r} has some of x/y/z but not all; "
-                         "leave all three empty when the marker was not seen")
+    P = np.stack([data[:, [idx[m + s] for s in _POS]] if m + _POS[0] in cols else np.full((N, 3), np.nan)
+                  for m in measured], 1)
     if np.isinf(P).any():
         i, m = np.argwhere(np.isinf(P).any(-1))[0]
         raise ValueError(f"{path}, line {i + 2}: marker {measured[m]!r} has an infinite coordinate")
-    seen = ~np.isnan(P).any(-1)
-    if not seen.any():
+    planes, plane_names = None, []
+    if plane_cols:
+        planes = np.full((N, len(measured)), -1, dtype=np.int64)
+        for k, m in enumerate(measured):
+            if m not in plane_cols:
+                continue
+            j = idx[plane_cols[m]]
+            for i, r in enumerate(rows):
+                lab = r[j].strip()
+                if not lab:
+                    continue
+                if np.isfinite(P[i, k]).any():
+                    raise ValueError(f"{path}, line {i + 2}: marker {m!r} has a plane contact ({lab!r}) and position "
+                                     "cells; a contact measures only the distance along the plane's normal: leave "
+                                     "x/y/z empty in contact rows")
+                if lab not in plane_names:
+                    plane_names.append(lab)
+                planes[i, k] = plane_names.index(lab)
+    D = {(a_, b_): data[:, idx[c]] for c, (a_, b_) in dist_cols.items()}
+    for (a_, b_), v in D.items():
+        if np.isinf(v).any() or (v[np.isfinite(v)] < 0).any():
+            i = int(np.argmax(np.isinf(v) | (np.nan_to_num(v) < 0)))
+            raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length")
+    n_contacts = 0 if planes is None else int((planes >= 0).sum())
+    if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
         raise ValueError(f"{path}: no marker was seen in any row")
-    Q, P = _units(path, robot, Q, P, seen, units)
+    Q, P, D = _units(path, robot, Q, P, D, units)
     _warn_duplicates(path, data)
     Qt = None
     if has_quat:
@@ -270,10 +399,12 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", _stacklevel=3).to(robot.device)
     cov = {c: torch.as_tensor(data[:, idx[c]], dtype=dt, device=robot.device) for c in covariates}
     return Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
-                        None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path))
+                        None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path),
+                        None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
+                        {k: torch.as_tensor(v, dtype=dt, device=robot.device) for k, v in D.items()})
 
 
-def _units(path, robot, Q: np.ndarray, P: np.ndarray, seen: np.ndarray, units) -> tuple[np.ndarray, np.ndarray]:
+def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[np.ndarray, np.ndarray, dict]:
     """Convert declared units; refuse values that look like degrees or millimetres otherwise."""
     rev = np.array([u == "rad" for u in robot.joint_units])
     if "deg" in units:
@@ -281,6 +412,7 @@ def _units(path, robot, Q: np.ndarray, P: np.ndarray, seen: np.ndarray, units) -
     if "mm" in units:
         Q = np.where(rev, Q, Q / 1000.0)
         P = P / 1000.0
+        D = {k: v / 1000.0 for k, v in D.items()}
     lo, hi = (x.cpu().numpy() for x in robot.joint_limits)
     for j, n in enumerate(robot.joint_names):
         v = float(np.abs(Q[:, j]).max())
@@ -292,12 +424,14 @@ def _units(path, robot, Q: np.ndarray, P: np.ndarray, seen: np.ndarray, units) -
         if not rev[j] and v > max(5.0, 3 * span):
             raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.1f}, which looks like "
                              "millimetres; torchcal expects metres: divide by 1000 or declare --units mm")
-    med = float(np.median(np.abs(P[seen])))
-    if med > 20.0:
-        raise UnitsError(f"{path}: marker coordinates have median |value| {med:.0f}, which looks like millimetres; "
-                         "torchcal expects metres: divide by 1000 or declare the unit (--units mm, "
-                         "load_measurements(..., units=['mm']))")
-    return Q, P
+    for what, vals in (("marker coordinates", P[np.isfinite(P)]),
+                       ("distances", np.concatenate([v[np.isfinite(v)] for v in D.values()] or [np.zeros(0)]))):
+        med = float(np.median(np.abs(vals))) if vals.size else 0.0
+        if med > 20.0:
+            raise UnitsError(f"{path}: {what} have median |value| {med:.0f}, which looks like millimetres; torchcal "
+                             "expects metres: divide by 1000 or declare the unit (--units mm, "
+                             "load_measurements(..., units=['mm']))")
+    return Q, P, D
 
 
 def _warn_duplicates(path, data: np.ndarray) -> None:
@@ -313,14 +447,23 @@ def save_measurements(path: str | os.PathLike, data: Measurements, digits: int =
     """Write measurements in the format :func:`load_measurements` reads (NaN -> empty cell)."""
     header = list(data.joint_names)
     cols = [data.q[:, i] for i in range(data.q.shape[1])]
+    labels: dict[int, list[str]] = {}
     for k, m in enumerate(data.marker_names):
-        for a, s in enumerate(_POS):
-            header.append(m + s)
-            cols.append(data.positions[:, k, a])
+        if bool((~torch.isnan(data.positions[:, k])).any()) or data.planes is None:
+            for a, s in enumerate(_POS):
+                header.append(m + s)
+                cols.append(data.positions[:, k, a])
         if data.quaternions is not None:
             for a, s in enumerate(_QUAT):
                 header.append(m + s)
                 cols.append(data.quaternions[:, k, a])
+        if data.planes is not None and bool((data.planes[:, k] >= 0).any()):
+            labels[len(header)] = ["" if int(i) < 0 else data.plane_names[int(i)] for i in data.planes[:, k].tolist()]
+            header.append(m + _PLANE)
+            cols.append(torch.full((len(data),), float("nan")))
+    for (a, b), v in data.distances.items():
+        header.append(f"{a}{_DIST}{b}")
+        cols.append(v)
     for c, v in data.covariates.items():
         header.append(c)
         cols.append(v)
@@ -328,6 +471,9 @@ def save_measurements(path: str | os.PathLike, data: Measurements, digits: int =
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(header)
-    for row in M:
-        w.writerow(["" if not np.isfinite(v) else f"{v:.{digits}g}" for v in row])
+    for i, row in enumerate(M):
+        cells = ["" if not np.isfinite(v) else f"{v:.{digits}g}" for v in row]
+        for j, lab in labels.items():
+            cells[j] = lab[i]
+        w.writerow(cells)
     atomic_write_text(path, buf.getvalue())

@@ -36,9 +36,9 @@ from .identifiability import analyse_jacobian
 from .io import Measurements
 from .loop_evidence import evidence_for
 from .loop_fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
-                       geometric_start, noise_sigma, observation_errors, rescore, split_params)
+                       geometric_start, noise_sigma, observation_model, rescore, split_params)
+from .observations import KIND_NAMES, Observations, Setup, needs_setup, unseen
 from .params import ParamSet
-from .problem import EffectCalibrationProblem
 from .report import error_details, error_stats, stage_problems
 from .selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
 
@@ -96,6 +96,7 @@ class LoopResult:
     prior_mm: float | None = None
     parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
     observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
+    setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -115,6 +116,8 @@ class LoopResult:
                 "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
                 "suspect_rows": self.suspects, "flags": self.flags, "parameters": self.parameters,
                 "observability": self.observability, "problems": self.problems(),
+                "setup": None if self.setup is None else self.setup.describe(
+                    self.params.values[self.robot.n_params:self.robot.n_params + self.setup.n_params]),
                 "rule": f"accept when the paired t statistic of the cross-validated per-row Huber-score "
                         f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
                         f"parameters); a family's modes are added one by one under the same rule with the "
@@ -140,39 +143,47 @@ class LoopResult:
 
 
 # ----------------------------------------------------------------------------- statistics
-def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None
-                ) -> tuple[dict | None, Tensor]:
+def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
+                setup: Setup | None = None) -> tuple[dict | None, Tensor]:
     """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
-    model on ``data``."""
-    st, d = _stage(robot, params, effects, data, elm)
+    model on ``data`` (``setup``: the planes and fixed points, ``LoopResult.setup``). An
+    observation's error is the Euclidean norm of what it measured: a plane contact's signed
+    distance, a partial position's measured axes."""
+    st, d = _stage(robot, params, effects, data, elm, setup)
     return st, d["e"]
 
 
-def _stage(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None) -> tuple[dict | None, dict]:
+def _stage(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
+           setup: Setup | None = None) -> tuple[dict | None, dict]:
     """:func:`stage_stats` and the error details a figure needs (:func:`torchcal.report.error_details`)."""
     if data is None or len(data) == 0:
         z = torch.zeros(0)
         return None, {"e": z, "xyz": z.reshape(0, 3), "dist": z}
-    ctx = Context(robot, data, [], None, 1.0)
-    e3, rows = observation_errors(ctx, params, effects, data)
-    if elm is not None:
-        r = residual_matrix(robot, params, effects, data)
+    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
+    e3 = prob.residual_vectors(params.values[None])[0]
+    if elm is not None:  # the ELM is only fitted on full positions, whose order is data.seen's
+        r = residual_matrix(robot, params, effects, data, setup)
         left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
         e3 = -left[data.seen]
-    d = error_details(robot, params.values[: robot.n_params], data, e3)
-    cols = data.seen.nonzero()[:, 1]
+    d = error_details(robot, params.values[: robot.n_params], data, e3, prob.obs)
+    cols = prob.obs.data_marker
     e = d["e"]
     out = error_stats(e)
     out["per_marker"] = {m: error_stats(e[cols == k]) for k, m in enumerate(data.marker_names) if bool((cols == k).any())}
+    kinds = torch.unique(prob.obs.kind).tolist()
+    if len(kinds) > 1 or kinds != [0] or not bool(prob.obs.mask.all()):
+        out["per_kind"] = {KIND_NAMES[k]: error_stats(e[prob.obs.kind == k]) for k in kinds}
     return out, d
 
 
-def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements) -> Tensor:
-    """``(N, 3M)`` measured − model position per row (NaN where a marker was not seen)."""
-    ctx = Context(robot, data, [], None, 1.0)
-    e3, _ = observation_errors(ctx, params, effects, data)
+def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements, setup: Setup | None = None) -> Tensor:
+    """``(N, 3M)`` measured − model position per row (NaN where a marker's full position was not
+    measured)."""
+    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
+    e3 = prob.residual_vectors(params.values[None])[0]
+    full = prob.obs.full_positions
     out = torch.full((len(data), len(data.marker_names), 3), float("nan"), dtype=e3.dtype, device=e3.device)
-    out[data.seen] = -e3
+    out[prob.obs.rows[full], prob.obs.data_marker[full]] = -e3[full]
     return out.reshape(len(data), -1)
 
 
@@ -285,16 +296,23 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             derive_directions(test)
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     timings: dict[str, float] = {}
-    n_obs = int(train.seen.sum())
+    n_obs = train.n_values / 3
     fl = folds_of(len(train), min(folds, len(train)), seed, _duplicate_groups(train))
 
-    # 1. nominal: base registration only
-    geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1])
+    # 1. nominal: base registration only; the planes and fixed points located from it
+    setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None
+    if test is not None:
+        Observations(robot, test, setup)  # refuses held-out rows against planes the training rows never touch
+    if setup is not None:
+        say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
+            + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
+               "robot base"))
+    geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup)
     stages, errors = [], {}
 
     def add_stage(name: str, k: float, params, effects, elm_model=None, cv=None, extra=None):
-        st_tr, e_tr = _stage(robot, params, effects, train, elm_model)
-        st_te, e_te = _stage(robot, params, effects, test, elm_model)
+        st_tr, e_tr = _stage(robot, params, effects, train, elm_model, setup)
+        st_te, e_te = _stage(robot, params, effects, test, elm_model, setup)
         s = {"name": name, "n_params": int(round(k)), "train": st_tr}
         if st_te is not None:
             s["test"] = st_te
@@ -310,19 +328,19 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
-    ctx = Context(robot, train, fl, None, 1.0)
-    probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None), [], None)
+    ctx = Context(robot, train, fl, None, 1.0, setup)
+    probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
     for _ in range(3):
         sigma = noise_sigma(ctx, probe)
-        ctx = Context(robot, train, fl, HUBER_K * sigma, sigma)
-        probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None), [], None)
+        ctx = ctx.at(HUBER_K * sigma, sigma)
+        probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
     say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")
 
     # 3. geometry: nested sets, then priors when the full set is rejected
     geo_choice, geo_fits = [], {}
     best: Model | None = None
     for name, pats in GEOMETRIC_SETS:
-        m = probe if pats is None else evaluate(ctx, name, geometric_start(robot, train, pats), [], None)
+        m = probe if pats is None else evaluate(ctx, name, geometric_start(robot, train, pats, setup), [], None)
         m.label = name
         geo_fits[name] = m.params
         entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
@@ -338,7 +356,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"geometric set {name:<24} {m.k:>5.1f} params  CV {entry['cv_rmse_mm']:.4f} mm"
             + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
     if best.label != GEOMETRIC_SETS[-1][0]:
-        full_start = geometric_start(robot, train, None)  # every error, held by the prior
+        full_start = geometric_start(robot, train, None, setup)  # every error, held by the prior
         tried: list[Model] = []
         m = evaluate_prior(ctx, "prior", full_start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
         for mt in sorted(tried, key=lambda x: x.prior_mm):
@@ -378,7 +396,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         if abs(HUBER_K * sigma - ctx.c) > 0.1 * ctx.c:
             # the model explains more: tighten the threshold and refit it under it, so that no
             # candidate is credited with what the tighter threshold alone gains
-            ctx = Context(robot, train, fl, HUBER_K * sigma, ctx.sigma)
+            ctx = ctx.at(HUBER_K * sigma)
             current = _refit(ctx, current)
             if accepted_steps:
                 accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
@@ -403,7 +421,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for r in results:
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
-                entry["test_gain_mm"] = _test_gain(robot, current, r["model"], test)
+                entry["test_gain_mm"] = _test_gain(robot, current, r["model"], test, setup)
                 flags += _extrapolation(r["model"].effects[-1], test)
             cand_report.append(entry)
         if winner is None:
@@ -422,7 +440,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         sigma = noise_sigma(ctx, current)
         if abs(HUBER_K * sigma - ctx.c) <= 0.1 * ctx.c:
             break
-        ctx = Context(robot, train, fl, HUBER_K * sigma, ctx.sigma)
+        ctx = ctx.at(HUBER_K * sigma)
         current = _refit(ctx, current)
     timings["diagnosis"] = time.perf_counter() - t2
     if accepted_steps:
@@ -444,7 +462,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         s = add_stage(stage, m.k, m.params, m.effects, cv=m.cv_rmse_mm(n_obs))
         prev = stages[-2]
         gain = None if "test" not in s or "test" not in prev else prev["test"]["mean_mm"] - s["test"]["mean_mm"]
-        ev_text, ev_data = evidence_for(robot, m, train)
+        ev_text, ev_data = evidence_for(robot, m, train, setup)
         evidence[stage.lstrip("+")] = ev_data
         accepted.append({"name": name, "stage": stage, "joints": list(eff.joints), "n_params": eff.n_params,
                          "modes": [lab for lab, _ in eff.modes()], "added_modes": entry.get("added_modes", []),
@@ -460,7 +478,10 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     # 5. residual ELM
     t3 = time.perf_counter()
     elm_model = None
-    if elm and len(train) >= 20:
+    if elm and not (train.positions_only and (test is None or test.positions_only)):
+        say("residual ELM not tried: it learns 3-D position errors, and these rows hold partial positions, plane "
+            "contacts or distances")
+    elif elm and len(train) >= 20:
         H = elm_hidden or max(8, min(64, len(train) // 4))
         sc_elm, sq_elm = _elm_cv(ctx, current, H, seed)
         k_elm = H * 3 * len(train.marker_names)
@@ -471,18 +492,20 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"residual ELM ({H} hidden): CV {rmse_mm(sq_elm, n_obs):.4f} mm  gain {gain:+.4f} mm  t = {t:.1f}"
             f"  {'kept' if ok else 'not kept'}")
         if ok:
-            r = _clipped(residual_matrix(robot, current.params, current.effects, train), ctx.c)
+            r = _clipped(residual_matrix(robot, current.params, current.effects, train, setup), ctx.c)
             elm_model = ELM(n_hidden=H, ridge=1e-3, seed=seed).fit(elm_inputs(train), r)
             add_stage("+residual_elm", current.k + k_elm, current.params, current.effects, elm_model)
     timings["residual_elm"] = time.perf_counter() - t3
 
     # 6. suspects: listed, never dropped
     sigma = noise_sigma(ctx, current)
-    e3, rows = observation_errors(ctx, current.params, current.effects, train)
-    err = e3.norm(dim=-1)
-    cols = train.seen.nonzero()[:, 1]
-    bad = torch.nonzero(err > OUTLIER_K * math.sqrt(3) * sigma).flatten()
-    suspects = [{"row": int(rows[i]), "marker": train.marker_names[int(cols[i])], "error_mm": float(err[i] * 1e3)}
+    prob = observation_model(ctx, current.params, current.effects, train)
+    err = prob.errors(current.params.values[None])[0]
+    obs = prob.obs
+    # a 3-D error reaches √3 σ̂ typically; an observation of fewer components proportionally less
+    bad = torch.nonzero(err > OUTLIER_K * obs.dims.sqrt() * sigma).flatten()
+    suspects = [{"row": int(obs.rows[i]), "marker": train.marker_names[int(obs.data_marker[i])],
+                 "kind": KIND_NAMES[int(obs.kind[i])], "error_mm": float(err[i] * 1e3)}
                 for i in bad[torch.argsort(err[bad], descending=True)].tolist()]
     if suspects:
         say(f"{len(suspects)} suspect observation(s) beyond {OUTLIER_K:g}·√3·σ̂ = "
@@ -502,7 +525,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
-                      observability=observability)
+                      observability=observability, setup=setup)
 
 
 def _parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
@@ -512,13 +535,15 @@ def _parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
     se = m.info.get("se", {})
     table = [{"name": n, "value": float(v), "unit": u, "std_error": se.get(n)}
              for n, v, u, f in zip(p.names, p.values.tolist(), p.units, p.free.tolist()) if f]
-    prob = EffectCalibrationProblem(ctx.robot, p, m.effects, ctx.data)
+    prob = observation_model(ctx, p, m.effects, ctx.data)
     rep = analyse_jacobian(prob.data_jacobian(prob.x0), p.free_names, [p.units[i] for i in p.free_index.tolist()],
                            markers=ctx.robot.marker_names)
     fin = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
-    return table, {"condition": fin(rep.condition), "O1": fin(rep.O1), "O2": fin(rep.O2), "O3": fin(rep.O3),
-                   "O4": fin(rep.O4), "rank": rep.rank, "n_params": rep.n_params,
-                   "not_seen_by_data": list(rep.dropped)}
+    out = {"condition": fin(rep.condition), "O1": fin(rep.O1), "O2": fin(rep.O2), "O3": fin(rep.O3),
+           "O4": fin(rep.O4), "rank": rep.rank, "n_params": rep.n_params, "not_seen_by_data": list(rep.dropped)}
+    if not ctx.data.positions_only:
+        out["not_seen"] = unseen(ctx.robot, ctx.data, p, ctx.setup)
+    return table, out
 
 
 def _bar(progress: bool):
@@ -569,7 +594,7 @@ def _compare_at(ctx: Context, best: Model, m: Model, n_obs: int) -> tuple[float,
     c = HUBER_K * noise_sigma(ctx, best)
     if c <= ctx.c:
         return compare(best.scores, m.scores, best.k, m.k, n_obs)
-    at = Context(ctx.robot, ctx.data, ctx.folds, c, ctx.sigma)
+    at = ctx.at(c)
     return compare(rescore(at, best), rescore(at, m), best.k, m.k, n_obs)
 
 
@@ -577,8 +602,8 @@ def _refit(ctx: Context, m: Model) -> Model:
     """``m`` fitted again under the context's threshold, every candidate parameter judged again:
     with less noise left, parameters the rounds before could not see may be seen now."""
     again = m.params.clone()
-    again.free[: ctx.robot.n_params] = m.info["candidates"]
-    again.free[ctx.robot.n_params:] = True
+    again.free[: ctx.n_geo] = m.info["candidates"]
+    again.free[ctx.n_geo:] = True
     return evaluate(ctx, m.label, again, m.effects, m.prior_mm, info=m.info)
 
 
@@ -593,12 +618,12 @@ def _refresh(ctx: Context, m: Model, n_obs: int) -> Model:
     return again if penalised(again.scores, again.k, n_obs) <= penalised(m.scores, m.k, n_obs) else m
 
 
-def _test_gain(robot, current: Model, cand: Model, test) -> float | None:
+def _test_gain(robot, current: Model, cand: Model, test, setup: Setup | None = None) -> float | None:
     """Held-out mean gain of a candidate over the current model (measured after the decision)."""
     if test is None:
         return None
-    a, _ = stage_stats(robot, current.params, current.effects, test)
-    b, _ = stage_stats(robot, cand.params, cand.effects, test)
+    a, _ = stage_stats(robot, current.params, current.effects, test, setup=setup)
+    b, _ = stage_stats(robot, cand.params, cand.effects, test, setup=setup)
     return a["mean_mm"] - b["mean_mm"]
 
 

@@ -15,7 +15,7 @@ __all__ = ["evidence_for", "MAX_PANELS"]
 MAX_PANELS = 6
 
 
-def evidence_for(robot, model, data) -> tuple[str, dict]:
+def evidence_for(robot, model, data, setup=None) -> tuple[str, dict]:
     """``(sentence, {mode label: plot data})`` for the last effect of ``model`` on ``data``.
 
     Plot data per mode: ``x`` (the signature), ``residual`` (partial residual projected on the
@@ -25,15 +25,17 @@ def evidence_for(robot, model, data) -> tuple[str, dict]:
     full = model.params.values
     a = model.params.names.index(eff.param_names[0]) if eff.param_names else len(full)
     theta = full[a:a + eff.n_params]
-    prob = EffectCalibrationProblem(robot, model.params, model.effects, data)
-    p = prob.positions(full[None])[0]
-    r = prob.measured - p  # (n_obs, 3) what the model leaves
+    prob = EffectCalibrationProblem(robot, model.params, model.effects, data, setup=setup)
+    res = prob.residual_vectors(full[None])[0]
+    r = -res  # (n_obs, 3) what the model leaves, in what each observation measures
+    p_all = prob.marker_positions(full[None])[0]
+    s = full[prob.K:prob.K + prob.S]
     prep = eff.prepare(data.q, data.covariates)
     geo = full[: robot.n_params]
     q_true = prob.joint_values(full[None])[0]
     Jq = robot.joint_jacobian(q_true, geo, check=False)[:, :, :3, :]  # instrument frame
     Rb, _ = robot.base_transform(geo)
-    rows, cols = prob.rows, prob.cols
+    rows = prob.rows
     panels = []
     for label, idx in eff.modes():
         sig = eff.signature(prep, label, theta)
@@ -41,8 +43,9 @@ def evidence_for(robot, model, data) -> tuple[str, dict]:
             continue
         wo = full.clone()
         wo[[a + i for i in idx]] = 0
-        contrib = p - prob.positions(wo[None])[0]  # the mode's own displacement (n_obs, 3)
-        G = Jq[rows, cols, :, sig["dof"]] if "dof" in sig else (Rb @ sig["G"][rows, cols, :, None])[..., 0]
+        contrib = res - prob.residual_vectors(wo[None])[0]  # the mode's own contribution, as measured
+        D = Jq[..., sig["dof"]] if "dof" in sig else (Rb @ sig["G"][..., None])[..., 0]  # (N, M, 3)
+        G = prob.obs.project(p_all, D[..., None], s)[..., 0]  # the mode's direction as each observation sees it
         g2 = (G * G).sum(-1)
         use = g2 > 0.01 * float(g2.median()) if bool((g2 > 0).any()) else g2 > 0
         if int(use.sum()) < 3:

@@ -24,12 +24,13 @@ from .effects import effect_params
 from .fitting import fit_identified
 from .io import Measurements
 from .measurement import Loss
+from .observations import Setup
 from .params import ParamSet
 from .problem import EffectCalibrationProblem
 from .registration import register_base
 from .selection import HUBER_K, LinearCV, effective_params, penalised, rmse_mm, robust_sigma, row_scores
 
-__all__ = ["Context", "Model", "geometric_start", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
+__all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
            "folds_of",
            "split_params", "assemble", "PRIOR_SCALES_MM"]
 
@@ -41,17 +42,30 @@ PRIOR_SCALES_MM = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0)
 @dataclass
 class Context:
     """What every fit of a loop run shares: robot, training rows, folds, the Huber threshold
-    ``c`` (m) and the per-axis noise estimate ``sigma`` (m) the priors are scaled by."""
+    ``c`` (m), the per-axis noise estimate ``sigma`` (m) the priors are scaled by, and the
+    set-up's unknowns (planes, fixed points; None for position data)."""
 
     robot: object
     data: Measurements
     folds: list[Tensor]
     c: float | None
     sigma: float
+    setup: Setup | None = None
 
     @property
-    def n_obs(self) -> int:
-        return int(self.data.seen.sum())
+    def n_obs(self) -> float:
+        """Observations in 3-D equivalents (measured scalars / 3): a plane contact counts a third
+        of a position, so penalties weigh what was measured."""
+        return self.data.n_values / 3
+
+    @property
+    def n_geo(self) -> int:
+        """Entries of the geometry block: the robot's parameters and the set-up's unknowns."""
+        return self.robot.n_params + (0 if self.setup is None else self.setup.n_params)
+
+    def at(self, c: float | None, sigma: float | None = None) -> "Context":
+        """The same context with another Huber threshold (and noise estimate)."""
+        return Context(self.robot, self.data, self.folds, c, self.sigma if sigma is None else sigma, self.setup)
 
     def loss(self) -> Loss:
         return Loss("l2") if self.c is None else Loss("huber", self.c)
@@ -91,9 +105,13 @@ def folds_of(n: int, k: int, seed: int, groups: Tensor | None = None) -> list[Te
     return [torch.nonzero(torch.isin(groups, perm[i::k])).flatten() for i in range(k)]
 
 
-def geometric_start(robot, data: Measurements, patterns) -> ParamSet:
+def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = None) -> ParamSet:
     """The robot's parameters registered to the instrument, free: markers' positions, and the
-    errors matching ``patterns`` (None: the robot's default free set)."""
+    errors matching ``patterns`` (None: the robot's default free set); then the set-up's unknowns.
+
+    Without three full positions there is nothing to register: with no position at all (planes,
+    distances) the instrument frame is fixed at the robot base, since the planes and fixed points
+    absorb where it stands; with partial positions only it starts there and is fitted."""
     p = robot.params()
     for m in robot.marker_names:
         if m not in data.marker_names:
@@ -110,7 +128,11 @@ def geometric_start(robot, data: Measurements, patterns) -> ParamSet:
         for m in data.marker_names:
             p.unfix(f"{m}.dx", f"{m}.dy", f"{m}.dz")
         p.free &= torch.tensor([n in keep for n in p.names], device=p.free.device)
-    return register_base(robot, data, p)
+    if int(data.seen.sum()) >= 3:
+        p = register_base(robot, data, p)
+    elif not bool(data.observed.any()):
+        p.fix("base.*")
+    return p if setup is None else ParamSet.concat(p, setup.params())
 
 
 def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float) -> Tensor | None:
@@ -127,8 +149,10 @@ def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float)
     return w
 
 
-def _problem(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior: Tensor | None):
-    return EffectCalibrationProblem(ctx.robot, params, effects, data, loss=ctx.loss(), prior=prior)
+def _problem(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior: Tensor | None = None,
+             loss: bool = True):
+    return EffectCalibrationProblem(ctx.robot, params, effects, data, loss=ctx.loss() if loss else None, prior=prior,
+                                    setup=ctx.setup)
 
 
 def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
@@ -143,10 +167,17 @@ def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prio
     return ps
 
 
+def observation_model(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> EffectCalibrationProblem:
+    """The measurement model of ``params`` and ``effects`` on ``data`` (plain squared errors, no
+    prior): residual vectors, their observations, Jacobians."""
+    return _problem(ctx, params, effects, data, loss=False)
+
+
 def observation_errors(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> tuple[Tensor, Tensor]:
-    """Per-observation error vectors ``(n_obs, 3)`` (model − measured, m) and their rows."""
-    prob = EffectCalibrationProblem(ctx.robot, params, effects, data)
-    return prob.positions(params.values[None])[0] - prob.measured, prob.rows
+    """Per-observation error vectors ``(n_obs, 3)`` (model − measured, m; zero in components not
+    measured) and their rows."""
+    prob = _problem(ctx, params, effects, data, loss=False)
+    return prob.residual_vectors(params.values[None])[0], prob.rows
 
 
 def rescore(ctx: Context, m: Model) -> Tensor:
@@ -185,7 +216,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
         sq[f] = row_scores(e.norm(dim=-1), rows, len(f), None)
         fits.append(p)
     # the free set before identifiability: later fits judge it again, with the noise they see then
-    info.setdefault("candidates", start.free[: ctx.robot.n_params].clone())
+    info.setdefault("candidates", start.free[: ctx.n_geo].clone())
     return Model(label, full, list(effects), prior_mm, k, scores, fits, info, sq)
 
 
@@ -215,9 +246,11 @@ def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, pri
 
 
 def noise_sigma_of(ctx: Context, params: ParamSet, effects: list, k: float) -> float:
-    """Robust per-axis noise estimate (m) from a fit's training residuals (``k`` parameters)."""
-    e, _ = observation_errors(ctx, params, effects, ctx.data)
-    return robust_sigma(e, int(round(k)))
+    """Robust per-axis noise estimate (m) from a fit's training residuals (``k`` parameters), over
+    the measured components only."""
+    prob = _problem(ctx, params, effects, ctx.data, loss=False)
+    e = prob.residual_vectors(params.values[None])[0]
+    return robust_sigma(e[prob.obs.mask], int(round(k)))
 
 
 def noise_sigma(ctx: Context, m: Model) -> float:
@@ -238,8 +271,8 @@ def standard_errors(J: Tensor, prior: Tensor | None, names: list[str], sigma: fl
 
 # ----------------------------------------------------------------------------- parameters by effect
 def split_params(params: ParamSet, robot, effects: list) -> tuple[ParamSet, list[ParamSet]]:
-    """``params`` cut into the geometry and one ParamSet per effect."""
-    K = robot.n_params
+    """``params`` cut into the geometry (with the set-up's unknowns) and one ParamSet per effect."""
+    K = len(params) - sum(e.n_params for e in effects)
     idx = [list(range(K))]
     o = K
     for e in effects:
@@ -258,23 +291,24 @@ def assemble(geo: ParamSet, parts: list[ParamSet]) -> ParamSet:
 
 
 # ----------------------------------------------------------------------------- an effect's start
-def _basis_columns(ctx: Context, params: ParamSet, effects: list, eff, rows: Tensor,
-                   cols: Tensor) -> tuple[Tensor, list[list[int]]]:
-    """``(3 n_obs, L)`` the effect's linear coordinates' columns at the observed markers,
-    instrument frame, with the joint deflections carried through the current model."""
-    robot = ctx.robot
+def _basis_columns(ctx: Context, prob: EffectCalibrationProblem, eff) -> tuple[Tensor, list[list[int]], int]:
+    """``(3 n_obs, L)`` the effect's linear coordinates' columns in the observations' residuals,
+    with the joint deflections carried through the current model (``prob``)."""
+    robot, params = ctx.robot, prob.params
     geo = params.values[: robot.n_params]
     basis = eff.linear_basis(eff.prepare(ctx.data.q, ctx.data.covariates))
     L = sum(len(g) for g in basis.groups)
-    out = torch.zeros(rows.numel(), 3, L, dtype=robot.dtype, device=robot.device)
+    N, M = len(ctx.data), len(robot.marker_names)
+    D = torch.zeros(N, M, 3, L, dtype=robot.dtype, device=robot.device)  # every marker's displacement
     Rb, _ = robot.base_transform(geo)
     if basis.dq is not None:
-        prob = EffectCalibrationProblem(robot, params, effects, ctx.data)
         q = prob.joint_values(params.values[None])[0]
         Jq = robot.joint_jacobian(q, geo, check=False)[:, :, :3, :]  # instrument frame, (N, M, 3, dof)
-        out = out + Jq[rows, cols] @ basis.dq[rows]
+        D = D + Jq @ basis.dq[:, None]
     if basis.dp is not None:
-        out = out + Rb @ basis.dp[rows, cols]
+        D = D + Rb @ basis.dp
+    p = prob.marker_positions(params.values[None])[0]
+    out = prob.obs.project(p, D, params.values[prob.K:prob.K + prob.S])
     return out.reshape(-1, L), basis.groups, basis.shared
 
 
@@ -312,11 +346,11 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
     prior = prior_weights(robot, base, current.prior_mm, ctx.sigma)
     prob = _problem(ctx, base, base_effects, ctx.data, prior)
     x = prob.x0
-    r = prob.positions(base.values[None])[0] - prob.measured
+    r = prob.residual_vectors(base.values[None])[0]
     Jb = prob.data_jacobian(x)
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
-    cols_all, groups, shared = _basis_columns(ctx, base, base_effects, eff, prob.rows, prob.cols)
+    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
@@ -380,7 +414,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
     start = base.clone()
     start.values[base.free_index] = base.values[base.free_index] + step
     # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
-    start.free[: robot.n_params] = current.info["candidates"]
+    start.free[: ctx.n_geo] = current.info["candidates"]
     params = ParamSet.concat(start, effect_params([eff]))
     out.update(effect=eff, params=params, effects=base_effects + [eff], reason="",
                info={"candidates": current.info["candidates"]})

@@ -96,6 +96,16 @@ def _parameter_section(res: LoopResult) -> list[str]:
                   f"{o.get('n_params')} free parameters"
                   + (f"; held by the prior alone: {', '.join(o['not_seen_by_data'][:8])}"
                      + (" …" if len(o['not_seen_by_data']) > 8 else "") if o.get("not_seen_by_data") else "") + ")."]
+    if res.setup is not None:
+        K = res.robot.n_params
+        d = res.setup.describe(res.params.values[K:K + res.setup.n_params])
+        L += ["", "### The set-up (identified with the robot, instrument frame)", ""]
+        L += [f"- plane {k}: unit normal ({', '.join(f'{x:.6f}' for x in v['normal'])}), offset "
+              f"{1e3 * v['offset_m']:.4f} mm (the plane is normalᵀp = offset)" for k, v in d["planes"].items()]
+        L += [f"- fixed point {k}: ({', '.join(f'{1e3 * x:.4f}' for x in v)}) mm" for k, v in d["fixed_points"].items()]
+    if o.get("not_seen"):
+        L += ["", "### What these measurements cannot see", ""]
+        L += [f"- **{n}**: {why}" for n, why in o["not_seen"].items()]
     if res.problems():
         L += ["", "**Not fit to deploy:** " + "; ".join(res.problems())]
     return L + [""]
@@ -135,6 +145,14 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
         tr, te = s.get("train"), s.get("test")
         L.append(f"| {s['name']} | {s['n_params']} | {_cell(tr, 'mean_mm')} | {_cell(tr, 'std_mm')} | "
                  f"{_cell(tr, 'max_mm')} | {_cell(te, 'mean_mm')} | {_cell(te, 'std_mm')} | {_cell(te, 'max_mm')} |")
+    kinds = (res.stages[-1].get("train") or {}).get("per_kind")
+    if kinds:
+        L += ["", "An observation's error is the Euclidean norm of what it measured: a partial position's measured "
+              "axes, a plane contact's distance from its plane, a distance's difference from the measured one. "
+              "Final stage, per kind of observation (mm):", "", "| measured | n train | train mean | test mean |",
+              "|---|---|---|---|"]
+        te = (res.stages[-1].get("test") or {}).get("per_kind", {})
+        L += [f"| {k} | {v['n']} | {v['mean_mm']:.4f} | {_cell(te.get(k), 'mean_mm')} |" for k, v in kinds.items()]
     for split in ("test", "train"):
         if figs.get(split):
             L += ["", f"![errors, {split}: histogram, per axis, cumulative with p95, against reach](errors_{split}.png)"]
@@ -146,10 +164,11 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
         L += [f"{len(res.suspects)} suspect observation(s), farther from the final model than 5·√3·σ̂. They stay in "
               "the data: the Huber loss limits their pull, and the comparisons score them as a constant. Check them "
               "(a bumped reflector, a mislabelled marker, a row out of sync).", "",
-              "| row (0-based, training file order) | marker | error (mm) |", "|---|---|---|"]
-        L += [f"| {s['row']} | {s['marker']} | {s['error_mm']:.3f} |" for s in res.suspects[:50]]
+              "| row (0-based, training file order) | marker | measured | error (mm) |", "|---|---|---|---|"]
+        L += [f"| {s['row']} | {s['marker']} | {s.get('kind', 'position')} | {s['error_mm']:.3f} |"
+              for s in res.suspects[:50]]
         if len(res.suspects) > 50:
-            L.append(f"| … | {len(res.suspects) - 50} more in report.json | |")
+            L.append(f"| … | {len(res.suspects) - 50} more in report.json | | |")
     else:
         L.append("No observation lies farther than 5·√3·σ̂ from the final model.")
     L += ["", "## Geometric parameter set (chosen by cross-validation)", "",

@@ -109,7 +109,8 @@ class ResidualBlock:
 
 
 class PositionResidual(ResidualBlock):
-    """Position of each seen marker: ``r = p_model − p_measured`` (m), 3 rows per observation.
+    """Position of each seen marker: ``r = p_model − p_measured`` (m), 3 rows per observation; an
+    axis that was not measured (NaN in the data) gives a zero residual and a zero Jacobian row.
 
     ``weights``: optional ``(n_obs,)`` per observation, in the order of ``obs_index``.
     """
@@ -120,23 +121,24 @@ class PositionResidual(ResidualBlock):
         super().__init__(robot, data, weights, loss)
         mk = [robot.marker_names.index(m) for m in data.marker_names]
         self._mk = torch.tensor(mk, device=robot.device)
-        seen = data.seen
+        seen = data.observed
         self.obs_index = torch.nonzero(seen)  # (n_obs, 2): row, measured-marker index
         self.n_obs = int(self.obs_index.shape[0])
         self._rows, self._cols = self.obs_index[:, 0], self._mk[self.obs_index[:, 1]]
-        self._meas = data.positions[seen]  # (n_obs, 3)
+        self._mask = data.axes_seen[seen]  # (n_obs, 3)
+        self._meas = torch.nan_to_num(data.positions[seen])  # (n_obs, 3)
         if weights is not None and torch.as_tensor(weights).shape != (self.n_obs,):
             raise ValueError(f"position weights must have one entry per observation ({self.n_obs}), "
                              f"got shape {tuple(torch.as_tensor(weights).shape)}")
 
     def _raw(self, params: Tensor) -> Tensor:
         p = self.robot.positions(self.data.q, params, check=False)  # (P, N, M, 3)
-        return p[:, self._rows, self._cols] - self._meas
+        return (p[:, self._rows, self._cols] - self._meas) * self._mask
 
     def _raw_jacobian(self, params: Tensor) -> tuple[Tensor, Tensor]:
         J, p = self.robot.param_jacobian(self.data.q, params, kind="position", check=False,
                                          return_positions=True)  # (N, M, 3, K), (N, M, 3)
-        return p[self._rows, self._cols] - self._meas, J[self._rows, self._cols]
+        return (p[self._rows, self._cols] - self._meas) * self._mask, J[self._rows, self._cols] * self._mask[..., None]
 
 
 def _so3_left_jacobian_inv(phi: Tensor) -> Tensor:

@@ -7,11 +7,16 @@ import math
 import torch
 from torch import Tensor
 
-from .measurement import Loss, PositionResidual
+from .measurement import Loss
+from .observations import Observations, Setup
 from .optim import Problem
 from .params import ParamSet
 
-__all__ = ["CalibrationProblem", "EffectCalibrationProblem"]
+__all__ = ["CalibrationProblem", "EffectCalibrationProblem", "GAUGE_WEIGHT"]
+
+# Residual (m) of a 100 % change of the robot's size when plane contacts alone cannot see it
+# (:class:`~torchcal.observations.Setup`): stiff enough that noise moves the size by < 1e-6.
+GAUGE_WEIGHT = 10.0
 
 
 class CalibrationProblem(Problem):
@@ -63,26 +68,31 @@ class CalibrationProblem(Problem):
 
 
 class EffectCalibrationProblem(Problem):
-    """Geometry and effect models fitted together on position measurements.
+    """Geometry, set-up unknowns and effect models fitted together on what an instrument measured.
 
-    ``params`` holds the robot's K geometric entries followed by every effect's parameters
-    (:func:`torchcal.effects.effect_params`); its free flags choose what moves. The model:
-    ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics plus ``Σ Δp_effect``,
-    then the instrument frame.
+    ``params`` holds the robot's K geometric entries, then the set-up's S unknowns (plane poses and
+    fixed points, :class:`~torchcal.observations.Setup`; none for position data), then every
+    effect's parameters (:func:`torchcal.effects.effect_params`); its free flags choose what
+    moves. The model: ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics plus
+    ``Σ Δp_effect``, then the instrument frame, then each observation's residual vector
+    (:class:`~torchcal.observations.Observations`: positions, partial positions, plane contacts,
+    distances; ``(n_obs, 3)``, m, zero where nothing was measured).
 
     Args:
         loss: a :class:`~torchcal.measurement.Loss` per observation (Huber in the loop).
         prior: ``(len(params),)`` weights ``w_i ≥ 0`` (m per unit of the parameter): a Gaussian
             prior ``x_i ~ N(0, (σ_noise / w_i)²)`` enters as the residual ``w_i x_i`` of every free
             parameter with ``w_i > 0`` (MAP); 0 = no prior.
+        setup: the set-up whose unknowns follow the geometry in ``params``.
 
-    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values;
-    position effects do not depend on the geometry, whose features are computed once); effect
-    columns by central differences, all perturbations evaluated in one population call.
+    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values, carried
+    through each observation; position effects do not depend on the geometry, whose features are
+    computed once); set-up columns analytic; effect columns by central differences, all
+    perturbations evaluated in one population call.
     """
 
     def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6,
-                 prior: Tensor | None = None):
+                 prior: Tensor | None = None, setup: Setup | None = None):
         idx = params.free_index
         if idx.numel() == 0:
             raise ValueError("no free parameter")
@@ -92,20 +102,23 @@ class EffectCalibrationProblem(Problem):
         self.K = robot.n_params
         if params.names[: self.K] != robot.param_names:
             raise ValueError("params must start with the robot's geometric parameters (robot.params())")
+        self.setup = setup
+        self.S = 0 if setup is None else setup.n_params
+        if self.S and params.names[self.K:self.K + self.S] != setup.names:
+            raise ValueError("params must hold the set-up's unknowns (setup.params()) right after the geometry")
         self.loss = loss or Loss("l2")
-        blk = PositionResidual(robot, data)
-        self.rows, self.cols, self.measured = blk._rows, blk._cols, blk._meas  # (n_obs,) (n_obs,) (n_obs, 3)
-        self.obs_cols_measured = blk.obs_index[:, 1]  # index into data.marker_names
-        self.n_obs = blk.n_obs
+        self.obs = Observations(robot, data, setup)
+        self.rows, self.cols = self.obs.rows, self.obs.marker  # (n_obs,) row and robot marker of each observation
+        self.n_obs = self.obs.n
         self.m = 3 * self.n_obs
         self._prep = [e.prepare(data.q, e.clamped(data.covariates)) for e in self.effects]
-        offs, o = [], self.K
+        offs, o = [], self.K + self.S
         for e in self.effects:
             offs.append((o, o + e.n_params))
             o += e.n_params
         self._offs = offs
         if o != len(params):
-            raise ValueError(f"params has {len(params)} entries, the robot and effects need {o}")
+            raise ValueError(f"params has {len(params)} entries, the robot, set-up and effects need {o}")
         self.fd_step = fd_step
         self._prior = None
         if prior is not None:
@@ -117,8 +130,16 @@ class EffectCalibrationProblem(Problem):
                 self._prior = (pick, w[pick])
                 self.m += int(pick.numel())
         free = params.free.clone()
-        self._geo_free = torch.nonzero(free[: self.K]).flatten()
-        self._eff_free = torch.nonzero(free[self.K:]).flatten() + self.K
+        K, S = self.K, self.S
+        self._geo_free = torch.nonzero(free[:K]).flatten()
+        self._gauge = None
+        if setup is not None and setup.scale_gauge is not None:
+            g = setup.scale_gauge[self._geo_free]
+            if bool((g != 0).any()):
+                self._gauge = (g, setup.reference[self._geo_free])
+                self.m += 1
+        self._set_free = torch.nonzero(free[K:K + S]).flatten() + K
+        self._eff_free = torch.nonzero(free[K + S:]).flatten() + K + S
 
     def full(self, X: Tensor) -> Tensor:
         return self.params.expand(X)
@@ -132,8 +153,8 @@ class EffectCalibrationProblem(Problem):
                 q = q + d
         return q
 
-    def positions(self, full: Tensor) -> Tensor:
-        """``(P, n_obs, 3)`` model positions of the observed markers (m, instrument frame)."""
+    def marker_positions(self, full: Tensor) -> Tensor:
+        """``(P, N, M, 3)`` model positions of every marker in every row (m, instrument frame)."""
         geo = full[:, : self.K]
         p = self.robot.positions(self.joint_values(full), geo, check=False, base=False)  # (P, N, M, 3)
         for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
@@ -141,16 +162,19 @@ class EffectCalibrationProblem(Problem):
             if d is not None:
                 p = p + d
         Rb, tb = self.robot.base_transform(geo)
-        p = tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
-        return p[:, self.rows, self.cols]
+        return tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
+
+    def residual_vectors(self, full: Tensor) -> Tensor:
+        """``(P, n_obs, 3)`` model − measured per observation (m; zero where nothing was measured)."""
+        return self.obs.residuals(self.marker_positions(full), full[:, self.K:self.K + self.S])
 
     def errors(self, full: Tensor) -> Tensor:
-        """``(P, n_obs)`` Euclidean errors (m)."""
-        return (self.positions(full) - self.measured).norm(dim=-1)
+        """``(P, n_obs)`` Euclidean error of each observation's measured components (m)."""
+        return self.residual_vectors(full).norm(dim=-1)
 
     def residuals(self, X: Tensor) -> Tensor:
         full = self.full(X)
-        r = self.positions(full) - self.measured
+        r = self.residual_vectors(full)
         if self.loss.kind != "l2":
             fac, _ = self.loss.scales((r * r).sum(-1))
             r = r * fac[..., None]
@@ -158,18 +182,28 @@ class EffectCalibrationProblem(Problem):
         if self._prior is not None:
             idx, w = self._prior
             r = torch.cat([r, w * full[:, idx]], -1)
+        if self._gauge is not None:
+            g, ref = self._gauge
+            r = torch.cat([r, GAUGE_WEIGHT * ((full[:, self._geo_free] - ref) @ g)[:, None]], -1)
         return r
 
     def data_jacobian(self, x: Tensor) -> Tensor:
-        """``(3 n_obs, n_free)`` Jacobian of the raw position errors (no loss, no prior rows)."""
+        """``(3 n_obs, n_free)`` Jacobian of the raw residual vectors (no loss, no prior rows)."""
         full = self.full(x)[None]
         J = torch.zeros(3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
+        K, S = self.K, self.S
+        if self._geo_free.numel() or self._set_free.numel():
+            p = self.marker_positions(full)[0]
+            s = full[0, K:K + S]
         if self._geo_free.numel():
             q = self.joint_values(full)[0]
-            Jg = self.robot.param_jacobian(q, full[0, : self.K], kind="position", check=False)[self.rows, self.cols]
-            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = Jg[..., self._geo_free].reshape(
+            Jg = self.robot.param_jacobian(q, full[0, :K], kind="position", check=False)[..., self._geo_free]
+            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = self.obs.project(p, Jg, s).reshape(
                 -1, self._geo_free.numel())
+        if self._set_free.numel():
+            Js = self.obs.setup_jacobian(p, s)[..., self._set_free - K]
+            J[:, [pos[int(v)] for v in self._set_free.tolist()]] = Js.reshape(-1, self._set_free.numel())
         if self._eff_free.numel():
             k = self._eff_free.numel()
             h = self.fd_step * torch.clamp(full[0, self._eff_free].abs(), min=1.0)
@@ -177,8 +211,8 @@ class EffectCalibrationProblem(Problem):
             ar = torch.arange(k, device=full.device)
             E[ar, self._eff_free] = h
             E[ar + k, self._eff_free] = -h
-            p = self.positions(full + E)
-            d = (p[:k] - p[k:]) / (2 * h)[:, None, None]  # (k, n, 3)
+            r = self.residual_vectors(full + E)
+            d = (r[:k] - r[k:]) / (2 * h)[:, None, None]  # (k, n, 3)
             J[:, [pos[int(v)] for v in self._eff_free.tolist()]] = d.permute(1, 2, 0).reshape(-1, k)
         return J
 
@@ -186,17 +220,21 @@ class EffectCalibrationProblem(Problem):
         """``(n_obs,)`` the loss's IRLS factor per observation at ``x`` (1 for l2)."""
         if self.loss.kind == "l2":
             return torch.ones(self.n_obs, dtype=x.dtype, device=x.device)
-        r = self.positions(self.full(x)[None])[0] - self.measured
+        r = self.residual_vectors(self.full(x)[None])[0]
         return self.loss.scales((r * r).sum(-1))[1]
 
     def jacobian(self, x: Tensor) -> Tensor:
         J = self.data_jacobian(x)
         if self.loss.kind != "l2":
             J = J * self.observation_weights(x).repeat_interleave(3)[:, None]
+        pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         if self._prior is not None:
             idx, w = self._prior
-            pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
             P = torch.zeros(idx.numel(), J.shape[1], dtype=J.dtype, device=J.device)
             P[torch.arange(idx.numel(), device=J.device), [pos[int(v)] for v in idx.tolist()]] = w
             J = torch.cat([J, P], 0)
+        if self._gauge is not None:
+            row = torch.zeros(1, J.shape[1], dtype=J.dtype, device=J.device)
+            row[0, [pos[int(v)] for v in self._geo_free.tolist()]] = GAUGE_WEIGHT * self._gauge[0]
+            J = torch.cat([J, row], 0)
         return J

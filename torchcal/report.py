@@ -92,16 +92,25 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     plt.close(fig)
 
 
-def error_details(robot, params: Tensor, data, errors_xyz: Tensor | None = None) -> dict:
-    """Per observation of ``data``: the position error vector ``xyz (n, 3)`` (model − measured,
-    m, instrument frame; computed from ``params (K,)`` unless given), its norm ``e (n,)`` and the
-    marker's distance from the robot base ``dist (n,)`` (m)."""
-    seen = data.seen
+def error_details(robot, params: Tensor, data, errors_xyz: Tensor | None = None, obs=None) -> dict:
+    """Per observation of ``data``: the error vector ``xyz (n, 3)`` (model − measured, m,
+    instrument frame; computed from ``params (K,)`` unless given; NaN in axes not measured), its
+    norm ``e (n,)`` and the marker's distance from the robot base ``dist (n,)`` (m).
+
+    With ``obs`` (:class:`~torchcal.observations.Observations`, ``errors_xyz`` its residual
+    vectors) every observation counts in ``e`` and ``dist`` (a plane contact's error is its signed
+    distance), and ``xyz`` holds the position observations only."""
     mk = [robot.marker_names.index(m) for m in data.marker_names]
-    p = robot.positions(data.q, params, check=False)[:, mk][seen]
-    xyz = p - data.positions[seen] if errors_xyz is None else errors_xyz
-    dist = robot.positions(data.q, params, check=False, base=False)[:, mk][seen].norm(dim=-1)
-    return {"e": xyz.norm(dim=-1), "xyz": xyz, "dist": dist}
+    base_free = robot.positions(data.q, params, check=False, base=False)[:, mk]
+    if obs is not None:
+        pos = obs.kind == 0
+        xyz = errors_xyz[pos].masked_fill(~obs.mask[pos], float("nan"))
+        return {"e": errors_xyz.norm(dim=-1), "xyz": xyz, "dist": base_free[obs.rows, obs.data_marker].norm(dim=-1)}
+    seen = data.observed
+    if errors_xyz is None:
+        p = robot.positions(data.q, params, check=False)[:, mk][seen]
+        errors_xyz = p - data.positions[seen]
+    return {"e": torch.nan_to_num(errors_xyz).norm(dim=-1), "xyz": errors_xyz, "dist": base_free[seen].norm(dim=-1)}
 
 
 def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position error", split: str = "train",
@@ -140,10 +149,10 @@ def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position er
     if noise_floor_mm is not None:
         ax[1, 0].axvline(noise_floor_mm, color="k", lw=1.2, label=f"noise floor {noise_floor_mm:.3f} mm")
     lab, last = data[-1]
-    ax[0, 1].boxplot([last["xyz"][:, i] for i in range(3)], showfliers=True)
+    ax[0, 1].boxplot([x[np.isfinite(x)] for x in last["xyz"].T], showfliers=True)
     ax[0, 1].set_xticks([1, 2, 3], ["x", "y", "z"])
     ax[0, 1].axhline(0, color="k", lw=0.6)
-    ax[0, 0].set(xlabel="Euclidean position error [mm]", ylabel="observations", title="error histogram")
+    ax[0, 0].set(xlabel="Euclidean error of each observation [mm]", ylabel="observations", title="error histogram")
     ax[0, 1].set(ylabel="error per axis, model − measured [mm]", title=f"per axis: {lab} (instrument frame)")
     ax[1, 0].set(xlabel="Euclidean position error [mm]", ylabel="fraction of observations",
                  title="cumulative distribution, 95th percentile dotted")

@@ -15,7 +15,8 @@ from .io import Measurements, save_measurements
 from .outputs import atomic_write_text
 from .params import ParamSet
 
-__all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset"]
+__all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset", "SimulatedRobot",
+           "simulated_robot", "hide_axes"]
 
 
 @dataclass
@@ -220,6 +221,88 @@ class SimulatedRobot:
         p = self.reach(q, directions=d, temperature=temp)
         p = p + torch.randn(p.shape, generator=self.g, dtype=torch.float64).to(p) * self.noise
         return Measurements(q.clone(), p, list(self.robot.marker_names), list(self.robot.joint_names), covariates=cov)
+
+
+    # ------------------------------------------------------------------ partial measurements
+    def _marker(self, marker: str | None) -> int:
+        name = marker or self.robot.marker_names[0]
+        if name not in self.robot.marker_names:
+            raise ValueError(f"unknown marker {name!r}; the robot has {self.robot.marker_names}")
+        if "backlash" in self.effects or "thermal_drift" in self.effects:
+            raise ValueError("contacts and distances are simulated for geometry and configuration effects only "
+                             "(backlash and thermal drift depend on the visiting order and time)")
+        return self.robot.marker_names.index(name)
+
+    def touch(self, planes: dict, n: int, *, marker: str | None = None, margin: float = 0.1) -> Measurements:
+        """Probe contacts: ``n`` poses per plane at which ``marker`` touches it. ``planes``: label ->
+        ``(unit normal (3,), offset d)`` with the plane ``nᵀp = d`` (instrument frame, m). Random
+        commands are moved onto each plane through the real robot (Newton steps along the
+        gradient of the signed distance); each contact triggers at a signed distance drawn from
+        the instrument noise. Only commands and plane labels are returned."""
+        m = self._marker(marker)
+        lo, hi = (x.to(self.robot.dtype) for x in self.robot.joint_limits)
+        lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
+        qs, idx = [], []
+        for k, (label, (nrm, d)) in enumerate(planes.items()):
+            nrm = torch.as_tensor(nrm, dtype=self.robot.dtype)
+            nrm = nrm / nrm.norm()
+            got = torch.zeros(0, self.robot.dof, dtype=self.robot.dtype)
+            for _ in range(20):
+                if got.shape[0] >= n:
+                    break
+                q = random_configs(self.robot, 4 * n, self.g, margin)
+                eps = torch.randn(q.shape[0], generator=self.g, dtype=torch.float64).to(q) * self.noise
+                f = None
+                for _ in range(40):
+                    f = self.reach(q)[:, m] @ nrm - float(d) - eps
+                    grad = self._gradient(q, m, nrm)
+                    step = f[:, None] * grad / (grad * grad).sum(-1, keepdim=True).clamp(min=1e-12)
+                    step = step * (0.3 / step.norm(dim=-1, keepdim=True).clamp(min=0.3))
+                    q = q - step
+                f = self.reach(q)[:, m] @ nrm - float(d) - eps
+                ok = (f.abs() < 1e-11) & ((q >= lo) & (q <= hi)).all(-1)
+                got = torch.cat([got, q[ok]])
+            if got.shape[0] < n:
+                raise ValueError(f"plane {label!r}: only {got.shape[0]} of {n} contacts reachable within the joint "
+                                 "limits; move the plane into the robot's workspace")
+            qs.append(got[:n])
+            idx.append(torch.full((n,), k, dtype=torch.long))
+        q = torch.cat(qs)
+        N = q.shape[0]
+        return Measurements(q, torch.full((N, 1, 3), float("nan"), dtype=q.dtype), [self.robot.marker_names[m]],
+                            list(self.robot.joint_names), planes=torch.cat(idx)[:, None], plane_names=list(planes))
+
+    def _gradient(self, q: Tensor, m: int, nrm: Tensor, h: float = 1e-6) -> Tensor:
+        dof = q.shape[1]
+        E = torch.eye(dof, dtype=q.dtype) * h
+        qq = torch.cat([q[:, None] + E, q[:, None] - E], 1).reshape(-1, dof)
+        f = (self.reach(qq)[:, m] @ nrm).reshape(q.shape[0], 2, dof)
+        return (f[:, 0] - f[:, 1]) / (2 * h)
+
+    def measure_distances(self, point, name: str, q: Tensor, *, marker: str | None = None) -> Measurements:
+        """Distances from ``marker`` to a fixed point (the pivot of a ball bar, m, instrument frame)
+        at commands ``q``, with the instrument noise; the point's position is not returned."""
+        m = self._marker(marker)
+        c = torch.as_tensor(point, dtype=q.dtype)
+        d = (self.reach(q)[:, m] - c).norm(dim=-1)
+        d = d + torch.randn(d.shape, generator=self.g, dtype=torch.float64).to(d) * self.noise
+        mk = self.robot.marker_names[m]
+        return Measurements(q.clone(), torch.full((q.shape[0], 1, 3), float("nan"), dtype=q.dtype), [mk],
+                            list(self.robot.joint_names), distances={(mk, name): d})
+
+
+def hide_axes(data: Measurements, fraction: float, generator: torch.Generator) -> Measurements:
+    """A copy of ``data`` in which a ``fraction`` of the observations lose one or two of their
+    axes at random (a motion-capture marker seen by too few cameras, a dial gauge per axis)."""
+    pos = data.positions.clone()
+    N, M, _ = pos.shape
+    hit = torch.rand(N, M, generator=generator, dtype=torch.float64) < fraction
+    keep = torch.randint(0, 6, (N, M), generator=generator)  # one of 6 non-empty proper axis subsets
+    subsets = torch.tensor([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1]], dtype=torch.bool)
+    drop = hit[..., None] & ~subsets[keep]
+    pos[drop.to(pos.device)] = float("nan")
+    return Measurements(data.q.clone(), pos, list(data.marker_names), list(data.joint_names), data.quaternions,
+                        dict(data.covariates), data.source, data.planes, list(data.plane_names), dict(data.distances))
 
 
 def simulated_robot(robot, cfg: SimConfig | None = None, effects: list[str] = (), *, options: dict | None = None,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
+__all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
            "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
 
 
@@ -184,3 +184,22 @@ def matrix_to_quat(R: Tensor) -> Tensor:
     q = torch.stack(cand, -2).gather(-2, k[..., None, None].expand(*k.shape, 1, 4))[..., 0, :]
     q = torch.where(q[..., :1] < 0, -q, q)
     return q / q.norm(dim=-1, keepdim=True)
+
+
+def similarity(src: Tensor, dst: Tensor, scale: bool = True) -> tuple[Tensor, float]:
+    """``src`` mapped by the best ``s R x + t`` onto ``dst`` (least squares, Umeyama), and ``s``.
+
+    Args:
+        src, dst: ``(n, 3)`` corresponding points (m), n >= 3 and not collinear.
+        scale: fit ``s`` too; False keeps ``s = 1`` (a rigid motion).
+    Returns:
+        ``(n, 3)`` the mapped ``src`` (m), and ``s``.
+    """
+    ms, md = src.mean(0), dst.mean(0)
+    A, B = src - ms, dst - md
+    U, S, Vh = torch.linalg.svd(B.T @ A)
+    D = torch.eye(3, dtype=src.dtype, device=src.device)
+    D[2, 2] = torch.sign(torch.det(U @ Vh))
+    R = U @ D @ Vh
+    s = float((S * D.diagonal()).sum() / (A * A).sum()) if scale else 1.0
+    return s * src @ R.T + (md - s * (R @ ms)), s
