@@ -13,10 +13,11 @@ from .loop import run_loop
 from .model import CalibratedModel
 from .params import ParamSet
 from .persist import load, save
+from .plan import Plan, plan_poses
 from .robot import Robot
 from .tree import Marker
 
 __version__ = "0.1.0"
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
-           "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",
+           "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load", "plan_poses", "Plan",
            "__version__"]

@@ -15,8 +15,8 @@ from .io import Measurements, save_measurements
 from .outputs import atomic_write_text
 from .params import ParamSet
 
-__all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset", "SimulatedRobot",
-           "simulated_robot", "hide_axes"]
+__all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
+           "SimulatedRobot", "simulated_robot", "hide_axes"]
 
 
 @dataclass
@@ -41,12 +41,19 @@ class SimConfig:
     seed: int = 0
 
 
-def random_configs(robot, n: int, generator: torch.Generator, margin: float = 0.1) -> Tensor:
-    """``(n, dof)`` uniform joint values inside the limits (±π where a joint has none)."""
-    lo, hi = (x.cpu() for x in robot.joint_limits)
+def config_bounds(robot, margin: float = 0.1) -> tuple[Tensor, Tensor]:
+    """``(dof,)`` lower and upper joint values (rad / m, CPU float64) that :func:`random_configs`
+    draws between: the joint limits (±π where a joint has none), ``margin`` of each range left
+    out at both ends."""
+    lo, hi = (x.cpu().to(torch.float64) for x in robot.joint_limits)
     lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
     span = hi - lo
-    lo, hi = lo + margin * span, hi - margin * span
+    return lo + margin * span, hi - margin * span
+
+
+def random_configs(robot, n: int, generator: torch.Generator, margin: float = 0.1) -> Tensor:
+    """``(n, dof)`` uniform joint values inside the limits (±π where a joint has none)."""
+    lo, hi = config_bounds(robot, margin)
     u = torch.rand(n, robot.dof, generator=generator, dtype=torch.float64)
     return (lo + (hi - lo) * u).to(device=robot.device, dtype=robot.dtype)
 

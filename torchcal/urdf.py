@@ -8,7 +8,7 @@ import numpy as np
 
 from .tree import JointSpec
 
-__all__ = ["load_joints", "urdf_links", "write_urdf"]
+__all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions"]
 
 
 def _strict_parse(text: str, where: str) -> None:
@@ -146,4 +146,31 @@ def read_inertials(path_or_xml) -> dict[str, dict]:
             continue
         T = np.eye(4) if inert.origin is None else np.asarray(inert.origin, dtype=float)
         out[l.name] = {"mass": float(inert.mass), "com": T[:3, 3].copy()}
+    return out
+
+
+def read_collisions(path_or_xml) -> dict[str, list[dict]]:
+    """Link collision shapes of a URDF: link name -> list of dicts with ``kind`` (``"box"``,
+    ``"cylinder"``, ``"sphere"`` or ``"mesh"``), ``origin`` (4, 4) in the link frame (m), and
+    ``size`` (3,) m, ``radius`` / ``length`` m, or ``filename`` and ``scale`` (3,). Mesh files
+    are not opened here. Links without ``<collision>`` are left out."""
+    u = _load(path_or_xml)
+    out: dict[str, list[dict]] = {}
+    for l in u.robot.links:
+        for c in l.collisions:
+            g = c.geometry
+            s = {"origin": np.eye(4) if c.origin is None else np.asarray(c.origin, dtype=float)}
+            if g.box is not None:
+                s.update(kind="box", size=np.asarray(g.box.size, dtype=float))
+            elif g.cylinder is not None:
+                s.update(kind="cylinder", radius=float(g.cylinder.radius), length=float(g.cylinder.length))
+            elif g.sphere is not None:
+                s.update(kind="sphere", radius=float(g.sphere.radius))
+            elif g.mesh is not None:
+                sc = g.mesh.scale
+                s.update(kind="mesh", filename=str(g.mesh.filename),
+                         scale=np.ones(3) if sc is None else np.broadcast_to(np.asarray(sc, dtype=float), (3,)).copy())
+            else:
+                continue
+            out.setdefault(l.name, []).append(s)
     return out
