@@ -424,3 +424,87 @@ def test_hybrid_reaches_exact_optimum_with_lm():
     assert float((res.x - TRUE).abs().max()) < 1e-9
     assert res.fun < 1e-18
     assert len(res.history) == len(alone.history) + len(res.extra["polish"].history)
+
+
+# ---------------------------------------------------------------------------------------------
+# The in-place iteration against the allocation-based loop it replaced
+# ---------------------------------------------------------------------------------------------
+def _reference_swarm(problem, *, P, iters, w_of_t, c1, c2, v_max, seed, sizes=None, w2=None, k_switch=None):
+    """The PSO / LDPSO-BT loop as it was written before the in-place refactor: every update makes
+    new tensors. ``sizes``: LDPSO-BT's population schedule (None: plain PSO)."""
+    g = torch.Generator()
+    g.manual_seed(seed)
+    lo, hi = problem.lower, problem.upper
+    vlim = (hi - lo) * (v_max if v_max is not None else 1.0)
+    u = torch.rand((2, P, problem.dim), generator=g, dtype=lo.dtype)
+    X, V = lo + u[0] * (hi - lo), (2.0 * u[1] - 1.0) * vlim
+    if problem.x0 is not None:
+        X[0] = problem.clip(problem.x0)
+
+    def ev(Z):
+        f = problem.fitness(Z)
+        return torch.where(torch.isnan(f), torch.full_like(f, float("inf")), f)
+
+    f = ev(X)
+    i = torch.argmin(f)
+    pb, pbf, gb, gbf = X.clone(), f.clone(), X[i].clone(), f[i].clone()
+    hist = [float(gbf)]
+    for t in range(1, iters + 1):
+        if sizes is not None and sizes[t - 1] < X.shape[0]:
+            keep = torch.argsort(pbf, stable=True)[: sizes[t - 1]].sort().values
+            X, V, pb, pbf = X[keep], V[keep], pb[keep], pbf[keep]
+        r = torch.rand((2, *X.shape), generator=g, dtype=lo.dtype)
+        if k_switch is not None and t > k_switch * iters:
+            V = w2 * V + c2 * r[1] * (gb - X)
+        else:
+            V = w_of_t(t) * V + c1 * r[0] * (pb - X) + c2 * r[1] * (gb - X)
+        if v_max is not None:
+            V = torch.maximum(torch.minimum(V, vlim), -vlim)
+        Xn = X + V
+        Xc = torch.maximum(torch.minimum(Xn, hi), lo)
+        V = torch.where(Xc != Xn, torch.zeros_like(V), V)
+        X = Xc
+        f = ev(X)
+        better = f < pbf
+        pb = torch.where(better[:, None], X, pb)
+        pbf = torch.where(better, f, pbf)
+        i = torch.argmin(pbf)
+        b = pbf[i] < gbf
+        gb, gbf = torch.where(b, pb[i], gb), torch.where(b, pbf[i], gbf)
+        hist.append(float(gbf))
+    return gb, hist
+
+
+@pytest.mark.parametrize("case", ["pso", "pso-linear-w-no-vmax", "ldpso-bt", "ldpso-bt-x0"])
+def test_in_place_iteration_is_bit_identical_to_the_allocating_loop(case):
+    prob = rastrigin() if "x0" not in case else sphere(x0=torch.full((6,), 0.5, dtype=D))
+    if case.startswith("pso"):
+        w = (0.9, 0.3) if "linear" in case else 0.8
+        vm = None if "no-vmax" in case else 0.2
+        solver = PSO(pop_size=17, max_iter=60, w=w, c1=1.4, c2=1.6, v_max=vm, seed=5)
+        ref = _reference_swarm(prob, P=17, iters=60, w_of_t=solver.inertia, c1=1.4, c2=1.6, v_max=vm, seed=5)
+    else:
+        solver = LDPSO_BT(n_max=30, n_min=6, max_iter=70, seed=9)
+        ref = _reference_swarm(prob, P=30, iters=70, w_of_t=lambda t: 0.8, c1=1.49, c2=1.49, v_max=0.2, seed=9,
+                               sizes=ldpso_pop_sizes(30, 6, 70), w2=0.4, k_switch=0.8)
+    res = solver.minimize(prob)
+    assert torch.equal(res.x, ref[0])
+    assert res.history == ref[1]
+
+
+def test_swarm_state_is_never_reallocated():
+    """The fitness sees the live rows of the swarm's buffers: one buffer for PSO, two (the live
+    one and the spare that a shrink gathers into) for LDPSO-BT, whatever the population size."""
+    seen, alive = {}, []
+
+    def fn(X):
+        alive.append(X)  # kept alive, so an allocating loop could not reuse freed memory
+        seen.setdefault(fn.solver, set()).add(X.data_ptr())
+        return sphere_fn(X)
+
+    for solver in (PSO(pop_size=20, max_iter=30), LDPSO_BT(n_max=30, n_min=5, max_iter=40)):
+        fn.solver = solver.name
+        solver.minimize(FunctionProblem(fn, -5 * torch.ones(6, dtype=D), 5 * torch.ones(6, dtype=D)))
+    # + 1: the initial population is evaluated before the buffers exist
+    assert len(seen["pso"]) == 1 + 1
+    assert len(seen["ldpso-bt"]) == 2 + 1

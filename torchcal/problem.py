@@ -7,7 +7,8 @@ import math
 import torch
 from torch import Tensor
 
-from .measurement import Loss
+from .fk_compact import PositionKernel
+from .measurement import Loss, PositionResidual
 from .observations import Observations, Setup
 from .optim import Problem
 from .params import ParamSet
@@ -28,9 +29,11 @@ class CalibrationProblem(Problem):
         blocks: residual blocks (:mod:`torchcal.measurement`).
         fitness: ``"sse"`` (sum of squared residuals, m²) or ``"sum_norm"`` (sum of Euclidean
             errors per observation, m — seed 000's objective).
+        compact: evaluate position-only fitness through the compact kinematics path
+            (:class:`~torchcal.fk_compact.PositionKernel`); ``False`` uses the general path.
     """
 
-    def __init__(self, robot, params: ParamSet, blocks: list, fitness: str = "sse"):
+    def __init__(self, robot, params: ParamSet, blocks: list, fitness: str = "sse", compact: bool = True):
         if fitness not in ("sse", "sum_norm"):
             raise ValueError(f"fitness must be 'sse' or 'sum_norm', got {fitness!r}")
         if not blocks:
@@ -39,6 +42,7 @@ class CalibrationProblem(Problem):
         if idx.numel() == 0:
             raise ValueError("no free parameter: unfix some with ParamSet.unfix('pattern')")
         self.robot, self.params, self.blocks, self.fitness_kind = robot, params, blocks, fitness
+        self.compact = compact
         self.fitness_is_sse = fitness == "sse"  # lets LM reuse its own sum of squares
         super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
         self.m = sum(b.n_obs * b.obs_dim for b in blocks)
@@ -55,11 +59,45 @@ class CalibrationProblem(Problem):
         return torch.cat([b.residuals(full) for b in self.blocks], -1)
 
     def fitness(self, X: Tensor) -> Tensor:
-        if self.fitness_kind == "sse":
-            r = self.residuals(X)
-            return (r * r).sum(-1)
-        full = self.full(X)
-        return sum(b.errors(full).sum(-1) for b in self.blocks)
+        """``(P, k) -> (P,)``: the sum of squares of :meth:`residuals`, or the sum of Euclidean
+        errors (m). Position blocks go through a :class:`~torchcal.fk_compact.PositionKernel`
+        (built on the first call, rebuilt when the parameter set changes), whose per-call cost
+        follows ``P``; other blocks, and populations that carry gradients, through the general
+        residuals."""
+        # The kernel writes into its own buffers: no autograd graph, no torch.func transform.
+        plain = not X.requires_grad and not torch._C._functorch.is_functorch_wrapped_tensor(X)
+        kernels = self._kernels() if self.compact and plain else None
+        if kernels is None:
+            if self.fitness_kind == "sse":
+                r = self.residuals(X)
+                return (r * r).sum(-1)
+            full = self.full(X)
+            return sum(b.errors(full).sum(-1) for b in self.blocks)
+        total = None
+        for kern, meas in kernels:
+            d = kern(X) - meas  # (P, n_obs, 3)
+            f = (d * d).sum((1, 2)) if self.fitness_is_sse else torch.linalg.vector_norm(d, dim=-1).sum(-1)
+            total = f if total is None else total + f
+        return total
+
+    def _kernels(self) -> list | None:
+        """One ``(PositionKernel, measured (n_obs, 3))`` per block when every block is an
+        unweighted, non-robust position block with every axis measured (the fitness is then a plain function of the
+        positions), else ``None``. Keyed by the parameter set's tensors and their in-place
+        version counters, so changing fixed values or free flags rebuilds them."""
+        ps = self.params
+        key = tuple((id(t), t._version) for t in (ps.values, ps.free))
+        if getattr(self, "_kernel_key", None) == key:
+            return self._kernel_cache
+        # partial axes are masked in the general path only
+        ok = all(type(b) is PositionResidual and bool(b._mask.all()) and (not self.fitness_is_sse or
+                 (b._weights is None and b.loss.kind == "l2")) for b in self.blocks)
+        kern = None
+        if ok:
+            kern = [(PositionKernel(b.robot, b.data.q, ps.values, ps.free_index, b._rows, b._cols), b._meas)
+                    for b in self.blocks]
+        self._kernel_key, self._kernel_cache = key, kern
+        return kern
 
     def jacobian(self, x: Tensor) -> Tensor:
         full = self.full(x)

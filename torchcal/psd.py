@@ -35,6 +35,12 @@ off by tens of mrad, which turns a spot offset of a few mm into ~0.1-1 mm of inc
 :func:`calibrate_psd` repeats the step with the calibrated model (``rounds``); the truth is its
 fixed point.
 
+Expected spot errors (:func:`spot_covariance`): encoder noise reaches a spot through the arm and
+the laser's lever, ``Σ = σ_q² G Gᵀ + σ_uv² I`` with ``G = ∂(u, v)/∂q``; at 10 µrad it is 10-16 µm
+per beam, ten times a 1 µm PSD, and it sets the worst fresh-pose error. ``calibrate_psd(...,
+noise=...)`` weights the spot residuals by it; :mod:`torchcal.psd_design` chooses the PSD
+placements and aims.
+
 Observability (numbers in ``scripts/seed003_pmpsd.py``): a point constraint is blind to rigid
 motions of the whole world (the first joint's Δθ and Δd of a DH robot) and to a uniform scale
 of all lengths (scaled beams still meet) whenever the last DH row can absorb the scaled laser
@@ -59,7 +65,8 @@ from .transforms import so3_exp, so3_left_jacobian
 
 __all__ = ["Laser", "PSDData", "closest_points", "beam_pair_point", "plane_intersection", "laser_beams",
            "laser_beam_jacobian", "psd_frame", "simulate_psd", "PointConstraint", "SpotResidual",
-           "fit_psd_poses", "modify_poses", "analyse_block", "calibrate_psd", "PSDCalibration", "SEED_LM"]
+           "fit_psd_poses", "modify_poses", "analyse_block", "calibrate_psd", "PSDCalibration", "SEED_LM",
+           "spot_sensitivity", "spot_covariance", "spot_whitening"]
 
 #: The seed's LM settings for :func:`~torchcal.optim.get_solver` (Δs0 = 0 comes from the start
 #: point): μ0 = 0.1 on an identity damping matrix, ν = 2, accept when the gain ratio ρ > 0, else
@@ -405,6 +412,42 @@ def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: i
     return PSDData(q_rec, uv_meas, torch.cat(locs), m), q_true
 
 
+# ------------------------------------------------------------------------------- expected spot errors
+def spot_sensitivity(robot, laser: Laser, q: Tensor, loc: Tensor, psd_R: Tensor, psd_c: Tensor,
+                     params: Tensor) -> Tensor:
+    """``(N, 2, dof)``: derivative of each spot ``(u, v)`` (m) w.r.t. the joint values (rad), with
+    the robot model at ``params (K,)`` and PSD poses ``psd_R (m, 3, 3)``, ``psd_c (m, 3)`` (m)."""
+    R, _ = robot.fk_rt(q, params, check=False)
+    i = laser.index(robot)
+    p, w = laser_beams(robot, laser, q, params)
+    Jq = robot.joint_jacobian(q, params, check=False)[:, i]  # (N, 6, dof)
+    ro = R[:, i] @ laser.origin.to(R)
+    v, om = Jq[:, :3], Jq[:, 3:]
+    dp = v + torch.linalg.cross(om, ro[..., None].expand_as(om), dim=1)
+    dw = torch.linalg.cross(om, w[..., None].expand_as(om), dim=1)
+    zero = torch.zeros_like(p)
+    Gp, Gw, _, _ = _spot_jac(p, w, zero, psd_c[loc], psd_R[loc])
+    return Gp @ dp + Gw @ dw
+
+
+def spot_covariance(robot, laser: Laser, q: Tensor, loc: Tensor, psd_R: Tensor, psd_c: Tensor, params: Tensor,
+                    *, q_noise: float, uv_noise: float) -> Tensor:
+    """``(N, 2, 2)`` expected covariance (m²) of each spot residual: encoder noise ``q_noise``
+    (rad, std per joint, independent) carried through :func:`spot_sensitivity`, plus PSD noise
+    ``uv_noise`` (m, std per axis)."""
+    G = spot_sensitivity(robot, laser, q, loc, psd_R, psd_c, params)
+    eye = torch.eye(2, dtype=G.dtype, device=G.device)
+    return q_noise ** 2 * (G @ G.transpose(-1, -2)) + uv_noise ** 2 * eye
+
+
+def spot_whitening(cov: Tensor) -> Tensor:
+    """``(N, 2, 2)`` matrices ``W`` with ``W Σ Wᵀ = I`` (``W = L⁻¹`` for ``Σ = L Lᵀ``): a whitened
+    residual ``W r`` has unit covariance, so least squares on it is generalised least squares."""
+    L = torch.linalg.cholesky(cov)
+    eye = torch.eye(2, dtype=cov.dtype, device=cov.device).expand_as(cov)
+    return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
 # ------------------------------------------------------------------------------- residual blocks
 class _Block:
     """Shared plumbing: robot parameters ``free`` (a ParamSet whose fixed entries keep their
@@ -538,11 +581,19 @@ class SpotResidual(_Block):
         robot, laser, data: the model and measurements; free: which robot parameters are unknown
             (none for a pure PSD-pose fit).
         R0, c0: ``(m, 3, 3)``, ``(m, 3)`` start PSD poses (:func:`fit_psd_poses`).
+        whiten: optional ``(N, 2, 2)`` per-beam matrices ``W`` applied to each spot residual and
+            its Jacobian rows (``W r``): beam weights, e.g. from the expected spot covariance
+            (:func:`spot_whitening`); then the rows are unitless and a
+            distance row should be weighted by one over its noise std (``distance_weight``).
     """
 
     def __init__(self, robot, laser: Laser, data: PSDData, free: ParamSet, R0: Tensor, c0: Tensor, *,
-                 distances: Sequence[tuple[int, int, float]] = (), distance_weight: float = _DIST_W):
+                 distances: Sequence[tuple[int, int, float]] = (), distance_weight: float = _DIST_W,
+                 whiten: Tensor | None = None):
         super().__init__(robot, laser, free)
+        if whiten is not None and whiten.shape != (data.q.shape[0], 2, 2):
+            raise ValueError(f"whiten must have shape ({data.q.shape[0]}, 2, 2), got {tuple(whiten.shape)}")
+        self.whiten = whiten
         self.data, self.m = data, data.n_locations
         self.R0, self.c0 = R0.to(data.q), c0.to(data.q)
         self.kr = self.idx.numel()
@@ -572,7 +623,10 @@ class SpotResidual(_Block):
         c = e[..., 3:]
         L = self.data.loc
         _, uv = plane_intersection(p, w, c[:, L], R[:, L])
-        r = [(uv - self.data.uv).reshape(P, -1)]
+        d = uv - self.data.uv
+        if self.whiten is not None:
+            d = (self.whiten @ d[..., None])[..., 0]
+        r = [d.reshape(P, -1)]
         for a, b, D in self.distances:
             r.append(self.dw * ((c[:, a] - c[:, b]).norm(dim=-1, keepdim=True) - D))
         return torch.cat(r, 1)
@@ -593,6 +647,8 @@ class SpotResidual(_Block):
             J[..., : self.kr] = Gp @ Jp[..., self.idx] + Gw @ Jw[..., self.idx]
         cols = self.kr + 6 * L[:, None] + torch.arange(6, device=x.device)  # (N, 6)
         J.scatter_(2, cols[:, None, :].expand(N, 2, 6), torch.cat([Gr, Gc], -1))
+        if self.whiten is not None:
+            J = self.whiten @ J
         rows = [J.reshape(2 * N, -1)]
         for a, b, _ in self.distances:
             d = x.new_zeros(1, x.numel())
@@ -739,7 +795,7 @@ class PSDCalibration:
 def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, method: str = "pm",
                   rounds: int = 1, round_tol: float = 0.0, distances: Sequence[tuple[int, int, float]] = (),
                   distance_weight: float = _DIST_W, min_angle_deg: float = 5.0,
-                  lm: dict | None = None) -> PSDCalibration:
+                  lm: dict | None = None, noise: tuple[float, float, float] | None = None) -> PSDCalibration:
     """Identify robot errors from PSD data.
 
     Args:
@@ -754,14 +810,27 @@ def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, method:
             free parameter moved by more than this in a round (m or rad; 0 runs all rounds).
         distances: known distances between PSD centres ``(a, b, D in m)``.
         lm: LM options on top of :data:`SEED_LM` (the seed's μ0 = 0.1, ν = 2, identity damping).
+        noise: ``(q_noise rad, uv_noise m, distance_noise m)`` stds; with ``"spots"``, weight each
+            beam by its expected spot covariance (encoder noise through the arm, at the start
+            model and PSD poses, plus PSD noise; :func:`spot_covariance`) and each known
+            distance by one over its std: generalised least squares.
     """
     if method not in ("pm", "raw", "spots"):
         raise ValueError(f"method must be 'pm', 'raw' or 'spots', got {method!r}")
+    if noise is not None and (method != "spots" or (distances and not noise[2] > 0)):
+        raise ValueError("noise weights the spot residuals: it needs method='spots', and a positive distance "
+                         "noise std when distances are given")
     cur = free.clone()
     out = PSDCalibration(params=cur.values.clone(), psd_R=torch.empty(0), psd_c=torch.empty(0), method=method)
     if method == "spots":
         R0, c0, rms0 = fit_psd_poses(robot, laser, data, cur.values)
-        blk = SpotResidual(robot, laser, data, cur, R0, c0, distances=distances, distance_weight=distance_weight)
+        W = None
+        if noise is not None:
+            cov = spot_covariance(robot, laser, data.q, data.loc, R0, c0, cur.values, q_noise=noise[0],
+                                  uv_noise=noise[1])
+            W, distance_weight = spot_whitening(cov), 1.0 / noise[2]
+        blk = SpotResidual(robot, laser, data, cur, R0, c0, distances=distances, distance_weight=distance_weight,
+                           whiten=W)
         res = get_solver("lm", **{**SEED_LM, **(lm or {})}).minimize(blk.problem())
         out.params = blk.robot_params(res.x)
         out.psd_R, out.psd_c = blk.psd_poses(res.x)

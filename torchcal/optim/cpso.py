@@ -152,14 +152,15 @@ class ChaoticPSO(PSO):
         b = torch.argmin(fc)
         c, c_f = C[b], fc[b]
         # Random particle index as a 1-element tensor: no host sync, and index_copy_ uses it.
+        # Every update is in place: the state's tensors are views of the swarm's buffers.
         j = torch.randint(s.size, (1,), generator=g, device=problem.device)
-        s.X = s.X.index_copy(0, j, c[None])
+        s.X.index_copy_(0, j, c[None])
         better = c_f < s.pbest_f.index_select(0, j)  # (1,)
-        s.pbest = s.pbest.index_copy(0, j, torch.where(better[:, None], c[None], s.pbest.index_select(0, j)))
-        s.pbest_f = s.pbest_f.index_copy(0, j, torch.where(better, c_f[None], s.pbest_f.index_select(0, j)))
+        s.pbest.index_copy_(0, j, torch.where(better[:, None], c[None], s.pbest.index_select(0, j)))
+        s.pbest_f.index_copy_(0, j, torch.where(better, c_f[None], s.pbest_f.index_select(0, j)))
         gb = c_f < s.gbest_f
-        s.gbest = torch.where(gb, c, s.gbest)
-        s.gbest_f = torch.where(gb, c_f, s.gbest_f)
+        torch.where(gb, c, s.gbest, out=s.gbest)
+        torch.where(gb, c_f, s.gbest_f, out=s.gbest_f)
 
     def _extra(self, s: SwarmState) -> dict:
         return {"chaos_start": self._chaos_start, "n_chaos": self.n_chaos,

@@ -5,6 +5,13 @@ per-particle operation is a tensor op on ``(P, k)`` positions / velocities. Rand
 come only from the solver's seeded generator (:meth:`Solver.generator`), so a run is
 bit-reproducible for a given seed, dtype and device and never touches global RNG state.
 
+An iteration's cost should follow the live population, which LDPSO-BT shrinks: the swarm lives
+in buffers allocated once for the initial population, the live particles are their first ``P``
+rows, every update is written in place into them (``out=`` and in-place ops), and the views for
+each population size are made once (:class:`SwarmState`). So apart from the fitness, an
+iteration is a fixed, short list of tensor operations on ``P`` rows, with no allocation of swarm
+state and no per-particle Python.
+
 Shapes: ``k`` parameters, ``P`` particles; positions ``X``, velocities ``V``, personal bests
 ``pbest`` are ``(P, k)``; fitness values ``f``, ``pbest_f`` are ``(P,)``; ``gbest`` is
 ``(k,)`` and ``gbest_f`` a 0-d tensor.
@@ -35,6 +42,11 @@ class SwarmState:
         gbest: ``(k,)`` global best position.   gbest_f: 0-d tensor, its fitness.
         n_evals: points evaluated so far (Python int: the population size is known on the
             host, so counting never synchronises with the device).
+
+    A state made by :meth:`allocate` keeps ``X``, ``V``, ``pbest`` and ``pbest_f`` as the first
+    ``P`` rows of buffers sized for the initial population, with a spare set for
+    :meth:`keep_rows`, and scratch buffers for one iteration (:meth:`scratch`). A state built
+    from plain tensors works too (the solvers' hooks and tests use that); it allocates instead.
     """
 
     X: Tensor
@@ -44,10 +56,64 @@ class SwarmState:
     gbest: Tensor
     gbest_f: Tensor
     n_evals: int = 0
+    _bufs: list | None = None
+    _scratch: dict | None = None
 
     @property
     def size(self) -> int:
         return int(self.X.shape[0])
+
+    @classmethod
+    def allocate(cls, X: Tensor, V: Tensor, f: Tensor) -> "SwarmState":
+        """A buffered state from the initial ``(P, k)`` positions, velocities and ``(P,)``
+        fitness: personal bests are the start points, the global best their best."""
+        P = X.shape[0]
+        i = torch.argmin(f)
+        bufs = [[torch.empty_like(X), torch.empty_like(X), torch.empty_like(X), torch.empty_like(f)]
+                for _ in range(2)]
+        for b, v in zip(bufs[0], (X, V, X, f)):
+            b.copy_(v)
+        s = cls(*bufs[0], gbest=X[i].clone(), gbest_f=f[i].clone(), n_evals=int(P), _bufs=bufs, _scratch={})
+        return s
+
+    def keep_rows(self, idx: Tensor) -> None:
+        """Keep only particles ``idx`` (``(n,)`` long, in the order given) of ``X``, ``V``,
+        ``pbest``, ``pbest_f``: gathered into the spare buffers, which then become the live ones."""
+        if self._bufs is None:
+            self.X, self.V, self.pbest, self.pbest_f = (t.index_select(0, idx) for t in
+                                                        (self.X, self.V, self.pbest, self.pbest_f))
+            return
+        n = int(idx.numel())
+        spare = [b[:n] for b in self._bufs[1]]
+        for src, dst in zip((self.X, self.V, self.pbest, self.pbest_f), spare):
+            torch.index_select(src, 0, idx, out=dst)
+        self._bufs.reverse()
+        self.X, self.V, self.pbest, self.pbest_f = spare
+
+    def scratch(self) -> dict:
+        """Scratch tensors for one iteration at the current population ``P`` (views of buffers
+        sized for the initial population, made once per ``P``): ``r``, ``t``, ``d`` ``(2, P, k)``
+        (random numbers, velocity terms, differences), ``xn`` ``(P, k)``, ``wall`` ``(P, k)`` bool,
+        ``f`` ``(P,)``, ``better`` ``(P,)`` bool."""
+        P = self.size
+        s = self._scratch.get(P)
+        if s is None:
+            if not self._scratch:
+                cap, k = self.X.shape
+                X = self.X
+                self._scratch["_b"] = dict(r=X.new_empty(2 * cap * k), t=X.new_empty(2 * cap * k),
+                                           d=X.new_empty(2 * cap * k), xn=X.new_empty(cap * k),
+                                           wall=torch.empty(cap * k, dtype=torch.bool, device=X.device),
+                                           f=self.pbest_f.new_empty(cap),
+                                           better=torch.empty(cap, dtype=torch.bool, device=X.device))
+            b, k = self._scratch["_b"], self.X.shape[1]
+            s = {n: b[n][: 2 * P * k].view(2, P, k) for n in ("r", "t", "d")}
+            s.update(xn=b["xn"][: P * k].view(P, k), wall=b["wall"][: P * k].view(P, k), f=b["f"][:P],
+                     better=b["better"][:P])
+            s["r1"], s["r2"], s["t1"], s["t2"], s["d1"], s["d2"] = (*s["r"], *s["t"], *s["d"])
+            s["better_col"] = s["better"][:, None]
+            self._scratch[P] = s
+        return s
 
 
 @register
@@ -126,10 +192,16 @@ class PSO(Solver):
     def _before_step(self, t: int, s: SwarmState, problem: Problem, g: torch.Generator) -> None:
         """Called at the start of iteration ``t`` (LDPSO-BT shrinks the population here)."""
 
-    def _velocity(self, t: int, s: SwarmState, r1: Tensor, r2: Tensor) -> Tensor:
-        """New ``(P, k)`` velocity before clamping: the standard PSO rule."""
-        w = self.inertia(t)
-        return w * s.V + self.c1 * r1 * (s.pbest - s.X) + self.c2 * r2 * (s.gbest - s.X)
+    def _velocity(self, t: int, s: SwarmState, w: dict) -> None:
+        """Update ``s.V`` in place to the new velocity before clamping: the standard PSO rule
+        ``w v + c1 r1 (pbest - x) + c2 r2 (gbest - x)``, with the random numbers in ``w["r"]``
+        (scratch of :meth:`SwarmState.scratch`). Each product and sum is the same floating-point
+        operation, in the same order, as that expression written out."""
+        torch.mul(w["r"], self._c12, out=w["t"])
+        torch.sub(s.pbest, s.X, out=w["d1"])
+        torch.sub(s.gbest, s.X, out=w["d2"])
+        w["t"].mul_(w["d"])
+        s.V.mul_(self.inertia(t)).add_(w["t1"]).add_(w["t2"])
 
     def _after_step(self, t: int, s: SwarmState, problem: Problem, g: torch.Generator) -> None:
         """Called after iteration ``t``'s bests are updated (chaotic PSO searches here)."""
@@ -140,27 +212,30 @@ class PSO(Solver):
 
     # -- shared helpers --------------------------------------------------------------------------
     @staticmethod
-    def _evaluate(problem: Problem, X: Tensor) -> Tensor:
+    def _evaluate(problem: Problem, X: Tensor, out: Tensor | None = None) -> Tensor:
         """Batched fitness ``(P, k) -> (P,)`` in the problem's dtype, NaN mapped to ``+inf`` so a
-        failed evaluation can never become a best (``argmin`` would otherwise pick NaN)."""
+        failed evaluation can never become a best (``argmin`` would otherwise pick NaN); written
+        into ``out`` when given."""
         f = problem.fitness(X).to(dtype=problem.dtype).reshape(X.shape[0])
-        return torch.where(torch.isnan(f), torch.full_like(f, float("inf")), f)
+        inf = float("inf")
+        return torch.nan_to_num(f, nan=inf, posinf=inf, neginf=-inf, out=out)
 
     @staticmethod
-    def _update_bests(s: SwarmState, X: Tensor, f: Tensor) -> None:
-        """Update personal bests of every particle from ``(X, f)`` and the global best from them.
+    def _update_bests(s: SwarmState, X: Tensor, f: Tensor, w: dict | None = None) -> None:
+        """Update personal bests of every particle from ``(X, f)`` and the global best from them,
+        in place (``w``: scratch of :meth:`SwarmState.scratch`, else temporaries are allocated).
 
         Strict ``<`` keeps the older point on ties, so equal values never churn the bests. All
         ops stay on the device (no ``.item()``): the global best is chosen with ``torch.where``.
         """
-        better = f < s.pbest_f
-        s.pbest = torch.where(better[:, None], X, s.pbest)
-        s.pbest_f = torch.where(better, f, s.pbest_f)
-        i = torch.argmin(s.pbest_f)
-        cand_f = s.pbest_f[i]
+        better = torch.lt(f, s.pbest_f, out=None if w is None else w["better"])
+        col = better[:, None] if w is None else w["better_col"]
+        torch.where(col, X, s.pbest, out=s.pbest)
+        torch.where(better, f, s.pbest_f, out=s.pbest_f)
+        cand_f, i = torch.min(s.pbest_f, 0)
         gb = cand_f < s.gbest_f
-        s.gbest = torch.where(gb, s.pbest[i], s.gbest)
-        s.gbest_f = torch.where(gb, cand_f, s.gbest_f)
+        torch.where(gb, s.pbest.index_select(0, i.view(1))[0], s.gbest, out=s.gbest)
+        torch.where(gb, cand_f, s.gbest_f, out=s.gbest_f)
 
     # -- the run -------------------------------------------------------------------------------
     def _run(self, problem: Problem) -> Result:
@@ -170,15 +245,14 @@ class PSO(Solver):
         span = hi - lo
         # Velocity limit per component; without v_max the full range is the natural scale.
         vlim = span * (self.v_max if self.v_max is not None else 1.0)
+        nvlim = -vlim
+        self._c12 = torch.tensor([self.c1, self.c2], dtype=problem.dtype, device=problem.device)[:, None, None]
 
         X, V = self._init_positions(problem, g, vlim)
         if problem.x0 is not None:
             # Seed the swarm with the user's start so the result is never worse than it.
             X[0] = problem.clip(problem.x0)
-        f = self._evaluate(problem, X)
-        i = torch.argmin(f)
-        s = SwarmState(X=X, V=V, pbest=X.clone(), pbest_f=f.clone(), gbest=X[i].clone(),
-                       gbest_f=f[i].clone(), n_evals=int(X.shape[0]))
+        s = SwarmState.allocate(X, V, self._evaluate(problem, X))
         self._after_init(s, problem, g)
 
         # History kept as a device tensor and converted once at the end: a per-iteration
@@ -191,20 +265,18 @@ class PSO(Solver):
 
         for t in range(1, self.max_iter + 1):
             self._before_step(t, s, problem, g)
-            P, k = s.X.shape
-            # One draw for r1 and r2 (fewer generator calls; the stream stays deterministic).
-            r = torch.rand((2, P, k), generator=g, dtype=problem.dtype, device=problem.device)
-            V = self._velocity(t, s, r[0], r[1])
+            w = s.scratch()
+            torch.rand(w["r"].shape, generator=g, out=w["r"])  # r1 = r[0], r2 = r[1]: one draw
+            self._velocity(t, s, w)
             if self.v_max is not None:
-                V = torch.maximum(torch.minimum(V, vlim), -vlim)
-            Xn = s.X + V
-            Xc = torch.maximum(torch.minimum(Xn, hi), lo)
+                s.V.clamp_(nvlim, vlim)
+            torch.add(s.X, s.V, out=w["xn"])
+            torch.clamp(w["xn"], lo, hi, out=s.X)
             # A particle that hit a wall stops in that component instead of pushing into it.
-            s.V = torch.where(Xc != Xn, torch.zeros_like(V), V)
-            s.X = Xc
-            f = self._evaluate(problem, Xc)
-            s.n_evals += P
-            self._update_bests(s, Xc, f)
+            s.V.masked_fill_(torch.ne(s.X, w["xn"], out=w["wall"]), 0.0)
+            f = self._evaluate(problem, s.X, out=w["f"])
+            s.n_evals += s.size
+            self._update_bests(s, s.X, f, w)
             self._after_step(t, s, problem, g)
             hist[t] = s.gbest_f
             if bar is not None or self.callback is not None:
@@ -298,17 +370,16 @@ class LDPSO_BT(PSO):
         if n < s.size:
             # Keep the n best by personal-best fitness (stable sort: deterministic on ties), in
             # their original order so particle identity is easy to follow.
-            keep = torch.argsort(s.pbest_f, stable=True)[:n].sort().values
-            s.X = s.X.index_select(0, keep)
-            s.V = s.V.index_select(0, keep)
-            s.pbest = s.pbest.index_select(0, keep)
-            s.pbest_f = s.pbest_f.index_select(0, keep)
+            s.keep_rows(torch.argsort(s.pbest_f, stable=True)[:n].sort().values)
 
-    def _velocity(self, t: int, s: SwarmState, r1: Tensor, r2: Tensor) -> Tensor:
+    def _velocity(self, t: int, s: SwarmState, w: dict) -> None:
         if t > self.k_switch * self.max_iter:
-            # Best-tracking stage: only the global best attracts.
-            return self.w2 * s.V + self.c2 * r2 * (s.gbest - s.X)
-        return self.w1 * s.V + self.c1 * r1 * (s.pbest - s.X) + self.c2 * r2 * (s.gbest - s.X)
+            # Best-tracking stage: only the global best attracts, v = w2 v + c2 r2 (gbest - x).
+            torch.mul(w["r2"], self.c2, out=w["t2"])
+            w["t2"].mul_(torch.sub(s.gbest, s.X, out=w["d2"]))
+            s.V.mul_(self.w2).add_(w["t2"])
+            return
+        super()._velocity(t, s, w)
 
     def _extra(self, s: SwarmState) -> dict:
         return {"pop_sizes": list(self._sizes)}
