@@ -1,4 +1,4 @@
-"""Command line: ``torchcal calibrate …`` and ``torchcal simulate …``."""
+"""Command line: ``torchcal calibrate``, ``loop``, ``simulate``, ``correct`` and ``fleet``."""
 from __future__ import annotations
 
 import argparse
@@ -167,8 +167,10 @@ def main(argv: list[str] | None = None) -> int:
     s.set_defaults(func=_simulate)
 
     from .cli_correct import add_correct_parser
+    from .cli_fleet import add_fleet_parser
 
     add_correct_parser(sub)
+    add_fleet_parser(sub)
     a = ap.parse_args(argv)
     try:
         return a.func(a)
