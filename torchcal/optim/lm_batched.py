@@ -176,10 +176,6 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         Dvec[idx] = torch.maximum(Dvec[idx], A[idx].diagonal(dim1=-2, dim2=-1))
         gnorm[idx] = _gcos(ge[idx], A[idx], S[idx])
 
-    def refresh(idx: Tensor) -> None:
-        new_jacobian(idx)
-        relinearise(idx)
-
     while True:
         act = torch.nonzero(~done & (n_iter < max_iter)).flatten()
         if act.numel() == 0:
@@ -212,35 +208,34 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
             small_f = (gain.abs() <= ftol * S_old) & (pred <= ftol * S_old) & (rho <= 2.0)
             small_x = torch.sqrt(hh) <= xtol * (xnorm[o] + xtol)
             acc = rho > 0
-            ia = o[acc]
+            ia, rj = o[acc], o[~acc]
             stale_step = stale(o)
             if ia.numel():
                 x[ia], r[ia], S[ia] = x_new[acc], r_new[acc], S_new[acc]
-                # with reuse, a new Jacobian only where the old one predicted badly and is not
-                # from (nearly) here
-                new_jacobian(ia if reuse is None else ia[(rho[acc] <= reuse) & stale(ia)])
-                relinearise(ia)
                 xnorm[ia] = torch.linalg.vector_norm(x[ia] * free[ia], dim=-1)
                 mu[ia] *= torch.clamp(1.0 - (2.0 * rho[acc] - 1.0) ** 3, min=1.0 / 3.0)
                 nu[ia] = 2.0
-            rj = o[~acc]
             n_rej[rj] += 1
-            retry = rj[stale_step[~acc]]  # the old Jacobian misled the step: same damping, a fresh one
-            if retry.numel():
-                refresh(retry)
-            rj = rj[~stale_step[~acc]]
-            mu[rj] *= nu[rj]
-            nu[rj] *= 2.0
-            # stopping tests count only on a fresh Jacobian: gtol's at the new point, ftol's and
-            # xtol's at the step's start; one that fires on an old Jacobian asks for a new one
+            grow = rj[~stale_step[~acc]]  # a step from an old Jacobian is retried with a new one
+            mu[grow] *= nu[grow]
+            nu[grow] *= 2.0
+            if reuse is None:
+                need = ia
+            else:
+                # a new Jacobian where the old one predicted badly and is not from (nearly) here,
+                # where a step from an old one failed, and where a stopping test fired on an old one
+                # (stopping tests count only on a fresh Jacobian: gtol's at the new point, ftol's
+                # and xtol's at the step's start); one batched evaluation for all of them
+                relinearise(ia)
+                want = (acc & ((rho <= reuse) | (gnorm[o] < gtol))) | ((~acc | small_f | small_x) & stale_step)
+                need = o[want]
+                need = need[stale(need)]
+            new_jacobian(need)
+            relinearise(ia if reuse is None else need)
             fresh_now, fresh_step = ~stale(o), ~stale_step
-            c_g = acc & (gnorm[o] < gtol) & fresh_now
+            c_g = (acc | torch.isin(o, need)) & (gnorm[o] < gtol) & fresh_now
             c_f = ~c_g & small_f & fresh_step
             c_x = ~c_g & ~c_f & small_x & fresh_step
-            doubt = o[~(c_g | c_f | c_x) & ((acc & (gnorm[o] < gtol)) | small_f | small_x) & ~fresh_now]
-            if doubt.numel():
-                refresh(doubt)
-                c_g = c_g | (torch.isin(o, doubt) & (gnorm[o] < gtol))
             for b, why in zip(o.tolist(), (c_g.long() + 2 * c_f.long() + 3 * c_x.long()).tolist()):
                 if why:
                     messages[b] = ("projected gradient below gtol", "relative decrease of the sum of squares below "
