@@ -8,12 +8,13 @@ STAMP  := $(VENV)/.installed
 
 setup: $(STAMP)
 
-# torch first, pinned to the CPU wheel that is on disk here; the package itself only asks torch>=2.2
+# torch first, pinned to the CPU wheel that is on disk here; the package itself only asks torch>=2.2.
+# Ray (an optional extra for users) is installed here so that the fleet's Ray test runs
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,ray]'
 	touch $(STAMP)
 
 demo: setup

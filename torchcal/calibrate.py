@@ -20,7 +20,7 @@ from .outputs import atomic_write_text, staged_dir
 from .report import error_details, error_figure, error_stats, stage_problems, write_json
 from .transforms import matrix_to_quat, so3_exp
 
-__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
+__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats", "errors_by_marker"]
 
 SWARM_METHODS = ("pso", "ldpso-bt", "cpso", "ga", "ma", "mma")
 _SEARCH = {"m": 5e-3, "rad": 0.05}  # default swarm search box around the start (± per unit)
@@ -31,11 +31,16 @@ def stage_stats(robot, params: Tensor, data: Measurements | None) -> dict | None
     if data is None or len(data) == 0:
         return None
     blk = PositionResidual(robot, data)
-    e = blk.errors(params[None])[0]
+    return errors_by_marker(blk.errors(params[None])[0], blk.obs_index[:, 1], data.marker_names)
+
+
+def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict:
+    """:func:`~torchcal.report.error_stats` of errors ``e (n_obs,)`` (m), overall and per marker
+    (``marker (n_obs,)`` indexes ``marker_names``)."""
     out = error_stats(e)
     per = {}
-    for k, m in enumerate(data.marker_names):
-        sel = blk.obs_index[:, 1] == k
+    for k, m in enumerate(marker_names):
+        sel = marker == k
         if bool(sel.any()):
             per[m] = error_stats(e[sel])
     out["per_marker"] = per
@@ -140,7 +145,9 @@ class CalibrationResult:
             f = lambda d, k: f"{d[k]:.4f}" if k in d else "–"  # noqa: E731
             lines.append(f"| {s['name']} | {s['n_params']} | {f(tr, 'mean_mm')} | {f(tr, 'std_mm')} | "
                          f"{f(tr, 'max_mm')} | {f(te, 'mean_mm')} | {f(te, 'std_mm')} | {f(te, 'max_mm')} |")
-        lines += ["", "![error histograms](errors.png)", "", "## Identified parameters", "",
+        if self.errors:
+            lines += ["", "![error histograms](errors.png)"]
+        lines += ["", "## Identified parameters", "",
                   "| parameter | value | std. error | unit |", "|---|---|---|---|"]
         for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
             if n in self.std_errors:

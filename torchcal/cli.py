@@ -1,4 +1,4 @@
-"""Command line: ``torchcal calibrate | loop | simulate | correct | plan`` (also ``python -m torchcal``).
+"""Command line: ``torchcal calibrate | loop | simulate | correct | plan | fleet`` (also ``python -m torchcal``).
 
 Every command refuses to overwrite what exists (``--force`` to replace it), checks that its
 output can be written before it works, writes under temporary names, and records in each output
@@ -22,6 +22,7 @@ from .calibrate import SWARM_METHODS, calibrate, write_instrument
 from .cli_common import (add_common, expand_config, fraction, int_at_least, nonnegative_float, robot_and_data,
                          run_record, setup_logging)
 from .cli_correct import add_correct_parser
+from .cli_fleet import add_fleet_parser
 from .cli_plan import add_plan_parser
 from .effects import EFFECTS
 from .io import UnitsError
@@ -192,6 +193,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
 
     add_correct_parser(sub)
     add_plan_parser(sub)
+    add_fleet_parser(sub)
     return ap, sub.choices
 
 

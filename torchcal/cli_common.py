@@ -17,7 +17,7 @@ from .tree import Marker, parse_marker
 from .urdf import urdf_links
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "add_common", "expand_config",
-           "setup_logging", "run_record", "robot_and_data", "PATH_OPTIONS"]
+           "setup_logging", "run_record", "robot_and_data", "robot_for", "PATH_OPTIONS"]
 
 logger = logging.getLogger("torchcal")
 
@@ -175,23 +175,28 @@ def _markers(specs: list[str], units: list[str]) -> list[Marker]:
     return out
 
 
+def robot_for(urdf, markers: list[str] | None, data_path, units: list[str]) -> Robot:
+    """The robot with its markers: those declared, or else the marker columns of the CSV
+    ``data_path`` that are links of the URDF."""
+    if not markers:
+        header, _ = read_csv(data_path)
+        cols = marker_columns_in(header)
+        links = set(urdf_links(urdf))
+        unknown = [c for c in cols if c not in links]
+        if unknown:
+            raise ValueError(f"marker column(s) {unknown} are not links of {urdf}; declare each as an unknown point "
+                             f"on a link, e.g. --marker {unknown[0]}@LINK or --marker {unknown[0]}@LINK=0.05,0,0.1 (m)")
+        if not cols:
+            raise ValueError(f"{data_path} has no '<marker>.x/.y/.z' columns")
+        markers = cols
+    return Robot.from_urdf(urdf, markers=_markers(markers, units))
+
+
 def robot_and_data(a: argparse.Namespace):
     """The robot (markers declared, or the data's marker columns that are links) and the
     training and held-out measurements, in metres and radians."""
     units = list(getattr(a, "units", []) or [])
-    markers = a.marker
-    if not markers:
-        header, _ = read_csv(a.data)
-        cols = marker_columns_in(header)
-        links = set(urdf_links(a.robot))
-        unknown = [c for c in cols if c not in links]
-        if unknown:
-            raise ValueError(f"marker column(s) {unknown} are not links of {a.robot}; declare each as an unknown point "
-                             f"on a link, e.g. --marker {unknown[0]}@LINK or --marker {unknown[0]}@LINK=0.05,0,0.1 (m)")
-        if not cols:
-            raise ValueError(f"{a.data} has no '<marker>.x/.y/.z' columns")
-        markers = cols
-    robot = Robot.from_urdf(a.robot, markers=_markers(markers, units))
+    robot = robot_for(a.robot, a.marker, a.data, units)
     train = load_measurements(a.data, robot, units=units)
     test = load_measurements(a.test, robot, units=units) if a.test else None
     if test is None and getattr(a, "holdout", 0):

@@ -52,7 +52,8 @@ from torch import Tensor
 from .params import ParamSet
 
 __all__ = ["stacked_jacobian", "identifiability", "analyse_jacobian", "observability", "IdentifiabilityReport",
-           "DEFAULT_PREFER", "resolve_free", "normalise_columns"]
+           "DEFAULT_PREFER", "resolve_free", "normalise_columns", "zero_column_reason", "dependency_reason",
+           "preference_tiers", "TIE_BOOST"]
 
 # Preference tiers (glob patterns), earliest kept first when parameters are interchangeable.
 # The base frame comes first, with the other unknowns of the set-up (touched planes, fixed points):
@@ -70,6 +71,7 @@ DEFAULT_PREFER: list[list[str]] = [
 _PARTNER_TOL = 1e-6
 # Relative boost per position that breaks exact ties in favour of earlier columns (see _tiered_qr).
 _TIE_BOOST = 1e-10
+TIE_BOOST = _TIE_BOOST  # public name: the fleet's batched selection breaks ties the same way
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -162,7 +164,7 @@ def _stacked(robot, q, params, kind: str, idx: list[int], weights) -> Tensor:
     return J.reshape(-1, J.shape[-1])[:, idx]
 
 
-def _tiers(marker_names: Sequence[str], names: list[str], prefer) -> list[list[int]]:
+def preference_tiers(marker_names: Sequence[str], names: list[str], prefer) -> list[list[int]]:
     """Split column positions into preference tiers: the caller's patterns (each entry a glob or a
     list of globs = one tier) in order, then :data:`DEFAULT_PREFER`, then everything else."""
     spec: list = list(prefer or []) + DEFAULT_PREFER
@@ -230,6 +232,54 @@ def _observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
 def _fmt_units(unit: str) -> tuple[str, float]:
     """Display unit and factor: m -> mm, rad -> mrad (same factor, so ratios read unchanged)."""
     return {"m": ("mm", 1e3), "rad": ("mrad", 1e3)}.get(unit, (unit, 1.0))
+
+
+def zero_column_reason(name: str, kind: str = "position") -> str:
+    """Why a parameter whose Jacobian column is zero is dropped, in words."""
+    what = "marker position" if kind == "position" else "marker position or orientation"
+    return (f"{name} does not move any {what} at these poses and parameter values (its Jacobian "
+            "column is zero), so no measurement can see it")
+
+
+def dependency_reason(i: int, c, res: float, kept: list[int], names: list[str], units: list[str], norms,
+                      rtol: float) -> tuple[str, dict[str, float]]:
+    """Why column ``i`` is dropped: the sentence and its relation (partner -> unscaled coefficient).
+
+    Args:
+        c: ``(len(kept),)`` least-squares coefficients of unit-norm column ``i`` on the unit-norm
+            kept columns; ``res``: the relative residual of that fit.
+        kept: column positions kept; ``norms``: every column's 2-norm (m per unit parameter).
+    """
+    c = np.asarray(c, dtype=float)
+    n = names[i]
+    # partners by decreasing |coefficient| (ties: earlier kept column first)
+    order = np.argsort(-np.abs(c), kind="stable")
+    partners = order[np.abs(c[order]) > _PARTNER_TOL].tolist()
+    # unscaled: a_i/|a_i| = Σ c_j a_j/|a_j|  =>  a_i = Σ c_j |a_i|/|a_j| a_j (per unit of p_i)
+    cu = {names[kept[t]]: float(c[t] * norms[i] / norms[kept[t]]) for t in partners}
+    relation = dict(cu)
+    ui, fi = _fmt_units(units[i])
+
+    def term(t, lead=False):
+        j = kept[t]
+        uj, fj = _fmt_units(units[j])
+        v = cu[names[j]] * fj / fi  # display units of partner per display unit of p_i
+        return f"{v:.4g} {uj} of {names[j]}" if lead else f"{'+' if v >= 0 else '-'} {abs(v):.4g} {uj} of {names[j]}"
+
+    if not partners:
+        why = f"{n} is numerically dependent on the identifiable parameters (residual {res:.2g})"
+    elif len(partners) == 1:
+        why = (f"{n} cannot be told apart from {names[kept[partners[0]]]}: "
+               f"1 {ui} of {n} acts like {term(partners[0], True)}")
+    else:
+        shown = partners[:3]
+        more = f" and {len(partners) - 3} more" if len(partners) > 3 else ""
+        why = (f"{n} is a combination of " + ", ".join(names[kept[t]] for t in shown) + more +
+               f": 1 {ui} of {n} acts like " + " ".join(term(t, lead=(r == 0)) for r, t in enumerate(shown)) +
+               (" + …" if more else ""))
+    if res > 1e3 * rtol:
+        why += f" (fit residual {res:.2g} of a unit column: nearly independent)"
+    return why, relation
 
 
 # ---------------------------------------------------------------------------- report
@@ -355,7 +405,7 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
         An = torch.linalg.qr(torch.from_numpy(An), mode="r").R.numpy()
 
     # base subset: tiered pivoted QR over the non-zero columns
-    tiers = [[i for i in t if not zero[i]] for t in _tiers(markers, names, prefer)]
+    tiers = [[i for i in t if not zero[i]] for t in preference_tiers(markers, names, prefer)]
     tiers = [t for t in tiers if t]
     kept_pivot, _ = _tiered_qr(An, tiers, rtol) if tiers else ([], [])
     kept = sorted(kept_pivot)
@@ -371,7 +421,6 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
                       "the pose set nearly fails to identify some parameters", RuntimeWarning, stacklevel=2)
 
     # reasons: each dropped column as a least-squares combination of the identifiable columns
-    what = "marker position" if kind == "position" else "marker position or orientation"
     reasons, relations, residuals = {}, {}, {}
     B = An[:, kept]
     kept_set = set(kept)
@@ -385,39 +434,13 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
             continue
         n = names[i]
         if zero[i]:
-            reasons[n] = (f"{n} does not move any {what} at these poses and parameter values (its Jacobian "
-                          "column is zero), so no measurement can see it")
+            reasons[n] = zero_column_reason(n, kind)
             relations[n], residuals[n] = {}, 1.0
             continue
         c = coef_of[i]
         res = float(np.linalg.norm(An[:, i] - B @ c)) if kept else 1.0
-        # unscaled: a_i/|a_i| = Σ c_j a_j/|a_j|  =>  a_i = Σ c_j |a_i|/|a_j| a_j (per unit of p_i)
-        cu = {names[j]: float(cj * norms[i] / norms[j]) for j, cj in zip(kept, c)}
-        order = sorted(range(len(kept)), key=lambda t: -abs(c[t]))
-        partners = [t for t in order if abs(c[t]) > _PARTNER_TOL]
-        relations[n] = {names[kept[t]]: cu[names[kept[t]]] for t in partners}
+        reasons[n], relations[n] = dependency_reason(i, c, res, kept, names, units, norms, rtol)
         residuals[n] = res
-        ui, fi = _fmt_units(units[i])
-
-        def term(t, lead=False):
-            j = kept[t]
-            uj, fj = _fmt_units(units[j])
-            v = cu[names[j]] * fj / fi  # display units of partner per display unit of p_i
-            return f"{v:.4g} {uj} of {names[j]}" if lead else f"{'+' if v >= 0 else '-'} {abs(v):.4g} {uj} of {names[j]}"
-
-        if not partners:
-            reasons[n] = f"{n} is numerically dependent on the identifiable parameters (residual {res:.2g})"
-        elif len(partners) == 1:
-            reasons[n] = (f"{n} cannot be told apart from {names[kept[partners[0]]]}: "
-                          f"1 {ui} of {n} acts like {term(partners[0], True)}")
-        else:
-            shown = partners[:3]
-            more = f" and {len(partners) - 3} more" if len(partners) > 3 else ""
-            reasons[n] = (f"{n} is a combination of " + ", ".join(names[kept[t]] for t in shown) + more +
-                          f": 1 {ui} of {n} acts like " + " ".join(term(t, lead=(r == 0)) for r, t in enumerate(shown)) +
-                          (" + …" if more else ""))
-        if res > 1e3 * rtol:
-            reasons[n] += f" (fit residual {res:.2g} of a unit column: nearly independent)"
 
     # observability of the identifiable columns, scaled to unit RMS (see module docstring)
     rms = norms / math.sqrt(m) if m else norms

@@ -501,7 +501,7 @@ class Robot:
         (after the origin, before the motion)."""
         O_R, O_t = self._origins(slots)
         qj = self._joint_values(q, slots)  # (P, N, J)
-        P, N = max(O_R.shape[0], qj.shape[0]), q.shape[0]
+        P, N = max(O_R.shape[0], qj.shape[0]), q.shape[-2]
         c, s = torch.cos(qj)[..., None], torch.sin(qj)[..., None]
         Rs: list[Tensor | None] = [None] * (len(self.joints) + 1)
         ts: list[Tensor | None] = [None] * (len(self.joints) + 1)
@@ -719,11 +719,13 @@ class Robot:
             return_positions: also return the marker positions ``(…, M, 3)`` (m) computed on the
                 way, which saves a second kinematics pass in least-squares solvers.
         Returns:
-            ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population).
+            ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population, or for ``q (P, N, dof)``
+            paired with ``params (P, K)`` as in :meth:`positions`).
         """
         if kind not in ("position", "pose"):
             raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
-        q, slots, pop, q1 = self._prepare(q, params, check)
+        paired = isinstance(q, Tensor) and q.ndim == 3
+        q, slots, pop, q1 = (self._prepare_paired if paired else self._prepare)(q, params, check)
         if slots is None:
             slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
         Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)

@@ -16,7 +16,7 @@ from .outputs import atomic_write_text
 from .params import ParamSet
 
 __all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
-           "SimulatedRobot", "simulated_robot", "hide_axes"]
+           "simulate_fleet", "SimulatedRobot", "simulated_robot", "hide_axes"]
 
 
 @dataclass
@@ -100,6 +100,43 @@ def write_dataset(path_csv, data: Measurements, truth: ParamSet | None = None, t
         tp = Path(truth_path or Path(path_csv).with_suffix(".truth.json"))
         atomic_write_text(tp, json.dumps({"names": truth.names, "units": truth.units, "values": truth.values.tolist(),
                                           "meta": meta or {}}, indent=1) + "\n")
+
+
+def simulate_fleet(robot, n_robots: int, cfg: SimConfig | None = None, *, spread: float = 1.0, n_test: int = 0,
+                   moved: dict | None = None) -> tuple[list[Measurements], list[Measurements] | None, list[ParamSet]]:
+    """``n_robots`` robots of one model, as a factory makes them: every robot's geometric errors are
+    a fleet-wide mean (drawn from ``cfg``'s error sizes) plus its own deviation (``spread`` times
+    those sizes); each has its own instrument placement, ``cfg.n`` random poses and noise.
+
+    Args:
+        spread: per-robot deviation relative to the mean's size (1: as large as the mean).
+        n_test: held-out poses per robot (noisy, like real ones), or 0.
+        moved: ``{robot index: {parameter: added value}}``, e.g. a re-mastered axis
+            ``{3: {"joint_a3.offset": 8e-3}}`` (rad).
+    Returns:
+        (training measurements, held-out measurements or None, true parameters) per robot. Seeded
+        by ``cfg.seed``; only the measurements should reach a solver.
+    """
+    cfg = cfg or SimConfig()
+    g = torch.Generator().manual_seed(cfg.seed)
+    still = SimConfig(**{**cfg.__dict__, "base_distance": 0.0})
+    mean = random_errors(robot, robot.params(), still, g).values
+    own = SimConfig(**{**cfg.__dict__, "length_error": spread * cfg.length_error,
+                       "angle_error": spread * cfg.angle_error})
+    train, test, truths = [], [] if n_test else None, []
+    for r in range(n_robots):
+        gr = torch.Generator().manual_seed(cfg.seed * 1_000_003 + r + 1)
+        truth = random_errors(robot, robot.params(), own, gr)
+        truth.values = truth.values + mean
+        for name, dv in (moved or {}).get(r, {}).items():
+            truth[name] = truth[name] + dv
+        for n, q in ((cfg.n, train), (n_test, test)):
+            if n:
+                d, _ = simulate(robot, SimConfig(**{**cfg.__dict__, "n": n, "seed": int(torch.randint(
+                    0, 2 ** 31 - 1, (1,), generator=gr))}), true_params=truth)
+                q.append(d)
+        truths.append(truth)
+    return train, test, truths
 
 
 # ---------------------------------------------------------------------------- effects

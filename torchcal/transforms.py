@@ -133,27 +133,34 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> tuple[Ten
     """Rigid transform that best maps ``src`` onto ``dst`` (least squares, Kabsch/Horn).
 
     Args:
-        src, dst: ``(n, 3)`` corresponding points (m), n >= 3 and not collinear.
-        weights: optional ``(n,)`` non-negative weights.
+        src, dst: ``(n, 3)`` corresponding points (m), n >= 3 and not collinear; or ``(B, n, 3)``
+            for B independent problems (a fleet), padded rows given weight 0.
+        weights: optional ``(n,)`` (``(B, n)``) non-negative weights.
     Returns:
-        ``R (3, 3)``, ``t (3,)`` with ``dst ≈ src @ R.T + t``.
+        ``R (3, 3)``, ``t (3,)`` with ``dst ≈ src @ R.T + t`` (``(B, 3, 3)``, ``(B, 3)`` batched).
+    Raises:
+        ValueError: when the points of a problem are (nearly) collinear; for a batch the message
+        gives the indices of those problems.
     """
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[-1] != 3:
+    if src.shape != dst.shape or src.ndim not in (2, 3) or src.shape[-1] != 3:
         raise ValueError(f"kabsch needs two (n, 3) point sets, got {tuple(src.shape)} and {tuple(dst.shape)}")
-    if src.shape[0] < 3:
-        raise ValueError(f"kabsch needs at least 3 points, got {src.shape[0]}")
-    w = torch.ones(src.shape[0], dtype=src.dtype, device=src.device) if weights is None else weights
-    w = w / w.sum()
-    cs, cd = (w[:, None] * src).sum(0), (w[:, None] * dst).sum(0)
-    H = ((src - cs) * w[:, None]).T @ (dst - cd)
+    if src.shape[-2] < 3:
+        raise ValueError(f"kabsch needs at least 3 points, got {src.shape[-2]}")
+    w = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device) if weights is None else weights
+    w = w / w.sum(-1, keepdim=True)
+    cs, cd = (w[..., None] * src).sum(-2), (w[..., None] * dst).sum(-2)
+    H = ((src - cs[..., None, :]) * w[..., None]).transpose(-1, -2) @ (dst - cd[..., None, :])
     U, S, Vh = torch.linalg.svd(H)
-    if float(S[1]) < 1e-12 * max(float(S[0]), 1e-300):
-        raise ValueError("kabsch: the points are (nearly) collinear, so the rotation about their line is "
+    flat = S[..., 1] < 1e-12 * S[..., 0].clamp(min=1e-300)
+    if bool(flat.any()):
+        where = "" if src.ndim == 2 else f" in problem(s) {torch.nonzero(flat).flatten().tolist()[:10]}"
+        raise ValueError(f"kabsch: the points are (nearly) collinear{where}, so the rotation about their line is "
                          "undetermined; use poses that spread the markers in 3-D")
-    d = torch.sign(torch.det(Vh.T @ U.T))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    R = Vh.T @ D @ U.T
-    return R, cd - R @ cs
+    V, Ut = Vh.transpose(-1, -2), U.transpose(-1, -2)
+    d = torch.sign(torch.det(V @ Ut))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = V @ D @ Ut
+    return R, cd - (R @ cs[..., None])[..., 0]
 
 
 def quat_to_matrix(qt: Tensor) -> Tensor:

@@ -1,0 +1,278 @@
+"""Fleet calibration (:mod:`torchcal.fleet`): the batched solve against per-robot ``calibrate``,
+the batched building blocks against their single-robot versions, the outlier flag, the
+hierarchical prior, joint compliance fleet-wide, validation and the ``torchcal fleet`` command.
+
+Simulated robots (``torchcal.sim``), seeded; the truth is used only to score.
+"""
+from __future__ import annotations
+
+import json
+import statistics
+import warnings
+
+import pytest
+import torch
+
+from torchcal import Robot, calibrate
+from torchcal.cli import main
+from torchcal.fleet import calibrate_fleet
+from torchcal.fleet_identify import decide, explain
+from torchcal.identifiability import analyse_jacobian
+from torchcal.io import save_measurements
+from torchcal.measurement import PositionResidual
+from torchcal.optim import get_solver
+from torchcal.optim.lm_batched import lm_batched
+from torchcal.problem import CalibrationProblem
+from torchcal.robots import shipped, urdf_path
+from torchcal.sim import SimConfig, random_configs, simulate, simulate_fleet, simulated_robot
+from torchcal.transforms import kabsch, so3_exp
+
+MARKERS = ["smr@flange=0,0,0", "b@link6=0.06,0.02,0.03"]
+
+
+@pytest.fixture(scope="module")
+def kr5():
+    return Robot.from_urdf(urdf_path("kuka_kr5_arc"), markers=MARKERS)
+
+
+@pytest.fixture(scope="module")
+def ragged(kr5):
+    """Six robots with 20–45 rows; some rows miss one marker."""
+    out = []
+    for s, n in enumerate((30, 20, 45, 25, 33, 38)):
+        d, _ = simulate(kr5, SimConfig(n=n, seed=40 + s))
+        g = torch.Generator().manual_seed(s)
+        hide = torch.rand(n, generator=g) < 0.15
+        d.positions[hide, 1] = float("nan")
+        out.append(d)
+    return out
+
+
+def test_paired_param_jacobian_equals_per_robot(kr5):
+    g = torch.Generator().manual_seed(0)
+    q = random_configs(kr5, 12, g).reshape(3, 4, kr5.dof)
+    X = 1e-3 * torch.randn(3, kr5.n_params, generator=g, dtype=torch.float64)
+    J = kr5.param_jacobian(q, X)
+    assert J.shape == (3, 4, 2, 3, kr5.n_params)
+    for r in range(3):
+        assert torch.allclose(J[r], kr5.param_jacobian(q[r], X[r]), atol=1e-13, rtol=0)
+
+
+def test_batched_kabsch_equals_single():
+    g = torch.Generator().manual_seed(1)
+    src = torch.randn(4, 10, 3, generator=g, dtype=torch.float64)
+    R = so3_exp(torch.randn(4, 3, generator=g, dtype=torch.float64))
+    dst = (R @ src.transpose(-1, -2)).transpose(-1, -2) + torch.randn(4, 1, 3, generator=g, dtype=torch.float64)
+    w = torch.ones(4, 10, dtype=torch.float64)
+    w[2, 7:] = 0  # a shorter problem, padded
+    Rb, tb = kabsch(src, dst, weights=w)
+    for b in range(4):
+        n = int(w[b].sum())
+        R1, t1 = kabsch(src[b, :n], dst[b, :n])
+        assert torch.allclose(Rb[b], R1, atol=1e-12) and torch.allclose(tb[b], t1, atol=1e-12)
+
+
+def _errors(robot, p, seed):
+    t = p.clone()
+    g = torch.Generator().manual_seed(seed)
+    t.values = torch.where(p.free, 1e-3 * torch.randn(len(p), generator=g, dtype=torch.float64), t.values)
+    return t
+
+
+def test_lm_batched_replicates_single_lm(kr5):
+    """Exact mode: each problem follows the single solver's iterates."""
+    p = kr5.params().only("joint_a2.dx", "joint_a2.dz", "joint_a3.offset", "joint_a5.offset", "smr.dx", "smr.dz")
+    data = [simulate(kr5, SimConfig(n=n, seed=70 + n, base_distance=0.0), true_params=_errors(kr5, p, n))[0]
+            for n in (12, 20, 31)]  # robot-frame data: the base stays at 0
+    probs = [CalibrationProblem(kr5, p, [PositionResidual(kr5, d)]) for d in data]
+    singles = [get_solver("lm", tau=1e-6).minimize(pr) for pr in probs]
+    m = max(pr.m for pr in probs)
+    pad = lambda t, n: torch.cat([t, t.new_zeros(n - t.shape[0], *t.shape[1:])])  # noqa: E731
+    res = lm_batched(lambda X, i: torch.stack([pad(probs[k].residuals(X[j:j + 1, p.free_index])[0], m)
+                                               for j, k in enumerate(i.tolist())]),
+                     lambda X, i: torch.stack([pad(PositionResidual(kr5, data[k]).jacobian(X[j]), m)
+                                               for j, k in enumerate(i.tolist())]),
+                     p.values.expand(3, -1), p.free.expand(3, -1), p.lower, p.upper, tau=1e-6)
+    for b, s in enumerate(singles):
+        assert int(res.n_iter[b]) == s.n_iter and res.messages[b] == s.message
+        assert torch.allclose(res.x[b, p.free_index], s.x, atol=1e-12, rtol=0)
+
+
+def test_batched_identifiability_equals_analyse_jacobian(kr5):
+    p = kr5.params().fix("smr.droll", "smr.dpitch", "smr.dyaw", "b.droll", "b.dpitch", "b.dyaw")
+    names, units = p.free_names, [p.units[i] for i in p.free_index.tolist()]
+    Js, reps = [], []
+    for s, n in enumerate((30, 8, 5)):  # 8 and 5 poses: rank-deficient designs
+        d, truth = simulate(kr5, SimConfig(n=n, seed=60 + s))
+        J = PositionResidual(kr5, d).jacobian(truth.values)[:, p.free_index]
+        Js.append(torch.cat([J, J.new_zeros(200 - J.shape[0], J.shape[1])]))  # padded rows, as a fleet pads
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the rank of the short designs is ambiguous: that is the point
+            reps.append(analyse_jacobian(J, names, units, markers=kr5.marker_names))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dec = decide(torch.stack(Js), names, kr5.marker_names)
+    why = explain(dec, names, units)
+    for b, rep in enumerate(reps):
+        assert [names[i] for i in torch.nonzero(dec.kept[b]).flatten().tolist()] == rep.identifiable
+        assert sorted(why[b]) == sorted(rep.dropped)
+
+
+def test_fleet_equals_per_robot_calibrate(kr5, ragged):
+    fr = calibrate_fleet(kr5, ragged)
+    for a, d in zip(fr.results, ragged):
+        b = calibrate(kr5, d, method="lm")
+        assert a.params.free_names == b.params.free_names
+        assert sorted(a.unidentifiable) == sorted(b.unidentifiable)
+        for n in b.std_errors:
+            # the same minimum: apart by a thousandth of a standard error at most
+            assert abs(a.params[n] - b.params[n]) <= 1e-3 * b.std_errors[n], n
+            assert a.std_errors[n] == pytest.approx(b.std_errors[n], rel=1e-4)
+        for sa, sb in zip(a.stages, b.stages):
+            assert sa["train"]["mean_mm"] == pytest.approx(sb["train"]["mean_mm"], rel=1e-6)
+            assert sa["train"]["per_marker"].keys() == sb["train"]["per_marker"].keys()
+
+
+def test_fleet_exact_mode_follows_calibrate(kr5, ragged):
+    """Without Jacobian reuse the batched LM takes the single solver's steps."""
+    fr = calibrate_fleet(kr5, ragged[:3], options={"reuse": None})
+    for a, d in zip(fr.results, ragged[:3]):
+        b = calibrate(kr5, d, method="lm")
+        assert a.solver.n_iter == b.solver.n_iter
+        assert torch.allclose(a.params.values, b.params.values, atol=1e-9, rtol=0)
+
+
+def test_moved_joint_offset_is_flagged():
+    robot = shipped("kuka_kr5_arc")  # URDF, marker on the flange
+    spread = 0.2e-3  # rad: per-robot deviation of every angle around the fleet mean
+    cfg = SimConfig(n=30, seed=5)
+    base, _, _ = simulate_fleet(robot, 16, cfg, spread=spread / cfg.angle_error)
+    moved, _, _ = simulate_fleet(robot, 16, cfg, spread=spread / cfg.angle_error,
+                                 moved={6: {"joint_a3.offset": 10 * spread}})
+    clean = calibrate_fleet(robot, base)
+    assert not [f for f in clean.flags if f["parameter"].endswith(".offset")]
+    fr = calibrate_fleet(robot, moved)
+    hits = [f for f in fr.flags if f["parameter"] == "joint_a3.offset"]
+    assert [f["robot"] for f in hits] == ["robot_006"] and hits[0]["z"] > 5
+    assert fr.spread["joint_a3.offset"]["outliers"] == ["robot_006"]
+    assert "robot_006" in fr.markdown() and fr.report()["flags"][0]["robot"] == "robot_006"
+
+
+def test_fleet_prior_helps_robots_with_few_poses():
+    robot = shipped("kuka_kr5_arc")
+    train, test, _ = simulate_fleet(robot, 12, SimConfig(n=10, seed=7), spread=0.2, n_test=40)
+    alone = calibrate_fleet(robot, train, test=test)
+    pooled = calibrate_fleet(robot, train, test=test, prior="fleet")
+    held = lambda fr: statistics.mean(r.stages[-1]["test"]["mean_mm"] for r in fr.results)  # noqa: E731
+    assert held(pooled) < 0.8 * held(alone)
+    assert pooled.prior["sigma_m"] == pytest.approx(0.02e-3, rel=0.3)  # the simulated tracker noise
+    assert len(pooled.prior["tau"]) == len(pooled.prior["parameters"]) > 0
+
+
+def test_fleet_joint_compliance_shared_and_per_robot_payload():
+    robot = Robot.from_urdf(urdf_path("ur5e"), markers=["smr@flange=0,0,0.08"])
+    train, test, truth = [], [], []
+    for r in range(4):
+        sim = simulated_robot(robot, SimConfig(n=50, seed=300 + r), ["joint_compliance"])
+        train.append(sim.measure(random_configs(robot, 50, sim.g)))
+        test.append(sim.measure(random_configs(robot, 50, sim.g)))
+        truth.append(sim.effects["joint_compliance"])
+    geo = calibrate_fleet(robot, train, test=test)
+    held = lambda fr: statistics.mean(r.stages[-1]["test"]["mean_mm"] for r in fr.results)  # noqa: E731
+    shared = calibrate_fleet(robot, train, test=test, effects=["joint_compliance"])
+    assert held(shared) < 0.15 * held(geo)
+    assert shared.effects["shared"]["payload.m"] == pytest.approx(truth[0]["payload_kg"], rel=0.1)
+    names = shared.effects["names"]
+    for r in range(4):
+        for j, n in enumerate(names):
+            v = shared.effects["values"][r][j]
+            if v is not None and n in ("shoulder_lift_joint.twist", "elbow_joint.twist"):
+                true = truth[r]["compliance_rad_per_Nm"][robot.joint_names.index(n.split(".")[0])]
+                assert v == pytest.approx(true, rel=0.1), (r, n)
+    own = calibrate_fleet(robot, train, test=test, effects=["joint_compliance"], payload="per_robot")
+    assert held(own) < 0.15 * held(geo)
+    assert "payload.m" in own.effects["names"] and not own.effects["shared"]
+
+
+def test_fleet_validation(kr5, ragged):
+    with pytest.raises(ValueError, match="no robots"):
+        calibrate_fleet(kr5, [])
+    with pytest.raises(TypeError, match="list of Measurements"):
+        calibrate_fleet(kr5, ragged[0])
+    with pytest.raises(TypeError, match="expected Measurements"):
+        calibrate_fleet(kr5, [ragged[0], "robot.csv"])
+    other = shipped("ur5e")
+    d_other, _ = simulate(other, SimConfig(n=10, seed=1))
+    with pytest.raises(ValueError, match="same model"):
+        calibrate_fleet(kr5, [ragged[0], d_other])
+    with pytest.raises(ValueError, match="share one marker set"):
+        calibrate_fleet(kr5, [ragged[0], ragged[1].select_markers(["smr"])])
+    with pytest.raises(ValueError, match="at least 10 rows"):
+        calibrate_fleet(kr5, [ragged[0], ragged[1].subset(range(6))], min_rows=10)
+    with pytest.raises(ValueError, match="too few rows"):
+        calibrate_fleet(kr5, [ragged[0], ragged[1].subset(range(3))])
+    with pytest.raises(ValueError, match="prior must be"):
+        calibrate_fleet(kr5, ragged[:2], prior="global")
+    with pytest.raises(ValueError, match="only 'joint_compliance'"):
+        calibrate_fleet(kr5, ragged[:2], effects=["backlash"])
+    with pytest.raises(ValueError, match="inertials"):
+        calibrate_fleet(kr5, ragged[:2], effects=["joint_compliance"])
+    with pytest.raises(ValueError, match="unique"):
+        calibrate_fleet(kr5, ragged[:2], names=["a", "a"])
+
+
+def _write_fleet(folder, robot, data):
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, d in enumerate(data):
+        save_measurements(folder / f"kr5_{i:02d}.csv", d)
+
+
+def test_cli_fleet(tmp_path, capsys):
+    robot = shipped("kuka_kr5_arc")
+    train, test, _ = simulate_fleet(robot, 6, SimConfig(n=30, seed=9), spread=0.2, n_test=10)
+    _write_fleet(tmp_path / "train", robot, train)
+    _write_fleet(tmp_path / "test", robot, test)
+    urdf = str(urdf_path("kuka_kr5_arc"))
+    out = tmp_path / "out"
+    rc = main(["fleet", "--robot", urdf, "--data", str(tmp_path / "train"), "--test", str(tmp_path / "test" / "*.csv"),
+               "--out", str(out), "--no-figures"])
+    assert rc == 0
+    rep = json.loads((out / "fleet.json").read_text())
+    assert rep["n_robots"] == 6 and [r["robot"] for r in rep["robots"]] == [f"kr5_{i:02d}" for i in range(6)]
+    assert "joint_a3.offset" in rep["spread"] and (out / "fleet.md").is_file()
+    for i in range(6):
+        d = out / f"kr5_{i:02d}"
+        assert (d / "calibrated.urdf").is_file() and (d / "report.md").is_file()
+        assert json.loads((d / "report.json").read_text())["n_test"] == 10
+    # the exported URDF (rooted in the robot's own base frame) reproduces the calibrated kinematics
+    res = calibrate_fleet(robot, train)
+    cal = Robot.from_urdf(out / "kr5_00" / "calibrated.urdf", markers=["marker_flange"])
+    q = random_configs(robot, 5, torch.Generator().manual_seed(0))
+    assert torch.allclose(cal.positions(q)[:, 0], robot.positions(q, res.values[0], base=False)[:, 0], atol=1e-9)
+
+
+def test_cli_fleet_refuses_bad_input(tmp_path, capsys):
+    robot = shipped("kuka_kr5_arc")
+    urdf = str(urdf_path("kuka_kr5_arc"))
+    rc = main(["fleet", "--robot", urdf, "--data", str(tmp_path / "nothing" / "*.csv"), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "no CSV files" in capsys.readouterr().err
+    train, _, _ = simulate_fleet(robot, 3, SimConfig(n=20, seed=2))
+    _write_fleet(tmp_path / "a", robot, train)
+    text = (tmp_path / "a" / "kr5_01.csv").read_text().replace("joint_a2", "axis_2", 1)
+    (tmp_path / "a" / "kr5_01.csv").write_text(text)
+    rc = main(["fleet", "--robot", urdf, "--data", str(tmp_path / "a"), "--out", str(tmp_path / "o")])
+    assert rc == 2 and "same joint columns" in capsys.readouterr().err
+    _write_fleet(tmp_path / "b", robot, [train[0], train[1].subset(range(2))])
+    rc = main(["fleet", "--robot", urdf, "--data", str(tmp_path / "b"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "kr5_01" in err and "rows" in err
+
+
+def test_ray_missing_says_how_to_install(monkeypatch):
+    import sys
+
+    from torchcal.fleet_ray import import_ray
+
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if it were not installed
+    with pytest.raises(ImportError, match=r"pip install torchcal\[ray\]"):
+        import_ray()
