@@ -244,7 +244,8 @@ def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
     assert cli(["calibrate", *args, "--out", str(tmp_path / "c")]) == 2
     assert cli(["loop", *args, "--no-elm", "--out", str(tmp_path / "l")]) == 2
     err = capsys.readouterr().err
-    assert err.count("do not belong to this robot") == 2 and "another robot" in err
+    refused = [ln for ln in err.splitlines() if ": error: " in ln and "do not belong to this robot" in ln]
+    assert [ln.split(":")[0] for ln in refused] == ["torchcal calibrate", "torchcal loop"] and "another robot" in err
 
 
 # ----------------------------------------------------------------------------- the integrator's outputs

@@ -12,7 +12,7 @@ from torch import Tensor
 from .io import Measurements
 from .measurement import Loss, PoseResidual, PositionResidual
 from .optim import Result, get_solver
-from .params import ParamSet
+from .params import ParamSet, display_unit
 from .fitting import fit_identified
 from .problem import CalibrationProblem
 from .registration import register_base
@@ -151,7 +151,7 @@ class CalibrationResult:
                   "| parameter | value | std. error | unit |", "|---|---|---|---|"]
         for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
             if n in self.std_errors:
-                sc, us = (1e3, "mm") if u == "m" else (1e3, "mrad")
+                sc, us = display_unit(u)
                 lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
         if self.unidentifiable:
             lines += ["", "## Not identifiable from these measurements", ""]

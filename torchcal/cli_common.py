@@ -17,7 +17,7 @@ from .tree import Marker, parse_marker
 from .urdf import urdf_links
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "add_common", "expand_config",
-           "setup_logging", "run_record", "robot_and_data", "robot_for", "PATH_OPTIONS"]
+           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
 
 logger = logging.getLogger("torchcal")
 
@@ -127,13 +127,29 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
     return [argv[0]] + tokens + argv[1:]
 
 
+class _Stderr(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is when a message comes (a notebook, a test harness or
+    a caller may have replaced it since the handler was made), like logging's last resort."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
 def setup_logging(a: argparse.Namespace) -> None:
     """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``."""
     level = logging.WARNING if getattr(a, "quiet", False) else logging.DEBUG if getattr(a, "verbose", False) \
         else logging.INFO
     logger.setLevel(level)
     if not any(getattr(h, "_torchcal", False) for h in logger.handlers):
-        h = logging.StreamHandler(sys.stderr)
+        h = _Stderr()
         h.setFormatter(logging.Formatter("%(message)s"))
         h._torchcal = True
         logger.addHandler(h)
@@ -160,7 +176,7 @@ def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -
     return prov
 
 
-def _markers(specs: list[str], units: list[str]) -> list[Marker]:
+def parse_markers(specs: list[str], units: list[str]) -> list[Marker]:
     """Declared markers, their guesses converted from millimetres when declared, refused when
     they look like millimetres otherwise."""
     out = []
@@ -189,7 +205,7 @@ def robot_for(urdf, markers: list[str] | None, data_path, units: list[str]) -> R
         if not cols:
             raise ValueError(f"{data_path} has no '<marker>.x/.y/.z' columns")
         markers = cols
-    return Robot.from_urdf(urdf, markers=_markers(markers, units))
+    return Robot.from_urdf(urdf, markers=parse_markers(markers, units))
 
 
 def robot_and_data(a: argparse.Namespace):

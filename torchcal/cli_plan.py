@@ -12,7 +12,7 @@ import argparse
 
 import torch
 
-from .cli_common import _markers, add_common, int_at_least, nonnegative_float, positive_float
+from .cli_common import add_common, int_at_least, nonnegative_float, parse_markers, positive_float
 from .outputs import check_out_file, provenance
 from .plan import PLANNABLE_EFFECTS, plan_paths, plan_poses
 from .plan_design import CRITERIA
@@ -78,7 +78,7 @@ def plan_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     for p in paths:
         check_out_file(p, a.force, inputs=(a.robot,))
     torch.set_num_threads(a.threads)
-    robot = Robot.from_urdf(a.robot, markers=_markers(a.marker, []) if a.marker else None)
+    robot = Robot.from_urdf(a.robot, markers=parse_markers(a.marker, []) if a.marker else None)
     margin = None if a.collision_margin_mm is None else a.collision_margin_mm * 1e-3
     plan = plan_poses(robot, a.select, n_candidates=a.candidates, criterion=a.criterion, effects=a.effect,
                       reachable=a.reachable, collision_margin=margin, urdf_path=a.robot, noise=a.noise_mm * 1e-3,

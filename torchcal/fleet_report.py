@@ -19,16 +19,13 @@ from pathlib import Path
 
 import torch
 
+from .params import display_unit
 from .report import write_json
 
 __all__ = ["parameter_spread", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS"]
 
 MIN_ROBOTS = 5  # fewer robots than this: a median and a MAD say too little to flag anyone
 _MAD = 1.4826  # MAD -> standard deviation for a normal distribution
-
-
-def _scaled(unit: str) -> tuple[float, str]:
-    return {"m": (1e3, "mm"), "rad": (1e3, "mrad")}.get(unit, (1.0, unit))
 
 
 def _columns(results, extra) -> list[tuple[str, str, list[float | None], list[float | None]]]:
@@ -134,7 +131,7 @@ def fleet_markdown(fr) -> str:
     else:
         lines += ["| robot | parameter | value | fleet median | z |", "|---|---|---|---|---|"]
         for f in fr.flags:
-            sc, us = _scaled(f["unit"])
+            sc, us = display_unit(f["unit"])
             lines.append(f"| {f['robot']} | {f['parameter']} | {f['value'] * sc:.4f} {us} | {f['median'] * sc:.4f} {us} "
                          f"| {f['z']:+.1f} |")
         lines += ["", "A joint offset far from its siblings usually means a re-mastered or damaged axis."]
@@ -149,7 +146,7 @@ def fleet_markdown(fr) -> str:
               "| parameter | robots | mean | std | median | robust std | min | max | unit | outliers |",
               "|---|---|---|---|---|---|---|---|---|---|"]
     for n, e in fr.spread.items():
-        sc, us = _scaled(e["unit"])
+        sc, us = display_unit(e["unit"])
         v = " | ".join(f"{e[k] * sc:.4g}" for k in ("mean", "std", "median", "robust_std", "min", "max"))
         lines.append(f"| {n} | {e['n']} | {v} | {us} | {', '.join(e['outliers']) or '–'} |")
     return "\n".join(lines) + "\n"

@@ -49,11 +49,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .params import ParamSet
+from .params import ParamSet, display_unit
 
 __all__ = ["stacked_jacobian", "identifiability", "analyse_jacobian", "observability", "IdentifiabilityReport",
            "DEFAULT_PREFER", "resolve_free", "normalise_columns", "zero_column_reason", "dependency_reason",
-           "preference_tiers", "TIE_BOOST"]
+           "preference_tiers", "TIE_BOOST", "observability_indices"]
 
 # Preference tiers (glob patterns), earliest kept first when parameters are interchangeable.
 # The base frame comes first, with the other unknowns of the set-up (touched planes, fixed points):
@@ -217,7 +217,7 @@ def _tiered_qr(An: np.ndarray, tiers: list[list[int]], rtol: float) -> tuple[lis
     return kept, diag
 
 
-def _observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
+def observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
     """O1..O4 and the condition number from singular values ``s`` of the unit-RMS Jacobian."""
     k = s.size
     if k == 0:
@@ -227,11 +227,6 @@ def _observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
         O1 = float(np.exp(np.mean(np.log(s)))) / math.sqrt(n_rows) if smin > 0 else 0.0  # log: no overflow
     return dict(O1=O1, O2=smin / smax if smax > 0 else 0.0, O3=smin, O4=smin ** 2 / smax if smax > 0 else 0.0,
                 condition=smax / smin if smin > 0 else math.inf)
-
-
-def _fmt_units(unit: str) -> tuple[str, float]:
-    """Display unit and factor: m -> mm, rad -> mrad (same factor, so ratios read unchanged)."""
-    return {"m": ("mm", 1e3), "rad": ("mrad", 1e3)}.get(unit, (unit, 1.0))
 
 
 def zero_column_reason(name: str, kind: str = "position") -> str:
@@ -258,11 +253,11 @@ def dependency_reason(i: int, c, res: float, kept: list[int], names: list[str], 
     # unscaled: a_i/|a_i| = Σ c_j a_j/|a_j|  =>  a_i = Σ c_j |a_i|/|a_j| a_j (per unit of p_i)
     cu = {names[kept[t]]: float(c[t] * norms[i] / norms[kept[t]]) for t in partners}
     relation = dict(cu)
-    ui, fi = _fmt_units(units[i])
+    fi, ui = display_unit(units[i])
 
     def term(t, lead=False):
         j = kept[t]
-        uj, fj = _fmt_units(units[j])
+        fj, uj = display_unit(units[j])
         v = cu[names[j]] * fj / fi  # display units of partner per display unit of p_i
         return f"{v:.4g} {uj} of {names[j]}" if lead else f"{'+' if v >= 0 else '-'} {abs(v):.4g} {uj} of {names[j]}"
 
@@ -444,7 +439,7 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
 
     # observability of the identifiable columns, scaled to unit RMS (see module docstring)
     rms = norms / math.sqrt(m) if m else norms
-    obs = _observability_indices(np.linalg.svd(An[:, kept] * math.sqrt(m), compute_uv=False) if kept
+    obs = observability_indices(np.linalg.svd(An[:, kept] * math.sqrt(m), compute_uv=False) if kept
                                  else np.zeros(0), m)
     return IdentifiabilityReport(
         rank=rank, svd_rank=svd_rank, n_params=k, n_rows=m,
@@ -494,7 +489,7 @@ def observability(robot, q, params=None, kind: str = "position", free=None, *, w
         As = np.where(sc > 0, A / np.where(sc > 0, sc, 1.0), 0.0)
     s = np.linalg.svd(As, compute_uv=False) if As.size else np.zeros(0)
     rank = int(np.sum(s > rtol * s[0])) if s.size and s[0] > 0 else 0
-    out = _observability_indices(s, m)
+    out = observability_indices(s, m)
     if s.size and rank < len(names):  # a deficient column set: σ_min is (numerically) zero
         out.update(O1=0.0, O2=0.0, O3=0.0, O4=0.0, condition=math.inf)
     out.update(rank=rank, n_params=len(names), n_rows=m, params=names)

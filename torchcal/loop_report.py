@@ -4,6 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .loop import LoopResult
+from .params import display_unit
 from .report import error_figure, write_json
 
 __all__ = ["write_loop_report"]
@@ -71,8 +72,7 @@ def _evidence_plot(name: str, ev: dict, path: Path) -> bool:
 
 def _shown(v: float | None, unit: str) -> tuple[str, str]:
     """A value in a readable unit: m -> mm, rad -> mrad, rad/(N*m) -> µrad/(N·m)."""
-    f, u = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N*m)": (1e6, "µrad/(N·m)"), "m/N": (1e9, "µm/kN")
-            }.get(unit, (1.0, unit))
+    f, u = display_unit(unit)
     return ("–" if v is None else f"{v * f:.6g}"), u
 
 

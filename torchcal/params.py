@@ -7,7 +7,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["ParamSet"]
+__all__ = ["ParamSet", "display_unit"]
+
+# SI unit -> (factor, unit) in which people read it; m and rad share the factor, so ratios of the
+# two read unchanged
+_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N*m)": (1e6, "µrad/(N·m)"), "m/N": (1e9, "µm/kN")}
+
+
+def display_unit(unit: str) -> tuple[float, str]:
+    """``(factor, unit)`` to show a value given in ``unit``: m -> mm, rad -> mrad,
+    rad/(N*m) -> µrad/(N·m), m/N -> µm/kN; anything else as it is."""
+    return _DISPLAY.get(unit, (1.0, unit))
 
 
 @dataclass
@@ -114,7 +124,8 @@ class ParamSet:
         for n, u, v, f in zip(self.names, self.units, self.values.tolist(), self.free.tolist()):
             if only_free and not f:
                 continue
-            if scale and u in ("m", "rad"):
-                v, u = v * 1e3, "mm" if u == "m" else "mrad"
+            if scale:
+                f_, u = display_unit(u)
+                v = v * f_
             lines.append(f"{n:<32} {v:>14.6f}  {u:<5} {'yes' if f else 'no'}")
         return "\n".join(lines)

@@ -32,9 +32,9 @@ import torch
 from torch import Tensor
 
 from .effects import EFFECTS, build_effect
-from .identifiability import _fmt_units, _observability_indices, analyse_jacobian, resolve_free
+from .identifiability import analyse_jacobian, observability_indices, resolve_free
 from .outputs import atomic_write_text, check_out_file
-from .params import ParamSet
+from .params import ParamSet, display_unit
 from .plan_design import (CRITERIA, DesignColumns, column_signs, criterion_value, exchange, greedy_select,
                           information, refine_poses, tune_directions)
 from .plan_feasible import SelfCollision, in_box, parse_box
@@ -153,7 +153,7 @@ class Plan:
         lines += [f"## Expected standard errors (noise {self.noise * 1e3:.3g} mm per axis)", "",
                   "| parameter | std. error | unit |", "|---|---|---|"]
         for n, se in self.std_errors.items():
-            u, fac = _fmt_units(self.units[n])
+            fac, u = display_unit(self.units[n])
             lines.append(f"| {n} | {se * fac:.4g} | {u} |")
         if self.not_seen:
             lines += ["", "## Not identifiable from any candidate pose", ""]
@@ -337,7 +337,7 @@ def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, criterion
     J, names, units, sc = J[:, ok], [names[i] for i in ok], [units[i] for i in ok], scale[ok]
     Js = J / sc
     se = noise * (torch.linalg.inv(Js.T @ Js).diagonal().clamp(min=0).sqrt() / sc)
-    obs = _observability_indices(torch.linalg.svdvals(J / (J.norm(dim=0) / math.sqrt(J.shape[0]))).cpu().numpy(),
+    obs = observability_indices(torch.linalg.svdvals(J / (J.norm(dim=0) / math.sqrt(J.shape[0]))).cpu().numpy(),
                                  J.shape[0])
     nat = lambda v: math.exp(v) if criterion != "D" else v  # noqa: E731
     dirs = D.to(**dt) if planned else None

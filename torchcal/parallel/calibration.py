@@ -31,7 +31,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from ..identifiability import IdentifiabilityReport, _observability_indices, analyse_jacobian
+from ..identifiability import IdentifiabilityReport, analyse_jacobian, observability_indices
 from ..optim.problem import Problem
 from .rrru import N_PARAMS, PARAM_NAMES, PARAM_UNITS, RRRU
 
@@ -317,7 +317,7 @@ def observability_indices(J: Tensor, scale: Tensor | None = None) -> dict[str, f
     if scale is None:
         scale = torch.linalg.vector_norm(J, dim=0) / math.sqrt(m)
     s = torch.linalg.svdvals(J / scale).cpu().numpy()
-    out = _observability_indices(s, m)
+    out = observability_indices(s, m)
     out["n_rows"] = m
     return out
 
