@@ -8,6 +8,7 @@ Robot model -> measurement model -> problem -> solver -> result/report:
 from .calibrate import CalibrationResult, calibrate
 from .correct import Corrector
 from .elm import ELM, tune_elm
+from .fleet import FleetResult, calibrate_fleet
 from .io import Measurements, load_measurements
 from .loop import run_loop
 from .model import CalibratedModel
@@ -19,5 +20,5 @@ from .tree import Marker
 
 __version__ = "0.1.0"
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
-           "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load", "plan_poses", "Plan",
-           "__version__"]
+           "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",
+           "plan_poses", "Plan", "calibrate_fleet", "FleetResult", "__version__"]

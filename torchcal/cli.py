@@ -112,7 +112,8 @@ def _loop(a, argv) -> int:
         save(model, d / "model")
     out = Path(a.out)
     _print_stages(res.stages, test is not None)
-    print(f"effects found: {[e['name'] for e in res.accepted] or 'none'}; report in {out / 'report.md'}; calibrated "
+    found = list(dict.fromkeys(e["name"] for e in res.accepted))  # an effect that gained modes later: once
+    print(f"effects found: {found or 'none'}; report in {out / 'report.md'}; calibrated "
           f"URDF {out / 'calibrated.urdf'}" + (" (geometric part)" if res.effects else "") + f"; model in {out / 'model'}")
     if res.suspects:
         print(f"{len(res.suspects)} suspect observation(s), listed in the report (kept in the data)")
