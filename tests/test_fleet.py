@@ -156,6 +156,7 @@ def test_moved_joint_offset_is_flagged():
     assert [f["robot"] for f in hits] == ["robot_006"] and hits[0]["z"] > 5
     assert fr.spread["joint_a3.offset"]["outliers"] == ["robot_006"]
     assert "robot_006" in fr.markdown() and fr.report()["flags"][0]["robot"] == "robot_006"
+    assert "With 16 robots the median and the MAD are themselves uncertain" in fr.markdown()  # a small fleet
 
 
 def test_fleet_prior_helps_robots_with_few_poses():

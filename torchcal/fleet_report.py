@@ -25,6 +25,8 @@ from .report import write_json
 __all__ = ["parameter_spread", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS"]
 
 MIN_ROBOTS = 5  # fewer robots than this: a median and a MAD say too little to flag anyone
+# below this many robots, simulated healthy fleets still drew flags (KR5, 0.2x spread: none at 40)
+FEW_ROBOTS = 20
 _MAD = 1.4826  # MAD -> standard deviation for a normal distribution
 
 
@@ -135,6 +137,10 @@ def fleet_markdown(fr) -> str:
             lines.append(f"| {f['robot']} | {f['parameter']} | {f['value'] * sc:.4f} {us} | {f['median'] * sc:.4f} {us} "
                          f"| {f['z']:+.1f} |")
         lines += ["", "A joint offset far from its siblings usually means a re-mastered or damaged axis."]
+        if len(fr.names) < FEW_ROBOTS:
+            lines += [f"With {len(fr.names)} robots the median and the MAD are themselves uncertain, and an identified "
+                      "parameter also carries what the robot's unidentifiable errors project onto it: healthy robots "
+                      "of small fleets get flagged too. Confirm a flag by measuring that axis again."]
     lines += ["", "## Robots", "", f"| robot | rows | parameters | train mean: nominal → {last} (mm) | test mean (mm) | "
               "solver |", "|---|---|---|---|---|---|"]
     for n, r in zip(fr.names, fr.results):
