@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -43,6 +44,8 @@ def _float(text: str, ok, what: str) -> float:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
     if not ok(v):
         raise argparse.ArgumentTypeError(f"must be {what}, got {v}")
     return v
@@ -176,17 +179,19 @@ def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -
     return prov
 
 
-def parse_markers(specs: list[str], units: list[str]) -> list[Marker]:
-    """Declared markers, their guesses converted from millimetres when declared, refused when
-    they look like millimetres otherwise."""
+def parse_markers(specs: list[str], units: list[str] | None) -> list[Marker]:
+    """Declared markers, their guesses (m) converted from millimetres when declared, refused when
+    they look like millimetres otherwise. ``units``: the command's ``--units``, or None for a
+    command without that option (the refusal then asks for metres only)."""
     out = []
     for spec in specs:
         m = parse_marker(spec)
-        xyz = tuple(v / 1000.0 for v in m.xyz) if "mm" in units else m.xyz
+        xyz = tuple(v / 1000.0 for v in m.xyz) if units and "mm" in units else m.xyz
         far = max(abs(v) for v in xyz)
         if far > _MAX_MARKER_GUESS_M:
             raise ValueError(f"marker {spec!r}: a guess {far:.3g} m from its link looks like millimetres; give metres "
-                             f"(e.g. {m.name}@{m.link}={','.join(f'{v / 1000:g}' for v in m.xyz)}) or declare --units mm")
+                             f"(e.g. {m.name}@{m.link}={','.join(f'{v / 1000:g}' for v in m.xyz)})"
+                             + (" or declare --units mm" if units is not None else ""))
         out.append(Marker(m.name, m.link, xyz, m.rpy))
     return out
 

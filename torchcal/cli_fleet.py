@@ -15,7 +15,7 @@ import torch
 
 from .cli_common import add_common, int_at_least, positive_float, robot_for, run_record
 from .fleet import calibrate_fleet
-from .io import load_measurements, read_csv
+from .io import UnitsError, load_measurements, read_csv
 from .outputs import check_out_dir, staged_dir
 from .urdf import load_joints
 
@@ -52,6 +52,19 @@ def _same_joints(files: list[Path], urdf: str) -> None:
                              "fleet must come from the same robot model (same joint columns)")
 
 
+def _load_all(files: list[Path], robot, units: list[str]) -> dict:
+    """Robot id -> measurements (m, rad) of every file; a file in other units than the rest is
+    named, with the reminder that ``--units`` holds for every file of the fleet."""
+    out = {}
+    for f in files:
+        try:
+            out[f.stem] = load_measurements(f, robot, units=units)
+        except UnitsError as e:
+            raise UnitsError(f"{e}. --units applies to every file of the fleet: convert the files that differ, so "
+                             "that all share one unit") from None
+    return out
+
+
 def add_fleet_parser(sub) -> argparse.ArgumentParser:
     """Add the ``fleet`` sub-command to an ``argparse`` sub-parser set."""
     f = sub.add_parser("fleet", help="calibrate many robots of one model in one batched solve",
@@ -86,9 +99,9 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     files = fleet_files(a.data)
     _same_joints(files, a.robot)
     robot = robot_for(a.robot, a.marker, files[0], units)
-    data = {f.stem: load_measurements(f, robot, units=units) for f in files}
+    data = _load_all(files, robot, units)
     test_files = fleet_files(a.test) if a.test else []
-    test = {f.stem: load_measurements(f, robot, units=units) for f in test_files} or None
+    test = _load_all(test_files, robot, units) or None
     fr = calibrate_fleet(robot, data, test=test, prior=a.prior, effects=a.effect, payload=a.payload,
                          z_threshold=a.z, min_rows=a.min_rows, ray=a.ray, ray_shards=a.shards)
     inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}

@@ -14,7 +14,7 @@ import torch
 
 from .cli_common import add_common, int_at_least, nonnegative_float, parse_markers, positive_float
 from .outputs import check_out_file, provenance
-from .plan import PLANNABLE_EFFECTS, plan_paths, plan_poses
+from .plan import PLANNABLE_EFFECTS, check_plannable, plan_paths, plan_poses
 from .plan_design import CRITERIA
 from .plan_feasible import parse_box
 from .robot import Robot
@@ -27,6 +27,14 @@ def _box(text: str):
         return parse_box(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _effect(text: str) -> str:
+    try:
+        check_plannable([text])
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
 
 
 def _margin(text: str) -> float:
@@ -51,7 +59,7 @@ def add_plan_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--select", type=int_at_least(1), default=30, help="poses in the plan (default 30)")
     p.add_argument("--criterion", choices=CRITERIA, default="D",
                    help="D: log det of the information matrix (default); O1, O4: observability indices")
-    p.add_argument("--effect", action="append", default=[], choices=PLANNABLE_EFFECTS, metavar="EFFECT",
+    p.add_argument("--effect", action="append", default=[], type=_effect, metavar="EFFECT",
                    help="also plan for this effect (repeatable): " + ", ".join(PLANNABLE_EFFECTS))
     p.add_argument("--reachable", type=_box, metavar="BOX",
                    help="xmin,xmax,ymin,ymax,zmin,zmax (m, robot base frame): every marker must stay inside")
@@ -78,7 +86,7 @@ def plan_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     for p in paths:
         check_out_file(p, a.force, inputs=(a.robot,))
     torch.set_num_threads(a.threads)
-    robot = Robot.from_urdf(a.robot, markers=parse_markers(a.marker, []) if a.marker else None)
+    robot = Robot.from_urdf(a.robot, markers=parse_markers(a.marker, None) if a.marker else None)
     margin = None if a.collision_margin_mm is None else a.collision_margin_mm * 1e-3
     plan = plan_poses(robot, a.select, n_candidates=a.candidates, criterion=a.criterion, effects=a.effect,
                       reachable=a.reachable, collision_margin=margin, urdf_path=a.robot, noise=a.noise_mm * 1e-3,

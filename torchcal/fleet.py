@@ -13,6 +13,7 @@ with a payload shared by the fleet (:mod:`torchcal.fleet_coupled`).
 """
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +33,7 @@ from .robot import Robot
 __all__ = ["calibrate_fleet", "FleetResult", "FleetData", "fleet_template", "validate_fleet"]
 
 _LM_DEFAULTS = {"tau": 1e-6, "reuse": 0.9}
+_PRIOR_MIN_ROBOTS = 3  # a spread estimated from fewer robots is no estimate
 
 
 @dataclass
@@ -245,7 +247,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         prior: ``None`` (every robot alone: the result equals ``calibrate(..., method="lm")``) or
             ``"fleet"``: each robot's geometric errors are drawn around the fleet mean, with
             scales and noise estimated from the fleet (empirical Bayes) unless ``prior_scale``
-            gives them (``{"m": metres, "rad": radians}``).
+            gives them (``{"m": metres, "rad": radians}``). It needs at least 3 robots (2 when
+            ``prior_scale`` is given).
         effects: ``None`` or ``["joint_compliance"]``: each robot's joints twist with the gravity
             torque (its own compliances), under a payload ``"shared"`` by the fleet or fitted
             ``"per_robot"`` (``payload``); needs URDF inertials.
@@ -262,9 +265,22 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
     """
     t0 = time.perf_counter()
     names, datasets, tests = validate_fleet(robot, data, names, test, min_rows)
+    effects = [effects] if isinstance(effects, str) else effects
     coupled = prior is not None or bool(effects)
     if prior not in (None, "fleet"):
         raise ValueError(f"prior must be None or 'fleet', got {prior!r}")
+    if payload not in ("shared", "per_robot"):
+        raise ValueError(f"payload must be 'shared' or 'per_robot', got {payload!r}")
+    if not (isinstance(z_threshold, numbers.Real) and 0 < z_threshold < float("inf")):
+        raise ValueError(f"z_threshold is a robust z-score beyond which a parameter is flagged: give a positive number "
+                         f"(default 5), got {z_threshold!r}")
+    need = _PRIOR_MIN_ROBOTS if prior_scale is None else 2
+    if prior is not None and len(names) < need:
+        raise ValueError(f"prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
+                         + (", which is estimated from the fleet" if prior_scale is None else "")
+                         + f": {len(names)} robot(s) are too few to tell. Give at least {need} robots"
+                         + (" (or prior_scale={'m': …, 'rad': …} with 2)" if prior_scale is None else "")
+                         + ", or leave out the prior")
     if identify not in (None, "per_robot", "pooled"):
         raise ValueError(f"identify must be 'per_robot' or 'pooled', got {identify!r}")
     if coupled and identify == "per_robot":

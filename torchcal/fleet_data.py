@@ -102,7 +102,8 @@ def _named(data, names, what: str) -> tuple[list[str], list]:
         names = [f"robot_{i:03d}" for i in range(len(data))]
     names = [str(n) for n in names]
     if len(names) != len(data):
-        raise ValueError(f"{len(names)} names for {len(data)} robots; give one name per robot")
+        raise ValueError(f"{what}: {len(data)} data sets for {len(names)} robot ids; give one per robot, in the same "
+                         "order (or a dict robot id -> Measurements)")
     return names, list(data)
 
 
@@ -140,7 +141,9 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
         tnames, tsets = _named(test, names if not isinstance(test, dict) else None, "test")
         extra = [t for t in tnames if t not in names]
         if extra:
-            raise ValueError(f"test data for robots {extra[:5]} that are not in the fleet")
+            raise ValueError(f"held-out data for robots {extra[:5]}, which are not in the fleet (its robots: "
+                             f"{names[:5]}{' …' if len(names) > 5 else ''}); name each robot's held-out data as its "
+                             "training data (the same file name <robot>.csv, or the same dict key)")
         by = dict(zip(tnames, tsets))
         tests = [by.get(n) for n in names]
         for n, d in zip(names, tests):

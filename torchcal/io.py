@@ -105,6 +105,9 @@ class Measurements:
                 raise ValueError(f"distance from {a!r} to itself")
             if v.shape != (N,):
                 raise ValueError(f"distance {a}.dist.{b} has shape {tuple(v.shape)}, expected ({N},)")
+            if bool((v < 0).any() | torch.isinf(v).any()):
+                raise ValueError(f"distance {a}.dist.{b} has negative or infinite values; distances are metres, zero or "
+                                 "more (NaN where not measured)")
 
     def __len__(self) -> int:
         return int(self.q.shape[0])
@@ -376,7 +379,9 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     for (a_, b_), v in D.items():
         if np.isinf(v).any() or (v[np.isfinite(v)] < 0).any():
             i = int(np.argmax(np.isinf(v) | (np.nan_to_num(v) < 0)))
-            raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length")
+            raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length; a distance is "
+                             "a finite number of metres, zero or more: correct the cell, or leave it empty where "
+                             "nothing was measured")
     n_contacts = 0 if planes is None else int((planes >= 0).sum())
     if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
         raise ValueError(f"{path}: no marker was seen in any row")

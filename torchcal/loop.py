@@ -37,7 +37,7 @@ from .io import Measurements
 from .loop_evidence import evidence_for
 from .loop_fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
                        geometric_start, noise_sigma, observation_model, rescore, split_params)
-from .observations import KIND_NAMES, Observations, Setup, needs_setup, unseen
+from .observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup, unseen
 from .params import ParamSet
 from .report import error_details, error_stats, stage_problems
 from .selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
@@ -300,9 +300,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     fl = folds_of(len(train), min(folds, len(train)), seed, _duplicate_groups(train))
 
     # 1. nominal: base registration only; the planes and fixed points located from it
+    if test is not None:
+        check_heldout(train, test)
     setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None
     if test is not None:
-        Observations(robot, test, setup)  # refuses held-out rows against planes the training rows never touch
+        Observations(robot, test, setup)  # the held-out rows fit this robot and set-up, before any fitting
     if setup is not None:
         say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "

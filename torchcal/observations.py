@@ -30,7 +30,7 @@ from .io import Measurements
 from .params import ParamSet
 
 __all__ = ["Setup", "Observations", "POSITION", "PLANE", "DISTANCE", "PIVOT", "KIND_NAMES", "SETUP_PREFIXES",
-           "needs_setup", "blind_reasons", "unseen"]
+           "needs_setup", "blind_reasons", "unseen", "setup_refs", "check_heldout"]
 
 POSITION, PLANE, DISTANCE, PIVOT = 0, 1, 2, 3
 KIND_NAMES = ("position", "plane contact", "distance between markers", "distance to a fixed point")
@@ -40,6 +40,26 @@ SETUP_PREFIXES = ("plane.", "pivot.")
 def needs_setup(data: Measurements) -> bool:
     """The rows touch planes or measure distances to fixed points: their poses are unknowns."""
     return bool(data.pivots) or (data.planes is not None and bool((data.planes >= 0).any()))
+
+
+def setup_refs(data: Measurements) -> tuple[list[str], list[str]]:
+    """The planes these rows touch (labels with at least one contact, sorted) and the fixed points
+    they measure distances to."""
+    planes = sorted({data.plane_names[int(i)] for i in torch.unique(data.planes[data.planes >= 0]).tolist()}
+                    if data.planes is not None else set())
+    return planes, list(data.pivots)
+
+
+def check_heldout(train: Measurements, test: Measurements) -> None:
+    """Refuse held-out rows that touch a plane or measure to a fixed point the training rows never
+    do: its pose would be unknown, since the set-up is identified from the training rows only."""
+    (tp, tb), (hp, hb) = setup_refs(train), setup_refs(test)
+    unknown = [p for p in hp if p not in tp] + [b for b in hb if b not in tb]
+    if unknown:
+        raise ValueError(f"the held-out rows measure against {unknown}, which the training rows never touch (they "
+                         f"touch planes {tp}, fixed points {tb}); planes and fixed points are located from the "
+                         "training rows only: move some rows that touch them into the training data, or drop them "
+                         "from the held-out data")
 
 
 def _marker_index(robot, data: Measurements) -> Tensor:
@@ -116,8 +136,9 @@ class Setup:
                 continue
             names.append(name)
             if pts.shape[0] < 3:
-                raise ValueError(f"plane {name!r} has {pts.shape[0]} contact(s); a plane needs at least 3 (not on one "
-                                 "line) to be located, and many more to calibrate anything with it")
+                raise ValueError(f"plane {name!r} has {pts.shape[0]} contact(s) in these rows; a plane needs at least "
+                                 "3 (not on one line) to be located, and many more to calibrate anything with it: "
+                                 f"touch it more often, or drop the rows labelled {name!r}")
             c = pts.mean(0)
             _, s, vh = torch.linalg.svd(pts - c, full_matrices=False)
             if float(s[1]) <= 1e-6 * max(float(s[0]), 1e-300):
@@ -137,8 +158,9 @@ class Setup:
                 d_all.append(v[ok])
             P_, d = torch.cat(rows_p), torch.cat(d_all)
             if P_.shape[0] < 4:
-                raise ValueError(f"fixed point {b!r} has {P_.shape[0]} distance(s); locating it needs at least 4 from "
-                                 "positions not on one plane")
+                raise ValueError(f"fixed point {b!r} has {P_.shape[0]} distance(s) in these rows; locating it needs at "
+                                 "least 4 from positions not on one plane: measure more, or drop the '<marker>.dist."
+                                 f"{b}' column")
             # |p_i − c|² = d_i²: subtracting the mean equation leaves 2 (p_i − p̄)ᵀ c = |p_i|² − mean − (d_i² − mean)
             sq = (P_ * P_).sum(-1) - d * d
             A = 2 * (P_ - P_.mean(0))
@@ -221,9 +243,8 @@ class Observations:
             if setup is None:
                 raise ValueError("these rows touch planes or measure distances to fixed points, whose poses are "
                                  "unknowns: pass setup=Setup.from_data(robot, data, geometry)")
-            used = sorted({data.plane_names[int(i)] for i in torch.unique(data.planes[data.planes >= 0]).tolist()}
-                          if data.planes is not None else set())
-            unknown = [p for p in used if p not in setup.planes] + [b for b in data.pivots if b not in setup.pivots]
+            used, pivots = setup_refs(data)
+            unknown = [p for p in used if p not in setup.planes] + [b for b in pivots if b not in setup.pivots]
             if unknown:
                 raise ValueError(f"these rows measure against {unknown}, which the set-up does not know (it has planes "
                                  f"{setup.planes}, fixed points {setup.pivots}): the training rows must touch every "

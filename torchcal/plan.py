@@ -22,6 +22,7 @@ import csv
 import io
 import json
 import math
+import numbers
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -38,9 +39,10 @@ from .params import ParamSet, display_unit
 from .plan_design import (CRITERIA, DesignColumns, column_signs, criterion_value, exchange, greedy_select,
                           information, refine_poses, tune_directions)
 from .plan_feasible import SelfCollision, in_box, parse_box
+from .robot import Robot
 from .sim import config_bounds
 
-__all__ = ["plan_poses", "Plan", "PLANNABLE_EFFECTS", "plan_paths"]
+__all__ = ["plan_poses", "Plan", "PLANNABLE_EFFECTS", "plan_paths", "check_plannable"]
 
 # effects whose columns depend only on the commands (and, for backlash, on a direction the plan
 # chooses); thermal drift reads a temperature or a time, which no plan can choose
@@ -173,24 +175,51 @@ class Plan:
         return list(paths)
 
 
-def _check_args(n_select, n_candidates, criterion, effects, noise, margin, candidates):
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+def check_plannable(effects: Sequence[str]) -> None:
+    """Refuse effect names a plan cannot serve (unknown, or not a function of the commands),
+    saying why and which can be planned."""
     bad = [e for e in effects if e not in PLANNABLE_EFFECTS]
     if bad:
         why = " (it reads a temperature or time, which a plan cannot choose)" if "thermal_drift" in bad else ""
         raise ValueError(f"cannot plan for effect(s) {bad}{why}; plannable: {list(PLANNABLE_EFFECTS)}")
-    if not int(n_select) >= 1:
-        raise ValueError(f"select at least one pose, got {n_select}")
-    n_cand = candidates.shape[0] if candidates is not None else n_candidates
+
+
+def _whole(v, what: str, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, numbers.Real) or not float(v).is_integer() or v < lo:
+        raise ValueError(f"{what} must be a whole number ≥ {lo}, got {v!r}")
+    return int(v)
+
+
+def _check_candidates(robot, candidates) -> Tensor:
+    """``(N, dof)`` candidate poses, refused when not joint values inside the robot's limits."""
+    qc = robot.check_q(candidates, "candidates", _stacklevel=4)
+    lo, hi = (x.to(qc) for x in robot.joint_limits)
+    out = (qc < lo - 1e-9) | (qc > hi + 1e-9)
+    if bool(out.any()):
+        i, j = torch.nonzero(out)[0].tolist()
+        raise ValueError(f"candidates: {int(out.any(-1).sum())} pose(s) outside the joint limits, the first row {i}: "
+                         f"joint {robot.joint_names[j]!r} = {float(qc[i, j]):.4g} not in [{float(lo[j]):.4g}, "
+                         f"{float(hi[j]):.4g}] (rad / m); give poses the robot can reach (robot.joint_limits), or "
+                         "let plan_poses draw them (leave out candidates)")
+    return qc
+
+
+def _check_args(n_select, n_candidates, criterion, effects, noise, margin, candidates, refine_steps) -> int:
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    check_plannable(effects)
+    n_select = _whole(n_select, "n_select (poses to select)", 1)
+    _whole(refine_steps, "refine_steps", 0)
+    n_cand = candidates.shape[0] if candidates is not None else _whole(n_candidates, "n_candidates", 1)
     if n_select > n_cand:
         raise ValueError(f"cannot select {n_select} poses from {n_cand} candidates: draw more candidates "
                          "(n_candidates / --candidates) or select fewer")
-    if not noise > 0:
-        raise ValueError(f"noise must be positive (m per axis), got {noise}")
+    if not (math.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise must be a positive, finite number (m per axis, e.g. 2e-5 for 0.02 mm), got {noise}")
     if not 0 <= margin < 0.5:
         raise ValueError(f"margin is the fraction of each joint range left out at both ends: give 0 ≤ margin < 0.5, "
                          f"got {margin}")
+    return n_select
 
 
 def _feasible_candidates(robot, qc: Tensor, p: Tensor, reachable, collision_margin, urdf_path, n_select: int):
@@ -265,8 +294,12 @@ def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, criterion
         A :class:`Plan`.
     """
     t0 = time.perf_counter()
-    effects = list(effects)
-    _check_args(n_select, n_candidates, criterion, effects, noise, margin, candidates)
+    if not isinstance(robot, Robot):
+        raise TypeError(f"robot must be a torchcal.Robot with its markers (Robot.from_urdf(path, markers=[...])), got "
+                        f"{type(robot).__name__}")
+    effects = [effects] if isinstance(effects, str) else list(effects)
+    candidates = None if candidates is None else _check_candidates(robot, candidates)
+    n_select = _check_args(n_select, n_candidates, criterion, effects, noise, margin, candidates, refine_steps)
     dt = dict(dtype=robot.dtype, device=robot.device)
     p = torch.zeros(robot.n_params, **dt) if params is None else \
         (params.values if isinstance(params, ParamSet) else torch.as_tensor(params, **dt)).detach().clone()
@@ -281,7 +314,7 @@ def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, criterion
     if candidates is None:
         qc = (lo + (hi - lo) * torch.rand(n_candidates, robot.dof, generator=g, dtype=torch.float64)).to(**dt)
     else:
-        qc = robot.check_q(candidates, "candidates")
+        qc = candidates
         lo, hi = torch.minimum(lo, qc.min(0).values.cpu()), torch.maximum(hi, qc.max(0).values.cpu())
 
     qc, feas, feasible = _feasible_candidates(robot, qc, p, reachable, collision_margin, urdf_path, n_select)

@@ -43,13 +43,10 @@ _MAX_PIECES = 8  # spheres per box: more hug a long link closer but cost more pa
 def parse_box(box) -> Tensor:
     """``(6,)`` float64 box ``(xmin, xmax, ymin, ymax, zmin, zmax)`` (m) from a sequence or a
     comma-separated string; raises ``ValueError`` naming what is wrong."""
-    if isinstance(box, str):
-        try:
-            vals = [float(v) for v in box.replace(" ", "").split(",") if v != ""]
-        except ValueError:
-            raise ValueError(f"reachable box {box!r}: give six numbers xmin,xmax,ymin,ymax,zmin,zmax in metres") from None
-    else:
-        vals = [float(v) for v in box]
+    try:
+        vals = [float(v) for v in (box.replace(" ", "").split(",") if isinstance(box, str) else box) if v != ""]
+    except (TypeError, ValueError):
+        raise ValueError(f"reachable box {box!r}: give six numbers xmin,xmax,ymin,ymax,zmin,zmax in metres") from None
     if len(vals) != 6:
         raise ValueError(f"reachable box: give six numbers xmin,xmax,ymin,ymax,zmin,zmax (m), got {len(vals)}")
     if not all(math.isfinite(v) for v in vals):
