@@ -37,6 +37,6 @@ def test_ray_fleet_equals_in_process():
 
 def test_ray_refuses_coupled_fleets():
     robot = shipped("kuka_kr5_arc")
-    train, _, _ = simulate_fleet(robot, 2, SimConfig(n=20, seed=1))
+    train, _, _ = simulate_fleet(robot, 3, SimConfig(n=20, seed=1))
     with pytest.raises(ValueError, match="in-process"):
         calibrate_fleet(robot, train, prior="fleet", ray="local")
