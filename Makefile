@@ -10,7 +10,7 @@ setup: $(STAMP)
 
 # torch first, pinned to the CPU wheel that is on disk here; the package itself only asks torch>=2.2.
 # Ray (an optional extra for users) is installed here so that the fleet's Ray test runs
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
