@@ -70,8 +70,8 @@ DEFAULT_PREFER: list[list[str]] = [
 # Coefficients below this (relative, on unit-norm columns) are not named as partners.
 _PARTNER_TOL = 1e-6
 # Relative boost per position that breaks exact ties in favour of earlier columns (see _tiered_qr).
-_TIE_BOOST = 1e-10
-TIE_BOOST = _TIE_BOOST  # public name: the fleet's batched selection breaks ties the same way
+# (public: the fleet's batched selection breaks ties the same way)
+TIE_BOOST = 1e-10
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -205,7 +205,7 @@ def _tiered_qr(An: np.ndarray, tiers: list[list[int]], rtol: float) -> tuple[lis
         # Exact duplicates (joint_2.dd / joint_3.dd) tie, and rounding would pick one at random;
         # a tiny boost, largest for the earliest column, makes the earlier one win every time.
         # Scaling a column changes neither the span nor (at 1e-10) any rank decision.
-        boost = 1.0 + _TIE_BOOST * np.arange(len(tier), 0, -1, dtype=float)
+        boost = 1.0 + TIE_BOOST * np.arange(len(tier), 0, -1, dtype=float)
         Qt, Rt, piv = scipy.linalg.qr(B * boost, mode="economic", pivoting=True)
         d = np.abs(np.diag(Rt)) / boost[piv[: min(Rt.shape)]]
         if tol is None:  # relative to the first R-diagonal entry overall
