@@ -747,6 +747,18 @@ class Robot:
         Jac = self._slot_jacobian(q, slots, "pose")[0][..., self._slices["offset"]]
         return self._unbatch(Jac, False, q1, 3)
 
+    @staticmethod
+    def _rpy_directions(e: Tensor, R0: Tensor) -> Tensor:
+        """``(P, n, 3, 6)``: ``R0 @ [x, y, z, Rz Ry x, Rz y, z]`` for rpy errors ``e (P, n, 6)`` about
+        frames ``R0 (n, 3, 3)``: the directions of the three translations and of the roll, pitch and
+        yaw rotation axes of an error ``T(xyz) Rz Ry Rx`` (the last three at the error's value)."""
+        eye = torch.eye(3, dtype=e.dtype, device=e.device)
+        Rz, Ry = rot_z(e[..., 5]), rot_y(e[..., 4])
+        roll = Rz @ (Ry @ eye[:, 0])[..., None]
+        pitch = Rz @ eye[:, 1:2]
+        I3 = eye.expand(*e.shape[:-1], 3, 3)
+        return R0 @ torch.cat([I3, roll, pitch, I3[..., 2:3]], -1)
+
     def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
         mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
@@ -761,30 +773,29 @@ class Robot:
         RP = RF[:, :, self.parent_frame]  # (P, N, J, 3, 3)
         tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
                           for f in self.parent_frame], 2)
-        RJ = torch.stack([x.expand(P, N, 3, 3) for x in JR], 2)
-        if not self._aligned:
-            RJ = RJ @ self._CfT[1:]
+        RJ = torch.stack([x.expand(P, N, 3, 3) for x in JR], 2)  # internal (aligned) joint frames
+        CJ = None if self._aligned else self._CfT[1:]
+        if self._dh_idx and CJ is not None:
+            RJ_urdf = RJ @ CJ
+        else:
+            RJ_urdf = RJ
         tJ = torch.stack([x.expand(P, N, 3) for x in Jt], 2)
         axes, points, is_rot, masks = [], [], [], []
         anc = self._anc  # (J, M)
         if self._urdf_idx:
             U = self._urdf_idx
             e = slots[:, self._slices["urdf"]].reshape(P, -1, 6)
-            F0 = RP[:, :, U] @ self._U_R  # (P, N, U, 3, 3)
-            ex, ey, ez = eye.unbind(0)
-            Rz = rot_z(e[..., 5])[:, None]
-            Ry = rot_y(e[..., 4])[:, None]
-            a_yaw = F0 @ ez
-            a_pitch = F0 @ Rz @ ey
-            a_roll = F0 @ Rz @ Ry @ ex
-            ax = torch.stack([F0[..., 0], F0[..., 1], F0[..., 2], a_roll, a_pitch, a_yaw], -2)  # (P,N,U,6,3)
+            # x, y, z, roll, pitch, yaw directions of each origin frame F0 = RP·U_R: F0 times
+            # small per-parameter-vector matrices, so one batched product per pose
+            B = self._rpy_directions(e, self._U_R)  # (P, U, 3, 6)
+            ax = (RP[:, :, U] @ B[:, None]).transpose(-1, -2)  # (P, N, U, 6, 3)
             axes.append(ax.reshape(P, N, -1, 3))
             points.append(tJ[:, :, U, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
             is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(len(U)))
             masks.append(anc[U].repeat_interleave(6, 0))
         if self._dh_idx:
             D = self._dh_idx
-            Rp, tp, Rj, tj = RP[:, :, D], tP[:, :, D], RJ[:, :, D], tJ[:, :, D]
+            Rp, tp, Rj, tj = RP[:, :, D], tP[:, :, D], RJ_urdf[:, :, D], tJ[:, :, D]
             cls = self._dh_classic[:, None]
             x_p, z_p, z_j = Rp[..., 0], Rp[..., 2], Rj[..., 2]
             # classic Tz(d)Tx(a)Rx(α)Rz(φ): a along x_p, d along z_p, α about x_p at t_J
@@ -798,7 +809,8 @@ class Robot:
             is_rot.append(torch.tensor([False, False, True, True], device=self.device).repeat(len(D)))
             masks.append(anc[D].repeat_interleave(4, 0))
         # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
-        mov_ax = (RJ @ self._axis[..., None])[..., 0]  # (P, N, J, 3)
+        mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
+        mov_ax = (RJ @ mov_dir)[..., 0]  # (P, N, J, 3)
         axes.append(mov_ax)
         points.append(tJ)
         is_rot.append(self._is_rev.clone())
@@ -806,54 +818,63 @@ class Robot:
         # marker offsets: like a fixed joint on the marker's link
         M = len(self.markers)
         e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
-        F0 = RF[:, :, self._mk_frame] @ self._mk_R  # (P, N, M, 3, 3)
-        Rz = rot_z(e[..., 5])[:, None]
-        Ry = rot_y(e[..., 4])[:, None]
-        ex, ey, ez = eye.unbind(0)
-        ax = torch.stack([F0[..., 0], F0[..., 1], F0[..., 2], F0 @ Rz @ Ry @ ex, F0 @ Rz @ ey, F0 @ ez], -2)
+        ax = (RF[:, :, self._mk_frame] @ self._rpy_directions(e, self._mk_R)[:, None]).transpose(-1, -2)
         axes.append(ax.reshape(P, N, -1, 3))
         points.append(mt[:, :, :, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
         is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(M))
         masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
 
-        axis = torch.cat(axes, 2)  # (P, N, V, 3)
-        point = torch.cat(points, 2)
+        # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
+        # every elementwise pass runs over long rows (with the 3 components innermost, as the
+        # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
+        # batched 3 x 3 product per parameter vector.
+        V = sum(x.shape[2] for x in axes)
         rot = torch.cat(is_rot)  # (V,)
-        mask = torch.cat(masks, 0).to(self.dtype)  # (V, M)
-        lever = mt[:, :, :, None, :] - point[:, :, None]  # (P, N, M, V, 3)
-        ax_b = axis[:, :, None].expand_as(lever)
-        lin = torch.where(rot[:, None], torch.linalg.cross(ax_b, lever), ax_b)
-        lin = lin * mask.T[None, None, :, :, None]
-        cols = [lin]
+        mask = torch.cat(masks, 0).to(self.dtype).T  # (M, V)
+        Rb, tb = self._base(slots)
+
+        def to_base(vecs: list[Tensor], shift: bool) -> Tensor:
+            """(P, N, v, 3) pieces, robot-base frame -> (P, 3, N, V), instrument frame."""
+            x = torch.cat([v.permute(0, 3, 1, 2) for v in vecs], -1).reshape(P, 3, N * V)
+            x = (Rb @ x).reshape(P, 3, N, V)
+            return x + tb[:, :, None, None] if shift else x
+
+        a = to_base(axes, False)
+        pt = to_base(points, True)
+        mw = (Rb @ mt.permute(0, 3, 1, 2).reshape(P, 3, N * M)).reshape(P, 3, N, M)  # Rb·mt, (P, 3, N, M)
+        m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
+        ri = torch.nonzero(rot).flatten()
+        ar, lev = a[..., ri][:, :, :, None, :], m_inst[..., None] - pt[..., ri][:, :, :, None, :]
+        ax_, ay_, az_ = ar.unbind(1)
+        lx, ly, lz = lev.unbind(1)
+        lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
+        lin[..., ri] = torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1)
+        lin *= mask
+        rows = [lin]
         if kind == "pose":
-            ang = torch.where(rot[:, None], ax_b, torch.zeros_like(ax_b)) * mask.T[None, None, :, :, None]
-            cols.append(ang)
-        Jv = torch.cat(cols, -1).transpose(-1, -2)  # (P, N, M, r, V)
+            rows.append(a[:, :, :, None, :] * (mask * rot.to(self.dtype)))
+        Jv = torch.cat(rows, 1) if len(rows) > 1 else lin  # (P, r, N, M, V)
+        r_rows = Jv.shape[1]
         # split back into slot groups; offsets per movable joint -> per actuated joint
         nu, nd = 6 * len(self._urdf_idx), 4 * len(self._dh_idx)
         J_orig = Jv[..., : nu + nd]
-        J_mov = Jv[..., nu + nd: nu + nd + Jn] @ self._Mmap  # (P, N, M, r, dof)
+        J_mov = Jv[..., nu + nd: nu + nd + Jn] @ self._Mmap  # (P, r, N, M, dof)
         J_mk = Jv[..., nu + nd + Jn:]
-        # base: rotate everything into the instrument frame, then add the base columns
-        Rb, tb = self._base(slots)
-        r_rows = 3 if kind == "position" else 6
-        body = torch.cat([J_orig, J_mov, J_mk], -1)
-        Rb_ = Rb[:, None, None]
-        if kind == "position":
-            body = Rb_ @ body
-        else:
-            body = torch.cat([Rb_ @ body[..., :3, :], Rb_ @ body[..., 3:, :]], -2)
-        pw = tb[:, None, None] + (Rb_ @ mt[..., None])[..., 0]  # marker positions, instrument frame
-        Jl = so3_left_jacobian(slots[:, self._slices["base"]][:, 3:])  # (P, 3, 3)
-        rot_axes = Jl.transpose(-1, -2)[:, None, None]  # rows k: J_l e_k, (P,1,1,3,3)
-        lever_b = (pw - tb[:, None, None])[..., None, :].expand(-1, -1, -1, 3, -1)
-        base_lin = torch.cat([eye.expand(P, N, M, 3, 3), torch.linalg.cross(rot_axes.expand_as(lever_b), lever_b).transpose(-1, -2)], -1)
+        # base columns: translations along the instrument axes, rotations about J_l e_k
+        Jl = so3_left_jacobian(slots[:, self._slices["base"]][:, 3:])  # (P, 3, 3), column k: J_l e_k
+        base = Jv.new_zeros(P, r_rows, N, M, 6)
+        base[:, 0, ..., 0] = 1.0
+        base[:, 1, ..., 1] = 1.0
+        base[:, 2, ..., 2] = 1.0
+        kx, ky, kz = (Jl[:, c, :][:, None, None, :] for c in range(3))  # (P, 1, 1, 3): component c of each axis k
+        wx, wy, wz = (mw[:, c][..., None] for c in range(3))  # (P, N, M, 1)
+        base[:, 0, ..., 3:] = ky * wz - kz * wy
+        base[:, 1, ..., 3:] = kz * wx - kx * wz
+        base[:, 2, ..., 3:] = kx * wy - ky * wx
         if kind == "pose":
-            base_ang = torch.cat([torch.zeros(P, N, M, 3, 3, **dt), rot_axes.transpose(-1, -2).expand(P, N, M, 3, 3)], -1)
-            base_cols = torch.cat([base_lin, base_ang], -2)
-        else:
-            base_cols = base_lin
-        return torch.cat([base_cols, body], -1), pw
+            base[:, 3:, ..., 3:] = Jl[:, :, None, None, :]
+        Jac = torch.cat([base, J_orig, J_mov, J_mk], -1)  # (P, r, N, M, S)
+        return Jac.permute(0, 2, 3, 1, 4), m_inst.permute(0, 2, 3, 1)  # (P, N, M, r, S), (P, N, M, 3)
 
     # ------------------------------------------------------------------ export
     def calibrated_joints(self, params) -> list[JointSpec]:
