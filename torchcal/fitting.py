@@ -9,7 +9,7 @@ import torch
 from .identifiability import analyse_jacobian
 from .observations import SETUP_PREFIXES
 from .optim import Problem, Result, get_solver
-from .params import ParamSet
+from .params import ParamSet, display_unit
 
 __all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "imprecise"]
 
@@ -65,8 +65,8 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
             out.fix(n)
             rep.dropped.append(n)
             rep.identifiable.remove(n)
-            u = units[params.free_names.index(n)]
-            rep.reasons[n] = (f"{n} is determined only to ±{se * 1e3:.3g} {'mm' if u == 'm' else 'mrad'} by these "
+            f, u = display_unit(units[params.free_names.index(n)])
+            rep.reasons[n] = (f"{n} is determined only to ±{se * f:.3g} {u} by these "
                               f"poses (noise {noise * 1e3:.3g} mm), more than such an error can plausibly be")
     return out, rep
 
