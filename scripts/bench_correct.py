@@ -3,7 +3,7 @@
 Training: MMA-ELM exactly as ``scripts/seed002_mma_elm.py`` runs it (UR5e data, 300 training
 + 100 validation poses, 40 hidden neurons, 20 males + 20 females, 100 generations).
 
-Correction: :class:`torchcal.correct.Corrector` with the resulting model-free model (nominal
+Correction: :class:`torchcal.deploy.correct.Corrector` with the resulting model-free model (nominal
 kinematics + MMA-ELM), full 6-D pose targets, IK start = the nominal command (the branch), to
 1 µm / 1 µrad predicted error. Throughput at batch 1 (median over repeated single-target calls)
 and at batch 10 000 (one call). Also IK alone at batch 10 000.
@@ -28,11 +28,11 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from seed002_mma_elm import SimulatedRobot, make_data, sample_q, ur5e_masses  # noqa: E402
 
-from torchcal.correct import Corrector  # noqa: E402
-from torchcal.elm import tune_elm  # noqa: E402
-from torchcal.ik import solve_ik  # noqa: E402
-from torchcal.model import CalibratedModel, pose_error  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
+from torchcal.deploy.correct import Corrector  # noqa: E402
+from torchcal.deploy.elm import tune_elm  # noqa: E402
+from torchcal.kinematics.ik import solve_ik  # noqa: E402
+from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
 
 
 def main(argv=None) -> dict:

@@ -1,10 +1,10 @@
 #!/usr/bin/env python
-"""Fleet calibration speed: one batched solve (:func:`torchcal.fleet.calibrate_fleet`) against a
+"""Fleet calibration speed: one batched solve (:func:`torchcal.pipelines.fleet.run.calibrate_fleet`) against a
 Python loop of single calibrations (``calibrate(robot, data, method="lm")``), in the same run.
 
 The problem: R simulated KUKA KR5 arc robots (the shipped URDF, an unknown reflector on the
 flange), each with its own geometric errors (0.5 mm / 1 mrad), its own tracker 3 m away at a random
-rotation, 30 random poses and 0.02 mm noise (``torchcal.sim``, seed per robot). Both sides do the
+rotation, 30 random poses and 0.02 mm noise (``torchcal.sim.serial``, seed per robot). Both sides do the
 same work: base registration, identifiability judged per robot at the start and again at the
 solution, LM, standard errors and error statistics. The script also reports how far the two
 results are apart (largest parameter difference, mm or mrad).
@@ -36,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal import Robot, calibrate  # noqa: E402
-from torchcal.fleet import calibrate_fleet  # noqa: E402
-from torchcal.sim import SimConfig, simulate  # noqa: E402
+from torchcal.pipelines.fleet.run import calibrate_fleet  # noqa: E402
+from torchcal.sim.serial import SimConfig, simulate  # noqa: E402
 
 MARKERS = ["smr@flange=0,0,0"]
 

@@ -8,7 +8,7 @@ from a seeded generator, 30 random poses, position-only measurements of the flan
 the robot base frame (base frame and flange offsets fixed at their true value, zero). Only 19
 of the 24 DH errors are identifiable from flange positions (Δd3 duplicates Δd2, Δα5/Δθ5 tie with
 Δd5/Δa5 and Δα6/Δθ6 do not move the flange origin), so both solvers are given the identifiable
-subset that :func:`torchcal.identifiability.identifiability` picks: a full-rank problem. The
+subset that :func:`torchcal.problems.identifiability.identifiability` picks: a full-rank problem. The
 dropped errors keep their true non-zero values in the simulated robot and are absorbed by the
 identified ones, so even the noise-free fit leaves a small residual. Variants: noise-free, and
 0.02 mm Gaussian noise per axis.
@@ -61,13 +61,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal import Robot  # noqa: E402
-from torchcal.identifiability import identifiability  # noqa: E402
-from torchcal.io import Measurements  # noqa: E402
-from torchcal.measurement import PositionResidual  # noqa: E402
+from torchcal.problems.identifiability import identifiability  # noqa: E402
+from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.measure.blocks import PositionResidual  # noqa: E402
 from torchcal.optim import get_solver  # noqa: E402
-from torchcal.problem import CalibrationProblem  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import random_configs  # noqa: E402
+from torchcal.problems.calibration import CalibrationProblem  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import random_configs  # noqa: E402
 
 D = torch.float64
 LEN_ERR, ANG_ERR = 0.25e-3, 0.05  # uniform half-widths: m, rad

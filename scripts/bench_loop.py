@@ -1,11 +1,11 @@
 #!/usr/bin/env python
-"""Wall time of the whole calibration loop (:func:`torchcal.loop.run_loop`) on 300 training +
+"""Wall time of the whole calibration loop (:func:`torchcal.pipelines.loop.run.run_loop`) on 300 training +
 150 held-out poses of a 6-DoF robot, split by stage.
 
 The data: the shipped robot (``--robot``, default the UR5e, which has inertials) with random
 geometric errors, an instrument 3 m away, 0.02 mm noise per axis and one physical effect the
 geometric model lacks (``--effect``, default ``joint_compliance``; ``none`` for a clean set),
-simulated by :func:`torchcal.sim.simulate_with_effects`; a random split into train and test.
+simulated by :func:`torchcal.sim.serial.simulate_with_effects`; a random split into train and test.
 The loop runs with nothing declared (every effect the data allows is a candidate), as
 ``torchcal loop`` does.
 
@@ -40,9 +40,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal.effects import EFFECTS  # noqa: E402
-from torchcal.loop import run_loop  # noqa: E402
-from torchcal.robots import SHIPPED, shipped  # noqa: E402
-from torchcal.sim import SimConfig, simulate_with_effects  # noqa: E402
+from torchcal.pipelines.loop.run import run_loop  # noqa: E402
+from torchcal.kinematics.robots import SHIPPED, shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, simulate_with_effects  # noqa: E402
 
 TARGET_S = 60.0
 STAGES = ("nominal", "geometric", "diagnosis", "residual_elm")

@@ -1,15 +1,15 @@
 #!/usr/bin/env python
 """Planned poses against random ones: held-out error after calibrating on 25 poses.
 
-The robot: the shipped KUKA KR5 arc (``torchcal.robots.shipped("kuka_kr5_arc")``) with a
+The robot: the shipped KUKA KR5 arc (``torchcal.kinematics.robots.shipped("kuka_kr5_arc")``) with a
 reflector on the flange whose position is unknown (``smr@flange=0,0,0``), undeclared geometric
-errors drawn by :func:`torchcal.sim.random_errors` with the :class:`~torchcal.sim.SimConfig`
+errors drawn by :func:`torchcal.sim.serial.random_errors` with the :class:`~torchcal.sim.serial.SimConfig`
 defaults (0.5 mm, 1 mrad, a tracker 3 m away at a random rotation), and 0.02 mm noise per axis.
 
 * Planned: :func:`torchcal.plan_poses` picks 25 poses from 5000 candidates (criterion D, joints
   inside the limits less 10 % of each range at both ends, like the random poses) at the
   *nominal* model: the simulated truth never reaches the planner nor the solver.
-* Random: 20 draws of 25 poses by :func:`torchcal.sim.random_configs` (the same joint ranges).
+* Random: 20 draws of 25 poses by :func:`torchcal.sim.serial.random_configs` (the same joint ranges).
 * Each set is measured (noise drawn afresh) and calibrated; the calibration is scored on 200
   fresh poses.
 
@@ -19,7 +19,7 @@ fresh poses: what the choice of poses changes. The same against the noisy measur
 those poses (``*_measured_mm``) carries the test noise (``noise_floor_mm``, the same for every
 plan) on top, so its ratio cannot go below about 0.8 here whatever the plan.
 
-Geometric case: :func:`torchcal.calibrate` (``method="lm"``). Compliance case: the simulated
+Geometric case: :func:`torchcal.pipelines.calibrate` (``method="lm"``). Compliance case: the simulated
 robot also has joint compliance and an undeclared 2.5 kg tool
 (``simulated_robot(..., ["joint_compliance"])``); the plan includes the joint-compliance columns
 (``effects=["joint_compliance"]``), and every pose set is calibrated with one fixed model: the
@@ -62,13 +62,13 @@ sys.path.insert(0, str(ROOT))
 
 from torchcal import CalibratedModel, calibrate, plan_poses, run_loop  # noqa: E402
 from torchcal.effects import build_effect, effect_params  # noqa: E402
-from torchcal.fitting import fit_identified  # noqa: E402
-from torchcal.identifiability import stacked_jacobian  # noqa: E402
-from torchcal.loop_fit import geometric_start  # noqa: E402
+from torchcal.problems.fitting import fit_identified  # noqa: E402
+from torchcal.problems.identifiability import stacked_jacobian  # noqa: E402
+from torchcal.pipelines.loop.fit import geometric_start  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402
-from torchcal.problem import EffectCalibrationProblem  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import SimConfig, random_configs, simulated_robot  # noqa: E402
+from torchcal.problems.calibration import EffectCalibrationProblem  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, random_configs, simulated_robot  # noqa: E402
 
 GOAL = 0.7
 

@@ -29,9 +29,9 @@ sys.path.insert(0, str(ROOT))
 
 import torchcal  # noqa: E402
 from torchcal import Corrector, Robot, load_measurements, run_loop  # noqa: E402
-from torchcal.loop_report import write_loop_report  # noqa: E402
-from torchcal.registration import register_base  # noqa: E402
-from torchcal.sim import SimConfig, random_configs, simulated_robot, write_dataset  # noqa: E402
+from torchcal.report.loop import write_loop_report  # noqa: E402
+from torchcal.measure.registration import register_base  # noqa: E402
+from torchcal.sim.serial import SimConfig, random_configs, simulated_robot, write_dataset  # noqa: E402
 
 
 def main() -> None:

@@ -3,7 +3,7 @@
 
 A simulated fleet of R KUKA KR5 arc robots (the shipped URDF, marker on the flange): every robot's
 geometric errors are a fleet-wide mean (0.5 mm / 1 mrad) plus its own deviation (``--spread``
-times that), its own tracker 3 m away, 0.02 mm noise (``torchcal.sim.simulate_fleet``). Each robot
+times that), its own tracker 3 m away, 0.02 mm noise (``torchcal.sim.serial.simulate_fleet``). Each robot
 is measured at 10 poses (``--poses``) for training and 100 fresh poses for scoring.
 
 Compared, on the same data:
@@ -35,9 +35,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchcal.fleet import calibrate_fleet  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import SimConfig, simulate_fleet  # noqa: E402
+from torchcal.pipelines.fleet.run import calibrate_fleet  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, simulate_fleet  # noqa: E402
 
 
 def held_out_mm(fr) -> float:

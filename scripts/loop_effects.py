@@ -2,10 +2,10 @@
 """The loop on simulated data with undeclared effects: which effect it names, the held-out error
 per stage, and the noise floor. Two simulators:
 
-1. torchcal's own (:mod:`torchcal.sim`): one effect each on a UR5e (compliance, backlash, cyclic
+1. torchcal's own (:mod:`torchcal.sim.serial`): one effect each on a UR5e (compliance, backlash, cyclic
    error, scale, uniform thermal drift, none);
-2. an independent one (:mod:`torchcal.physsim`, no torchcal kinematics or effect code), with the
-   cases of the held-back data (:mod:`torchcal.sim_cases`): an undeclared 0 / 12 / 20 kg tool, one
+2. an independent one (:mod:`torchcal.sim.physsim`, no torchcal kinematics or effect code), with the
+   cases of the held-back data (:mod:`torchcal.sim.cases`): an undeclared 0 / 12 / 20 kg tool, one
    warm link, sideways bending, a tilting base, 5 % outliers, a clean arm, a humanoid upper body.
 
 Prints markdown tables and one JSON line. The noise floor is the mean Euclidean norm of the
@@ -31,10 +31,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal import Robot  # noqa: E402
-from torchcal.loop import run_loop  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import SimConfig, random_configs, simulated_robot  # noqa: E402
-from torchcal.sim_cases import CASES, make_case  # noqa: E402
+from torchcal.pipelines.loop.run import run_loop  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, random_configs, simulated_robot  # noqa: E402
+from torchcal.sim.cases import CASES, make_case  # noqa: E402
 
 OWN = ["joint_compliance", "backlash", "cyclic_joint_error", "joint_scale", "thermal_drift", None]
 PUT_IN = {"payload_12kg": "12 kg tool, joints 2-4 compliant", "payload_0kg": "no tool, joints 2-4 compliant",
@@ -129,7 +129,7 @@ def main() -> None:
                   f"{r['geometric_test_mean_mm']:.3f} → {r['final_test_mean_mm']:.3f} | {r['noise_floor_mm']:.3f} | "
                   f"{r['loop_s']:.0f} s |")
     if ind:
-        print(f"\nindependent simulator (torchcal.physsim), seed {args.seed}\n")
+        print(f"\nindependent simulator (torchcal.sim.physsim), seed {args.seed}\n")
         print("| case | what the simulator put in | named | held-out mean: geometric → final (mm) | noise floor (mm) "
               "| final / floor | loop time |")
         print("|---|---|---|---|---|---|---|")

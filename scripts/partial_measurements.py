@@ -5,7 +5,7 @@ loses one or two axes of 40 % of its observations. Noise 0.02 mm on every measur
 
 Prints one JSON line per seed and a summary line. Fresh poses (200, never measured) are compared
 with the truth after the best rigid motion (plus scale for planes alone, which cannot see the
-robot's size: see torchcal.observations). Error figures are per-axis RMS in mm, against the noise.
+robot's size: see torchcal.measure.observations). Error figures are per-axis RMS in mm, against the noise.
 
     python scripts/partial_measurements.py --seeds 0,1,2
 """
@@ -20,11 +20,11 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from torchcal import robots  # noqa: E402
-from torchcal.io import Measurements  # noqa: E402
-from torchcal.loop import run_loop  # noqa: E402
-from torchcal.sim import SimConfig, hide_axes, random_configs, simulate, simulated_robot  # noqa: E402
-from torchcal.transforms import similarity  # noqa: E402
+from torchcal.kinematics import robots  # noqa: E402
+from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.pipelines.loop.run import run_loop  # noqa: E402
+from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot  # noqa: E402
+from torchcal.kinematics.transforms import similarity  # noqa: E402
 
 NOISE = 0.02e-3
 

@@ -4,7 +4,7 @@ What the seed (journal article, 2022; digest in ``shared/docs/seeds.md`` section
 what this script does the same way:
 
 * Model: classic DH ``A_i = Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i)``, the KR5 arc data-sheet table
-  (``torchcal.robots.shipped("kuka_kr5_arc", source="dh")``), marker = flange.  Unknowns: the 24
+  (``torchcal.kinematics.robots.shipped("kuka_kr5_arc", source="dh")``), marker = flange.  Unknowns: the 24
   DH errors ``joint_a{1..6}.da/.dd/.dalpha/.dtheta``.  Measurements are flange positions in the
   robot base frame (ΔP = P_real − P_nominal), so the base frame (``base.*``) and the flange
   marker offsets (``flange.*``) are fixed at 0: ``ParamSet.only(<the 24 DH names>)``.
@@ -62,7 +62,7 @@ A vectorised iteration costs ``t(P) = a + b·P``: the ratio is
 ``(501 a + 70 240 b) / (501 a + 120 240 b)``, 0.584 only when the fixed part ``a`` vanishes; 0.6
 needs ``a`` below about 9.5 particles' worth (``b``).  The cost model measures ``a`` and ``b`` of a
 whole PSO iteration (swarm update + fitness) and of the fitness alone, for the compact
-position-only kinematics path (``torchcal.fk_compact``, the default) and the general one
+position-only kinematics path (``torchcal.kinematics.fk_compact``, the default) and the general one
 (``CalibrationProblem(compact=False)``), and predicts the ratio from the schedules.
 
 Usage::
@@ -92,13 +92,13 @@ torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from torchcal.identifiability import identifiability  # noqa: E402
-from torchcal.io import Measurements  # noqa: E402
-from torchcal.measurement import PositionResidual  # noqa: E402
+from torchcal.problems.identifiability import identifiability  # noqa: E402
+from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.measure.blocks import PositionResidual  # noqa: E402
 from torchcal.optim import get_solver  # noqa: E402
-from torchcal.problem import CalibrationProblem  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import random_configs  # noqa: E402
+from torchcal.problems.calibration import CalibrationProblem  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import random_configs  # noqa: E402
 
 LEN_RANGE = 0.25e-3  # m
 ANG_RANGE = 0.05  # rad

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Seed 001: SCARA dynamic-parameter identification with chaotic PSO, and excitation design.
 
-Steps (all on the Adept Cobra s600 of ``torchcal.robots``; its masses, COMs and inertias are
+Steps (all on the Adept Cobra s600 of ``torchcal.kinematics.robots``; its masses, COMs and inertias are
 ILLUSTRATIVE, not published):
 
 1. **Excitation design.** Fourier series, N = 3 harmonics per joint (7 coefficients), base
@@ -18,7 +18,7 @@ ILLUSTRATIVE, not published):
    PSO and chaotic PSO with the seed's settings (population 200, c1 1.3, c2 1.8, w 0.9 → 0.2,
    200 iterations; CPSO: logistic map with μ = 4 — the seed prints μ = 2, which is not chaotic).
    Swarm fitness: torque RMSE (N·m); bounds: the physical box of
-   :func:`torchcal.dynamics.identify.physical_box`.
+   :func:`torchcal.problems.dynamics.physical_box`.
 4. **Validation** on a fresh random feasible Fourier trajectory (different seed, 1000 samples):
    torque RMSE against the noisy measured torques (``*_torque_rmse``, what one can measure) and
    against the noise-free torques (``*_torque_rmse_true``, model error only).
@@ -44,7 +44,7 @@ from pathlib import Path
 import torch
 
 from torchcal.dynamics import excitation as exc
-from torchcal.dynamics import identify as idf
+from torchcal.problems import dynamics as idf
 from torchcal.dynamics import scara
 from torchcal.optim import get_solver
 from torchcal.optim.ga import GeneticAlgorithm

@@ -3,7 +3,7 @@
 The "real" robot is a UR5e (``urdf/ur5e.urdf``, published inertials) with
 
 * geometric errors: every joint origin, zero offset and the tool point perturbed
-  (:func:`torchcal.sim.random_errors`, 0.5 mm / 1 mrad std);
+  (:func:`torchcal.sim.serial.random_errors`, 0.5 mm / 1 mrad std);
 * joint compliance under gravity: ``δq = C ⊙ τ_g(q)``, ``τ_g = Σ_k J_k(q)ᵀ m_k g`` over the
   link masses at their COMs (from the URDF inertials) plus a payload at the flange;
 * a cyclic joint error ``a sin(q) + b cos(2q)`` on the shoulder, elbow and first wrist joint.
@@ -12,9 +12,9 @@ All of that lives in :class:`SimulatedRobot` below; the fitting code only ever s
 ``(commanded q, measured pose)`` pairs (pose = position + orientation with instrument noise).
 
 Protocol (patent): targets ``T_t`` in a working region, commands ``θ_t = IK_nominal(T_t)``,
-measured error ``δT = T_meas ⊖ T_t`` (6-D, see :mod:`torchcal.model`: position difference in m,
+measured error ``δT = T_meas ⊖ T_t`` (6-D, see :mod:`torchcal.deploy.model`: position difference in m,
 rotation vector ``log(R_tᵀ R_meas)`` in rad). An ELM learns ``δT = M(θ)``; correction drives the
-simulated robot with the commands of :class:`torchcal.correct.Corrector` (IK of the target on
+simulated robot with the commands of :class:`torchcal.deploy.correct.Corrector` (IK of the target on
 the nominal model, minus the predicted error, iterated) and measures the absolute position error
 before/after on held-out targets.
 
@@ -39,14 +39,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchcal import calibrate  # noqa: E402
-from torchcal.cli_correct import matrix_to_quat  # noqa: E402
-from torchcal.correct import Corrector  # noqa: E402
-from torchcal.elm import ELM, tune_elm  # noqa: E402
-from torchcal.io import Measurements  # noqa: E402
-from torchcal.model import CalibratedModel, pose_error  # noqa: E402
-from torchcal.robots import link_inertials, shipped  # noqa: E402
-from torchcal.sim import SimConfig, random_errors  # noqa: E402
-from torchcal.transforms import so3_exp  # noqa: E402
+from torchcal.cli.correct import matrix_to_quat  # noqa: E402
+from torchcal.deploy.correct import Corrector  # noqa: E402
+from torchcal.deploy.elm import ELM, tune_elm  # noqa: E402
+from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
+from torchcal.kinematics.robots import link_inertials, shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, random_errors  # noqa: E402
+from torchcal.kinematics.transforms import so3_exp  # noqa: E402
 
 GRAVITY = (0.0, 0.0, -9.81)  # m/s², robot base frame (z up)
 
@@ -69,8 +69,8 @@ class SimulatedRobot:
     def __init__(self, robot, masses: list[tuple[str, float]], seed: int = 0,
                  compliance=(0.0, 3e-5, 4e-5, 6e-5, 6e-5, 0.0), cyclic=None, noise_m: float = 2e-5,
                  noise_rad: float = 2e-5, length_error: float = 0.5e-3, angle_error: float = 1e-3):
-        from torchcal.robot import Robot
-        from torchcal.robots import urdf_path
+        from torchcal.kinematics.robot import Robot
+        from torchcal.kinematics.robots import urdf_path
 
         g = torch.Generator().manual_seed(seed)
         cfg = SimConfig(base_distance=0.0, length_error=length_error, angle_error=angle_error, seed=seed)

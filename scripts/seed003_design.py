@@ -9,10 +9,10 @@ PSD, distance) on the same truth and aims.
 
 1. **Noise budget**: the headline data calibrated with the encoder noise off, the PSD noise off,
    both on (draw 0); the spot error each beam gets from encoder noise
-   (``torchcal.psd.spot_covariance``); and the linearised prediction of the max
-   (``torchcal.psd_design.predicted_max_error``: parameter scatter from the information matrix,
+   (``torchcal.pipelines.psd.spot_covariance``); and the linearised prediction of the max
+   (``torchcal.pipelines.psd_design.predicted_max_error``: parameter scatter from the information matrix,
    rigid fit removed, max over the fresh poses), which never looks at the truth.
-2. **Design** (``torchcal.psd_design.select_design``): candidate aims simulated with the *nominal*
+2. **Design** (``torchcal.pipelines.psd_design.select_design``): candidate aims simulated with the *nominal*
    model (``--candidates`` per location, spots within ±6 mm so that the ~2 mm model error keeps
    them on the 10 mm PSD, same cone, stand-off and roll as the headline) at ``CANDIDATES``, 10
    PSD placements (the headline's 4 and 6 more); greedy Ds-optimal choice of 4 locations and 50
@@ -20,7 +20,7 @@ PSD, distance) on the same truth and aims.
    weighted by their expected spot covariance).
 3. **Draws**: the robot with the true errors goes to the joints of each set of aims (the
    headline's, found by IK on the true model as in the seed script, or the designed ones, found
-   by IK on the nominal model), ``torchcal.psd_design.measure_psd`` adds the noise and drops spots
+   by IK on the nominal model), ``torchcal.pipelines.psd_design.measure_psd`` adds the noise and drops spots
    off the PSD; calibrations: the seed's pose modification, one round (``pm1``) and iterated
    (``pmR``); the spots with PSD poses (``spots``); the same weighted by the expected spot
    covariance (``spots_w``, generalised least squares).
@@ -51,10 +51,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from seed003_pmpsd import CENTRES, FACING, HOME, TARGET_MM, design_sets, fresh_errors, true_errors  # noqa: E402
-from torchcal.psd import Laser, PSDData, calibrate_psd, psd_frame, simulate_psd, spot_covariance  # noqa: E402
-from torchcal.psd_design import information, measure_psd, predicted_max_error, select_design  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import random_configs  # noqa: E402
+from torchcal.pipelines.psd import Laser, PSDData, calibrate_psd, psd_frame, simulate_psd, spot_covariance  # noqa: E402
+from torchcal.pipelines.psd_design import information, measure_psd, predicted_max_error, select_design  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import random_configs  # noqa: E402
 
 F64 = dict(dtype=torch.float64)
 # candidate PSD centres (m, robot base frame): the headline's four, then six more around the arm

@@ -5,8 +5,8 @@ simulated here:
 
 * Model: the KR5 arc classic DH table (``shipped("kuka_kr5_arc", source="dh")``); unknowns the DH
   errors ``joint_a{1..6}.da/.dd/.dalpha/.dtheta``. True errors Gaussian, 0.5 mm / 1 mrad std
-  (``torchcal.sim.SimConfig`` defaults), on all 24.
-* Laser on the flange, known from a tool calibration (``torchcal.psd.Laser()``): origin 40 mm
+  (``torchcal.sim.serial.SimConfig`` defaults), on all 24.
+* Laser on the flange, known from a tool calibration (``torchcal.pipelines.psd.Laser()``): origin 40 mm
   off the flange axis and 80 mm out, beam tilted 25° about the flange x axis.
 * PSD: 20 x 20 mm active area, at ``m`` = 1..4 locations 0.9-1.1 m from the base, facing the
   robot. At each location ``k`` = 10..50 aims: a random spot within ±8 mm of the centre, from a
@@ -15,7 +15,7 @@ simulated here:
 * Noise: PSD 1 µm per axis on ``(u, v)`` (``--uv-noise-um``); joint encoders 10 µrad per joint
   (``--q-noise-urad``; about the KR5's ±0.04 mm repeatability); the known distance between PSD
   locations 0 and 1 measured to 2 µm (``--dist-noise-um``).
-* Methods (``torchcal.psd.calibrate_psd``), all with the seed's LM (Δs0 = 0, μ0 = 0.1 on an
+* Methods (``torchcal.pipelines.psd.calibrate_psd``), all with the seed's LM (Δs0 = 0, μ0 = 0.1 on an
   identity damping matrix, ν = 2, gain ratio; stop on a scale-free ‖Jᵀr‖ test, step or decrease):
   ``raw`` = the point constraint on the recorded beams (no pose modification); ``pm×1`` = the
   seed: PSD poses estimated from the spots with the nominal model, pose modification by IK, the
@@ -59,12 +59,12 @@ torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from torchcal.psd import (Laser, PointConstraint, SpotResidual, analyse_block, calibrate_psd,  # noqa: E402
+from torchcal.pipelines.psd import (Laser, PointConstraint, SpotResidual, analyse_block, calibrate_psd,  # noqa: E402
                           psd_frame, simulate_psd)
-from torchcal.report import error_stats  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
-from torchcal.sim import SimConfig, random_configs  # noqa: E402
-from torchcal.transforms import kabsch  # noqa: E402
+from torchcal.report.calibration import error_stats  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
+from torchcal.sim.serial import SimConfig, random_configs  # noqa: E402
+from torchcal.kinematics.transforms import kabsch  # noqa: E402
 
 F64 = dict(dtype=torch.float64)
 HOME = torch.tensor([0.0, -1.4, 2.4, 0.0, 0.5, 0.0], **F64)  # elbow-up start for the aiming IK (rad)

@@ -2,7 +2,7 @@
 """Seed 004 reproduced: 3-RRRU parallel robot calibrated with the real-coded GA and with LM, on
 straight lines and on a spiral, each calibration evaluated on both trajectories.
 
-Simulation (all choices stated; geometry in :mod:`torchcal.parallel.rrru`):
+Simulation (all choices stated; geometry in :mod:`torchcal.kinematics.rrru`):
 
 * Robot: nominal L_i1 = 400, L_i2 = 100, L_i3 = 800, R = r = 400 mm; the "true" robot has errors of
   the seed's size (Tables 5-6): drive offsets of ~1 mrad, link errors of 0.1-0.3 mm that differ
@@ -13,13 +13,13 @@ Simulation (all choices stated; geometry in :mod:`torchcal.parallel.rrru`):
 * Trajectories: the seed's 7 lines from (-800, 0, 600) to (-300, 0, 600) mm, 26 points each,
   offset in y by 0, ±50, ±100, ±150 mm (lines 2-3 nearest line 1, 6-7 near the boundary);
   a helix of 40 points about the vertical axis through (-500, 0) mm, radius 250 mm, z from 450
-  to 900 mm in 2.5 turns (``torchcal.parallel.calibration``).
+  to 900 mm in 2.5 turns (``torchcal.problems.rrru``).
 * Calibration data: the controller commands the nominal IK of each target; the tracker measures.
   Parameters fitted: the 13 identifiable ones (all but Δr, which is indistinguishable from -ΔR).
 * Solvers: LM (``get_solver("lm")``, analytic implicit-function Jacobian) and the shared GA
   (``get_solver("ga")``: population 30, crossover 0.8, migration 0.7 = seed 004's settings,
   ``--ga-iter`` generations) on the sum of squared residuals in decorrelated normalised coordinates
-  (:class:`~torchcal.parallel.calibration.DecorrelatedProblem`); the same GA in raw parameter
+  (:class:`~torchcal.problems.rrru.DecorrelatedProblem`); the same GA in raw parameter
   coordinates is run on the spiral data for comparison (``--no-raw-ga`` skips it).
 * Evaluation, like the seed's Figs. 9-12: the controller tracks each trajectory with the
   identified model (IK), the true robot moves, the tracker measures again (fresh noise, the same
@@ -49,8 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal.optim import get_solver  # noqa: E402
-from torchcal.parallel import PARAM_NAMES, PARAM_UNITS, RRRU  # noqa: E402
-from torchcal.parallel.calibration import (DecorrelatedProblem, RRRUCalibration,  # noqa: E402
+from torchcal.kinematics.rrru import PARAM_NAMES, PARAM_UNITS, RRRU  # noqa: E402
+from torchcal.problems.rrru import (DecorrelatedProblem, RRRUCalibration,  # noqa: E402
                                            compensation, covariance, identifiability, line_trajectories,
                                            observability_indices, prediction_std, simulate_tracker,
                                            spiral_trajectory)

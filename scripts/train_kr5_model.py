@@ -1,7 +1,7 @@
 """Train the small model shipped in ``models/kuka_kr5_arc/`` (KUKA KR 5 arc demo).
 
 Simulated data: the KR 5 arc of ``urdf/kuka_kr5_arc.urdf`` with geometric errors
-(:func:`torchcal.sim.random_errors`, 0.5 mm / 1 mrad std) plus non-geometric errors: joint
+(:func:`torchcal.sim.serial.random_errors`, 0.5 mm / 1 mrad std) plus non-geometric errors: joint
 compliance under gravity (lumped link masses: KUKA publishes no per-link inertials, so the
 masses below are an illustrative split of the arm's weight) and a cyclic joint error on A2/A3.
 The instrument measures the flange pose (position 20 µm, orientation 20 µrad noise) in the
@@ -34,13 +34,13 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from seed002_mma_elm import SimulatedRobot  # noqa: E402
 
 from torchcal import calibrate  # noqa: E402
-from torchcal.cli_correct import correct_main, matrix_to_quat  # noqa: E402
-from torchcal.correct import Corrector  # noqa: E402
-from torchcal.elm import tune_elm  # noqa: E402
-from torchcal.io import Measurements  # noqa: E402
-from torchcal.model import CalibratedModel, pose_error  # noqa: E402
-from torchcal.persist import load, save  # noqa: E402
-from torchcal.robots import shipped  # noqa: E402
+from torchcal.cli.correct import correct_main, matrix_to_quat  # noqa: E402
+from torchcal.deploy.correct import Corrector  # noqa: E402
+from torchcal.deploy.elm import tune_elm  # noqa: E402
+from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
+from torchcal.deploy.persist import load, save  # noqa: E402
+from torchcal.kinematics.robots import shipped  # noqa: E402
 
 #: lumped masses (kg) at points on the links (m, link frames): upper arm, elbow housing, forearm,
 #: wrist, and a 3 kg tool 5 cm beyond the flange

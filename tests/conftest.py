@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.robot_data import get_robot
+from torchcal.kinematics.robot_data import get_robot
 
 # The tests run many small ops: one intra-op thread is faster, and on a shared 2-core machine a
 # second spinning thread made the suite 5-7x slower. Override with TORCHCAL_TEST_THREADS.

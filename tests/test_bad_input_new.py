@@ -1,5 +1,5 @@
 """Bad input to the newer features, ``torchcal plan`` / :func:`torchcal.plan_poses`, ``torchcal
-fleet`` / :func:`torchcal.fleet.calibrate_fleet`, and partial measurements (plane contacts,
+fleet`` / :func:`torchcal.pipelines.fleet.run.calibrate_fleet`, and partial measurements (plane contacts,
 distances) in CSV files: every case stops with an error that names what is wrong and how to fix
 it, and a refusing command writes nothing. Small simulated data, seeded."""
 from __future__ import annotations
@@ -12,13 +12,13 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.fleet import calibrate_fleet
-from torchcal.cli import main
-from torchcal.io import Measurements, load_measurements, save_measurements
-from torchcal.observations import Setup
-from torchcal.plan import plan_poses
-from torchcal.robots import shipped, urdf_path
-from torchcal.sim import SimConfig, random_configs, simulate_fleet, simulated_robot
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.cli.app import main
+from torchcal.measure.io import Measurements, load_measurements, save_measurements
+from torchcal.measure.observations import Setup
+from torchcal.pipelines.plan.run import plan_poses
+from torchcal.kinematics.robots import shipped, urdf_path
+from torchcal.sim.serial import SimConfig, random_configs, simulate_fleet, simulated_robot
 
 KR5 = str(urdf_path("kuka_kr5_arc"))
 SMR = "smr@flange=0,0,0.05"

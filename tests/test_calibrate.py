@@ -1,4 +1,4 @@
-"""End-to-end tests of :func:`torchcal.calibrate`: every solver on a small problem, LM from the
+"""End-to-end tests of :func:`torchcal.pipelines.calibrate`: every solver on a small problem, LM from the
 base-registration start on every shipped robot, seeded swarms, robust losses, standard errors
 against Monte Carlo, the report and its files, unknown marker points, pose measurements and
 markers that were not seen in every row.
@@ -15,11 +15,11 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate
-from torchcal.transforms import quat_to_matrix
-from torchcal.io import Measurements
-from torchcal.measurement import PositionResidual
-from torchcal.robots import SHIPPED, shipped
-from torchcal.sim import SimConfig, random_configs, random_errors, simulate
+from torchcal.kinematics.transforms import quat_to_matrix
+from torchcal.measure.io import Measurements
+from torchcal.measure.blocks import PositionResidual
+from torchcal.kinematics.robots import SHIPPED, shipped
+from torchcal.sim.serial import SimConfig, random_configs, random_errors, simulate
 
 D = torch.float64
 

@@ -6,12 +6,12 @@ import math
 import pytest
 import torch
 
-from torchcal.correct import Corrector
-from torchcal.elm import ELM
-from torchcal.ik import REASONS, solve_ik
-from torchcal.model import CalibratedModel, apply_pose_error, pose_error
-from torchcal.robots import shipped
-from torchcal.sim import SimConfig, random_errors
+from torchcal.deploy.correct import Corrector
+from torchcal.deploy.elm import ELM
+from torchcal.kinematics.ik import REASONS, solve_ik
+from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
+from torchcal.kinematics.robots import shipped
+from torchcal.sim.serial import SimConfig, random_errors
 
 torch.set_num_threads(1)
 
@@ -103,7 +103,7 @@ def test_ik_reports_failures(kr5):
 # ------------------------------------------------------------------ model and effects hook
 def test_pose_error_round_trip():
     g = torch.Generator().manual_seed(0)
-    from torchcal.transforms import homogeneous, so3_exp
+    from torchcal.kinematics.transforms import homogeneous, so3_exp
 
     T = homogeneous(so3_exp(torch.randn(8, 3, generator=g, dtype=torch.float64)),
                     torch.randn(8, 3, generator=g, dtype=torch.float64))
@@ -171,7 +171,7 @@ def test_effects_are_summed_at_the_command_and_position_hook(kr5):
     p0 = p.clone()
     for n in ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz"):
         p0[n] = 0.0
-    from torchcal.transforms import so3_exp
+    from torchcal.kinematics.transforms import so3_exp
 
     Rb = so3_exp(torch.tensor([0.1, 0.0, 0.7], dtype=torch.float64))
     pb = kr5.fk(q, p0)[:, 0, :3, 3] + torch.stack([0 * temp, 0 * temp, 2e-5 * (temp - 20)], -1)

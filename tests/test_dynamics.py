@@ -9,7 +9,7 @@ import torch
 from torch.func import jvp
 
 from torchcal.dynamics import excitation as exc
-from torchcal.dynamics import identify as idf
+from torchcal.problems import dynamics as idf
 from torchcal.dynamics import lagrangian, scara
 from torchcal.optim import get_solver
 from torchcal.optim.ga import GeneticAlgorithm
@@ -66,7 +66,7 @@ def test_lumped_parameter_ties(truth):
 def test_generic_serial_regressor_matches_planar_model(truth):
     """Autodiff Lagrangian of the 4-DOF DH SCARA (inertials from robot_data) gives the planar
     model on joints 1-2, and the planar gravity torques when gravity is put in the plane."""
-    from torchcal.robots import link_inertials, shipped
+    from torchcal.kinematics.robots import link_inertials, shipped
 
     robot = shipped("scara", source="dh", markers=["link1", "link2", "link3", "link4"])
     pi = lagrangian.inertial_vector(link_inertials("scara"))

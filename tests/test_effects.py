@@ -1,5 +1,5 @@
 """Effect models against independent references: the gravity wrenches, deflections and thermal
-growth of :mod:`torchcal.physsim` (its own URDF parser and kinematics, no torchcal code), exact
+growth of :mod:`torchcal.sim.physsim` (its own URDF parser and kinematics, no torchcal code), exact
 identities of the linear forms, and save/load round trips."""
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import torch
 from torchcal import CalibratedModel, Robot, load, save
 from torchcal.effects import GravityDeformation, JointCompliance, ThermalDrift
 from torchcal.effects.gravity import gravity_wrenches
-from torchcal.physsim import PhysicalRobot, humanoid_urdf
-from torchcal.robots import urdf_path
+from torchcal.sim.physsim import PhysicalRobot, humanoid_urdf
+from torchcal.kinematics.robots import urdf_path
 
 UR5E = urdf_path("ur5e").read_text()
 PAYLOAD = dict(payload_kg=4.0, payload_com_m=(0.02, -0.03, 0.09))

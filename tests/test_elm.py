@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.elm import ELM, ELMProblem, fit_population, hidden_layer, solve_output_weights, tune_elm
+from torchcal.deploy.elm import ELM, ELMProblem, fit_population, hidden_layer, solve_output_weights, tune_elm
 from torchcal.optim import FunctionProblem, get_solver
 
 torch.set_num_threads(1)

@@ -1,14 +1,14 @@
-"""The compact position-only kinematics path (torchcal.fk_compact) against the general one."""
+"""The compact position-only kinematics path (torchcal.kinematics.fk_compact) against the general one."""
 from __future__ import annotations
 
 import pytest
 import torch
 
-from torchcal.cli_correct import matrix_to_quat
-from torchcal.fk_compact import PositionKernel
-from torchcal.io import Measurements
-from torchcal.measurement import PoseResidual, PositionResidual
-from torchcal.problem import CalibrationProblem
+from torchcal.cli.correct import matrix_to_quat
+from torchcal.kinematics.fk_compact import PositionKernel
+from torchcal.measure.io import Measurements
+from torchcal.measure.blocks import PoseResidual, PositionResidual
+from torchcal.problems.calibration import CalibrationProblem
 
 FREE_SETS = {
     "all": lambda n: True,

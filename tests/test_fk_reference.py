@@ -24,8 +24,8 @@ import torch
 import yourdfpy
 
 from torchcal import Robot
-from torchcal.robot_data import ROBOTS, get_robot
-from torchcal.robots import SHIPPED, dh_table, link_inertials, shipped, urdf_path
+from torchcal.kinematics.robot_data import ROBOTS, get_robot
+from torchcal.kinematics.robots import SHIPPED, dh_table, link_inertials, shipped, urdf_path
 
 N_CONFIGS = 1000
 ROOT = Path(__file__).resolve().parent.parent
@@ -182,7 +182,7 @@ def test_shipped_names_and_errors():
 
 
 def test_urdf_path_missing(monkeypatch):
-    import torchcal.robots as robots
+    import torchcal.kinematics.robots as robots
 
     monkeypatch.setattr(robots, "__file__", "/nonexistent/site-packages/torchcal/robots.py")
     with pytest.raises(FileNotFoundError, match="source='dh'"):

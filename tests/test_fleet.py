@@ -1,8 +1,8 @@
-"""Fleet calibration (:mod:`torchcal.fleet`): the batched solve against per-robot ``calibrate``,
+"""Fleet calibration (:mod:`torchcal.pipelines.fleet.run`): the batched solve against per-robot ``calibrate``,
 the batched building blocks against their single-robot versions, the outlier flag, the
 hierarchical prior, joint compliance fleet-wide, validation and the ``torchcal fleet`` command.
 
-Simulated robots (``torchcal.sim``), seeded; the truth is used only to score.
+Simulated robots (``torchcal.sim.serial``), seeded; the truth is used only to score.
 """
 from __future__ import annotations
 
@@ -14,18 +14,18 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate
-from torchcal.cli import main
-from torchcal.fleet import calibrate_fleet
-from torchcal.fleet_identify import decide, explain
-from torchcal.identifiability import analyse_jacobian
-from torchcal.io import save_measurements
-from torchcal.measurement import PositionResidual
+from torchcal.cli.app import main
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.pipelines.fleet.identify import decide, explain
+from torchcal.problems.identifiability import analyse_jacobian
+from torchcal.measure.io import save_measurements
+from torchcal.measure.blocks import PositionResidual
 from torchcal.optim import get_solver
 from torchcal.optim.lm_batched import lm_batched
-from torchcal.problem import CalibrationProblem
-from torchcal.robots import shipped, urdf_path
-from torchcal.sim import SimConfig, random_configs, simulate, simulate_fleet, simulated_robot
-from torchcal.transforms import kabsch, so3_exp
+from torchcal.problems.calibration import CalibrationProblem
+from torchcal.kinematics.robots import shipped, urdf_path
+from torchcal.sim.serial import SimConfig, random_configs, simulate, simulate_fleet, simulated_robot
+from torchcal.kinematics.transforms import kabsch, so3_exp
 
 MARKERS = ["smr@flange=0,0,0", "b@link6=0.06,0.02,0.03"]
 
@@ -272,7 +272,7 @@ def test_cli_fleet_refuses_bad_input(tmp_path, capsys):
 def test_ray_missing_says_how_to_install(monkeypatch):
     import sys
 
-    from torchcal.fleet_ray import import_ray
+    from torchcal.pipelines.fleet.distributed import import_ray
 
     monkeypatch.setitem(sys.modules, "ray", None)  # as if it were not installed
     with pytest.raises(ImportError, match=r"pip install torchcal\[ray\]"):

@@ -7,16 +7,16 @@ import importlib.util
 import pytest
 import torch
 
-from torchcal.fleet import calibrate_fleet
-from torchcal.robots import shipped
-from torchcal.sim import SimConfig, simulate_fleet
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.kinematics.robots import shipped
+from torchcal.sim.serial import SimConfig, simulate_fleet
 
 pytestmark = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
                                 reason="ray is not installed (pip install torchcal[ray]); the Ray fleet is optional")
 
 
 def test_ray_fleet_equals_in_process():
-    from torchcal.fleet_ray import calibrate_fleet_ray
+    from torchcal.pipelines.fleet.distributed import calibrate_fleet_ray
 
     robot = shipped("kuka_kr5_arc")
     train, test, _ = simulate_fleet(robot, 6, SimConfig(n=30, seed=11), spread=0.2, n_test=10,

@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.identifiability import identifiability, observability, stacked_jacobian
-from torchcal.robot_data import get_robot
+from torchcal.problems.identifiability import identifiability, observability, stacked_jacobian
+from torchcal.kinematics.robot_data import get_robot
 
 D = torch.float64
 DH_ERRORS = ["joint_*.da", "joint_*.dd", "joint_*.dalpha", "joint_*.dtheta"]

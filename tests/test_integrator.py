@@ -17,11 +17,11 @@ import yaml
 
 import torchcal
 from torchcal import Robot, load, load_measurements, run_loop, save
-from torchcal.cli import main as cli
-from torchcal.io import UnitsError
-from torchcal.loop_fit import folds_of
-from torchcal.robots import urdf_path
-from torchcal.transforms import quat_to_matrix
+from torchcal.cli.app import main as cli
+from torchcal.measure.io import UnitsError
+from torchcal.pipelines.loop.fit import folds_of
+from torchcal.kinematics.robots import urdf_path
+from torchcal.kinematics.transforms import quat_to_matrix
 
 REPO = Path(__file__).resolve().parents[1]
 UR5E = str(urdf_path("ur5e"))
@@ -80,7 +80,7 @@ def test_save_refuses_to_overwrite_and_leaves_nothing_half_written(looped, tmp_p
     with pytest.raises(FileExistsError, match="not empty"):
         save(model, tmp_path / "m")
     save(model, tmp_path / "m", force=True)
-    import torchcal.persist as persist
+    import torchcal.deploy.persist as persist
 
     def broken(*a, **k):
         raise OSError("disk full")
@@ -100,7 +100,7 @@ def test_correct_refuses_to_write_over_its_targets(looped, tmp_path, capsys):
 
 
 def test_an_unwritable_output_fails_before_any_work(files, tmp_path, monkeypatch, capsys):
-    import torchcal.cli as cli_mod
+    import torchcal.cli.app as cli_mod
 
     def never(*a, **k):
         raise AssertionError("the loop ran although its output cannot be written")
@@ -180,7 +180,7 @@ def test_a_declared_marker_without_columns_is_an_error(files, tmp_path, capsys):
 
 
 def test_a_model_worse_than_nominal_is_not_saved(files, tmp_path, monkeypatch, capsys):
-    import torchcal.cli as cli_mod
+    import torchcal.cli.app as cli_mod
 
     real = cli_mod.calibrate
 
@@ -388,5 +388,5 @@ def test_reprs_are_short(files, looped):
         r = repr(obj)
         assert r.startswith(word) and len(r) < 300 and "tensor" not in r
     assert "q: (N, dof)" in run_loop.__doc__ or "rad" in run_loop.__doc__
-    assert "Attributes" in torchcal.loop.LoopResult.__doc__
+    assert "Attributes" in torchcal.pipelines.loop.run.LoopResult.__doc__
     assert quat_to_matrix(torch.tensor([1.0, 0, 0, 0])).equal(torch.eye(3))

@@ -15,7 +15,7 @@ import torch
 from torch.autograd.functional import jacobian
 
 from torchcal import Robot
-from torchcal.transforms import skew
+from torchcal.kinematics.transforms import skew
 
 H = 1e-6  # central-difference step (m and rad)
 

@@ -1,5 +1,5 @@
 """The loop with nothing declared: for each simulated physical effect (and none), a UR5e data set
-goes through :func:`torchcal.loop.run_loop` with ``candidates=None``. The loop must name the
+goes through :func:`torchcal.pipelines.loop.run.run_loop` with ``candidates=None``. The loop must name the
 simulated effect first (and accept nothing on the clean set), and the held-out mean error of the
 final model must be within 3x the noise floor.
 
@@ -23,9 +23,9 @@ import pytest
 import torch
 
 from torchcal.effects import EFFECTS
-from torchcal.loop import run_loop
-from torchcal.robots import shipped
-from torchcal.sim import SimConfig, simulate_with_effects
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.kinematics.robots import shipped
+from torchcal.sim.serial import SimConfig, simulate_with_effects
 
 N_TRAIN = 120
 N_TEST = 60
@@ -206,9 +206,9 @@ def test_held_out_data_never_steers():
 def test_cli_loop_nothing_declared(tmp_path, capsys):
     """``torchcal loop`` on CSV files (the backlash set: its ``dir.<joint>`` columns must survive
     the round trip and be found with nothing declared) decides as :func:`run_loop` does."""
-    from torchcal import cli
-    from torchcal.robots import urdf_path
-    from torchcal.sim import write_dataset
+    from torchcal.cli import app as cli
+    from torchcal.kinematics.robots import urdf_path
+    from torchcal.sim.serial import write_dataset
 
     case = "backlash"
     d = _dataset(case)

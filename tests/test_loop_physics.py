@@ -1,4 +1,4 @@
-"""The loop on data nobody declared, made by :mod:`torchcal.physsim`: a simulator with its own
+"""The loop on data nobody declared, made by :mod:`torchcal.sim.physsim`: a simulator with its own
 URDF parser, kinematics and gravity, sharing no code with torchcal's effect classes. Each case is
 a failure seen on held-back data (an undeclared heavy tool, one warm link, bending, a tilting
 base, outliers, a humanoid upper body); the loop must name what the simulator put in and end at
@@ -16,9 +16,9 @@ import pytest
 import torch
 
 from torchcal import Robot, run_loop
-from torchcal.loop_report import write_loop_report
-from torchcal.robots import urdf_path
-from torchcal.sim_cases import CASES, TORSION, make_case
+from torchcal.report.loop import write_loop_report
+from torchcal.kinematics.robots import urdf_path
+from torchcal.sim.cases import CASES, TORSION, make_case
 
 UR5E = urdf_path("ur5e").read_text()
 N_TRAIN = CASES["payload_12kg"]["n_train"]

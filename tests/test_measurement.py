@@ -14,10 +14,10 @@ import pytest
 import torch
 from torch.autograd.functional import jacobian
 
-from torchcal.io import Measurements, load_measurements, save_measurements
-from torchcal.measurement import DistanceResidual, Loss, PoseResidual, PositionResidual
-from torchcal.registration import register_base
-from torchcal.transforms import kabsch, so3_exp
+from torchcal.measure.io import Measurements, load_measurements, save_measurements
+from torchcal.measure.blocks import DistanceResidual, Loss, PoseResidual, PositionResidual
+from torchcal.measure.registration import register_base
+from torchcal.kinematics.transforms import kabsch, so3_exp
 
 D = torch.float64
 

@@ -9,14 +9,15 @@ import math
 import pytest
 import torch
 
-from torchcal import load, robots
-from torchcal.io import Measurements, load_measurements, save_measurements
-from torchcal.loop import run_loop
-from torchcal.observations import Observations, Setup, unseen
-from torchcal.problem import EffectCalibrationProblem
-from torchcal.robot import Robot
-from torchcal.sim import SimConfig, hide_axes, random_configs, simulate, simulated_robot
-from torchcal.transforms import kabsch, similarity
+from torchcal import load
+from torchcal.kinematics import robots
+from torchcal.measure.io import Measurements, load_measurements, save_measurements
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.measure.observations import Observations, Setup, unseen
+from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.kinematics.robot import Robot
+from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot
+from torchcal.kinematics.transforms import kabsch, similarity
 
 NOISE = 0.02e-3  # m
 
@@ -231,7 +232,7 @@ def test_planes_and_a_ball_bar_through_the_cli(kr5_planes, tmp_path):
     """Contacts with three planes plus distances from the tool to the fixed pivot of a ball bar,
     written as CSV and run through ``torchcal loop``: the distances fix the size, so the absolute
     geometry (after the rigid motion alone) comes out within 2× the noise."""
-    from torchcal.cli import main
+    from torchcal.cli.app import main
 
     robot, sim, planes, g = kr5_planes
     contacts = sim.touch(planes, 60)

@@ -10,16 +10,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcal.cli import main as torchcal_main
-from torchcal.cli_correct import correct_main, matrix_to_quat, quat_to_matrix
+from torchcal.cli.app import main as torchcal_main
+from torchcal.cli.correct import correct_main, matrix_to_quat, quat_to_matrix
 
 
 def cli_main(argv):
     return torchcal_main(["correct", *argv])
-from torchcal.elm import ELM
-from torchcal.model import CalibratedModel, register_effect
-from torchcal.persist import FORMAT_VERSION, load, save
-from torchcal.robots import shipped
+from torchcal.deploy.elm import ELM
+from torchcal.deploy.model import CalibratedModel, register_effect
+from torchcal.deploy.persist import FORMAT_VERSION, load, save
+from torchcal.kinematics.robots import shipped
 
 torch.set_num_threads(1)
 SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "kuka_kr5_arc"
@@ -132,7 +132,7 @@ def test_refusals_with_clear_messages(tmp_path, kr5):
 
 
 def test_quaternion_helpers_round_trip():
-    from torchcal.transforms import so3_exp
+    from torchcal.kinematics.transforms import so3_exp
 
     R = so3_exp(torch.randn(50, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2)
     torch.testing.assert_close(quat_to_matrix(matrix_to_quat(R)), R, rtol=0, atol=1e-14)

@@ -1,4 +1,4 @@
-"""The independent robot simulator (torchcal.physsim) against independent references.
+"""The independent robot simulator (torchcal.sim.physsim) against independent references.
 
 * forward kinematics: yourdfpy's scene graph (UR5e, the synthetic humanoid, a tree with a mimic
   joint and a prismatic joint);
@@ -18,8 +18,8 @@ import pytest
 import yourdfpy
 from scipy.spatial.transform import Rotation
 
-from torchcal.io import save_measurements
-from torchcal.physsim import PhysicalRobot, Sample, humanoid_urdf, warmup_temperature
+from torchcal.measure.io import save_measurements
+from torchcal.sim.physsim import PhysicalRobot, Sample, humanoid_urdf, warmup_temperature
 
 UR5E = Path(__file__).resolve().parents[1] / "urdf" / "ur5e.urdf"
 G = np.array([0.0, 0.0, -9.81])

@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate, plan_poses
-from torchcal.cli import main as cli
-from torchcal.identifiability import stacked_jacobian
-from torchcal.plan_design import CRITERIA, candidate_values, criterion_value, information
-from torchcal.plan_feasible import SelfCollision, in_box, parse_box
-from torchcal.robots import shipped, urdf_path
-from torchcal.sim import SimConfig, config_bounds, random_configs, simulate
+from torchcal.cli.app import main as cli
+from torchcal.problems.identifiability import stacked_jacobian
+from torchcal.pipelines.plan.design import CRITERIA, candidate_values, criterion_value, information
+from torchcal.pipelines.plan.feasible import SelfCollision, in_box, parse_box
+from torchcal.kinematics.robots import shipped, urdf_path
+from torchcal.sim.serial import SimConfig, config_bounds, random_configs, simulate
 
 KR5 = str(urdf_path("kuka_kr5_arc"))
 SMR = "smr@flange=0,0,0"

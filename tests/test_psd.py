@@ -6,10 +6,10 @@ import math
 import pytest
 import torch
 
-from torchcal.psd import (Laser, PointConstraint, SpotResidual, analyse_block, beam_pair_point, calibrate_psd,
+from torchcal.pipelines.psd import (Laser, PointConstraint, SpotResidual, analyse_block, beam_pair_point, calibrate_psd,
                           closest_points, fit_psd_poses, laser_beams, modify_poses, plane_intersection, psd_frame,
                           simulate_psd)
-from torchcal.robots import shipped
+from torchcal.kinematics.robots import shipped
 
 F64 = dict(dtype=torch.float64)
 HOME = torch.tensor([0.0, -1.4, 2.4, 0.0, 0.5, 0.0], **F64)  # KR5 elbow-up start for the aiming IK

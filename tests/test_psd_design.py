@@ -4,10 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchcal.psd import (Laser, PSDData, SpotResidual, calibrate_psd, laser_beams, plane_intersection, psd_frame,
+from torchcal.pipelines.psd import (Laser, PSDData, SpotResidual, calibrate_psd, laser_beams, plane_intersection, psd_frame,
                           spot_covariance, spot_sensitivity, spot_whitening)
-from torchcal.psd_design import _greedy, information, measure_psd, predicted_max_error, select_design
-from torchcal.robots import shipped
+from torchcal.pipelines.psd_design import _greedy, information, measure_psd, predicted_max_error, select_design
+from torchcal.kinematics.robots import shipped
 
 F64 = dict(dtype=torch.float64)
 HOME = torch.tensor([0.0, -1.4, 2.4, 0.0, 0.5, 0.0], **F64)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from torchcal.optim import get_solver
-from torchcal.parallel import PARAM_NAMES, RRRU, WorkspaceError
-from torchcal.parallel.calibration import (DecorrelatedProblem, RRRUCalibration, identifiability,
+from torchcal.kinematics.rrru import PARAM_NAMES, RRRU, WorkspaceError
+from torchcal.problems.rrru import (DecorrelatedProblem, RRRUCalibration, identifiability,
                                            line_trajectories, simulate_tracker, spiral_trajectory)
 
 MM = 1e-3

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.io import UnitsError, load_measurements
+from torchcal.measure.io import UnitsError, load_measurements
 
 
 @pytest.fixture

@@ -2,23 +2,24 @@
 
 Robot model -> measurement model -> problem -> solver -> result/report:
 :class:`Robot` (batched, differentiable kinematics with error parameters),
-:mod:`torchcal.measurement` (residual blocks), :class:`torchcal.problem.CalibrationProblem`,
+:mod:`torchcal.measure.blocks` (residual blocks), :class:`torchcal.problems.calibration.CalibrationProblem`,
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
-from .calibrate import CalibrationResult, calibrate
-from .correct import Corrector
-from .elm import ELM, tune_elm
-from .fleet import FleetResult, calibrate_fleet
-from .io import Measurements, load_measurements
-from .loop import run_loop
-from .model import CalibratedModel
-from .params import ParamSet
-from .persist import load, save
-from .plan import Plan, plan_poses
-from .robot import Robot
-from .tree import Marker
+from torchcal.pipelines.calibrate import CalibrationResult, calibrate
+from torchcal.deploy.correct import Corrector
+from torchcal.deploy.elm import ELM, tune_elm
+from torchcal.pipelines.fleet.run import FleetResult, calibrate_fleet
+from torchcal.measure.io import Measurements, load_measurements
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.deploy.model import CalibratedModel
+from torchcal.params import ParamSet
+from torchcal.deploy.persist import load, save
+from torchcal.pipelines.plan.run import Plan, plan_poses
+from torchcal.kinematics.robot import Robot
+from torchcal.kinematics.tree import Marker
+from torchcal.kinematics import robots  # the shipped robots: torchcal.robots.shipped('ur5e')
 
-__version__ = "0.1.0"
+from torchcal.version import __version__
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
            "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",
-           "plan_poses", "Plan", "calibrate_fleet", "FleetResult", "__version__"]
+           "plan_poses", "Plan", "calibrate_fleet", "FleetResult", "robots", "__version__"]

@@ -1,4 +1,4 @@
 """``python -m torchcal``: the same as the ``torchcal`` command."""
-from .cli import main
+from torchcal.cli.app import main
 
 raise SystemExit(main())

@@ -29,8 +29,8 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from ..optim.problem import Problem
-from . import scara
+from torchcal.problems.base import Problem
+from torchcal.dynamics import scara
 
 __all__ = ["FourierExcitation", "ExcitationProblem", "condition_number", "stack_regressor"]
 
@@ -66,11 +66,11 @@ class FourierExcitation:
     def from_robot(cls, name: str = "scara", joints: Sequence[int] = (0, 1), *,
                    margin: float = math.radians(10.0), velocity_fraction: float = 0.5,
                    qdd_max: Sequence[float] = (10.0, 20.0), **kw) -> "FourierExcitation":
-        """Limits from the robot's DH table (:func:`torchcal.robots.dh_table`): position limits
+        """Limits from the robot's DH table (:func:`torchcal.kinematics.robots.dh_table`): position limits
         shrunk by ``margin`` on each side, ``velocity_fraction`` of the rated joint speed, and
         ``qdd_max`` (rad/s²; not published for the Cobra s600 — the default is an assumption
         for a gentle identification run). ``kw`` goes to the constructor."""
-        from ..robots import dh_table
+        from torchcal.kinematics.robots import dh_table
 
         rows = [dh_table(name)[j] for j in joints]
         return cls([r["lower"] + margin for r in rows], [r["upper"] - margin for r in rows],

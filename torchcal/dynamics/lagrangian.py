@@ -55,7 +55,7 @@ def euler_lagrange(L: Callable[[Tensor, Tensor], Tensor], q: Tensor, qd: Tensor,
 
 def inertial_vector(inertials: dict[str, dict] | Sequence[dict]) -> Tensor:
     """``(10 n_links,)`` standard inertial parameters (:data:`INERTIAL_NAMES` per link) from
-    :func:`torchcal.robots.link_inertials`-style entries (mass kg, COM m, inertia about the COM
+    :func:`torchcal.kinematics.robots.link_inertials`-style entries (mass kg, COM m, inertia about the COM
     ``(ixx, ixy, ixz, iyy, iyz, izz)`` kg·m², all in the link frame). The inertia is moved to
     the link origin by the parallel-axis theorem ``I_o = I_c + m (|c|² 1 − c cᵀ)``."""
     rows = list(inertials.values()) if isinstance(inertials, dict) else list(inertials)

@@ -18,7 +18,7 @@ unknown marker 10 cm from its guess changes every lever arm by that much.
 **Modes.** An effect is a sum of *modes*, each owning some of its parameters (a joint's
 backlash, one link's thermal growth, one direction of bending at one joint). A *selectable*
 effect is a family whose modes the loop chooses one at a time by cross-validation
-(:mod:`torchcal.selection`); the others are tried whole. :meth:`Effect.with_modes` restricts an
+(:mod:`torchcal.pipelines.loop.selection`); the others are tried whole. :meth:`Effect.with_modes` restricts an
 effect to some modes.
 
 **Linear form.** :meth:`Effect.linear_basis` gives the effect's columns as a model linear in its
@@ -70,7 +70,7 @@ class Effect:
     :meth:`joint_delta` and/or :meth:`position_delta`.
 
     Args:
-        robot: the :class:`~torchcal.robot.Robot` the effect belongs to.
+        robot: the :class:`~torchcal.kinematics.robot.Robot` the effect belongs to.
         joints: joints the effect acts on (default: all actuated joints it applies to).
         geometry: ``(K,)`` robot parameters the features are computed at (default nominal).
     """
@@ -223,7 +223,7 @@ class Effect:
         return torch.cat([own, shared])
 
     def signature(self, prep: Prepared, label: str, theta: Tensor) -> dict | None:
-        """What a mode's evidence plot shows (see :mod:`torchcal.loop_evidence`): ``x (N,)`` the
+        """What a mode's evidence plot shows (see :mod:`torchcal.pipelines.loop.evidence`): ``x (N,)`` the
         physical signature and ``xlabel``; ``fitted (N,)`` the mode's value and ``ylabel``; and
         either ``dof`` (a joint the mode deflects) or ``G (N, M, 3)`` (robot-base displacement per
         unit of the mode's value). None: nothing to plot."""
@@ -272,13 +272,13 @@ class Effect:
 
     def joint_correction(self, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor:
         """``Δq (N, dof)`` for commands ``q`` with the fitted parameters (the hook
-        :class:`~torchcal.model.CalibratedModel` calls before FK)."""
+        :class:`~torchcal.deploy.model.CalibratedModel` calls before FK)."""
         d = self.joint_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return torch.zeros_like(q) if d is None else d[0]
 
     def position_correction(self, p: Tensor, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor:
         """``p (N, M, 3)`` robot-base marker positions (m) -> displaced, with the fitted
-        parameters (the hook :class:`~torchcal.model.CalibratedModel` calls after FK)."""
+        parameters (the hook :class:`~torchcal.deploy.model.CalibratedModel` calls after FK)."""
         d = self.position_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return p if d is None else p + d[0]
 
@@ -288,7 +288,7 @@ class Effect:
         return []
 
     def state_dict(self) -> dict:
-        """What :func:`torchcal.persist.save` stores: tensors bit-exactly, the rest as JSON."""
+        """What :func:`torchcal.deploy.persist.save` stores: tensors bit-exactly, the rest as JSON."""
         return {"name": self.name, "joints": list(self.joints), "theta": self.theta.detach().clone(),
                 "geometry": self.geometry.detach().clone(), "config": self.config(),
                 "covariate_range": {k: list(v) for k, v in self.covariate_range.items()}}

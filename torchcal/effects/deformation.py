@@ -22,8 +22,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import Effect, LinearBasis, Prepared
-from .gravity import GRAVITY, body_inertials, gravity_features, gravity_wrenches
+from torchcal.effects.base import Effect, LinearBasis, Prepared
+from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_features, gravity_wrenches
 
 __all__ = ["GravityDeformation", "JointCompliance"]
 

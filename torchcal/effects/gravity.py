@@ -17,9 +17,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..robot import Robot
-from ..tree import Marker
-from ..urdf import load_joints, read_inertials
+from torchcal.kinematics.robot import Robot
+from torchcal.kinematics.tree import Marker
+from torchcal.kinematics.urdf import load_joints, read_inertials
 
 __all__ = ["GRAVITY", "Frames", "Wrenches", "body_inertials", "kinematic_frames", "frames_beyond", "gravity_wrenches",
            "gravity_features"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import Effect, Prepared
+from torchcal.effects.base import Effect, Prepared
 
 __all__ = ["CyclicJointError", "JointScale", "Backlash"]
 

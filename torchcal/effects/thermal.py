@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .base import TIME_COVARIATES, Effect, Prepared
-from .gravity import kinematic_frames
+from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
+from torchcal.effects.gravity import kinematic_frames
 
 __all__ = ["ThermalDrift", "thermal_covariate"]
 

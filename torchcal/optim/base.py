@@ -5,8 +5,8 @@ from typing import Callable
 
 import torch
 
-from .problem import Problem
-from .result import Result
+from torchcal.problems.base import Problem
+from torchcal.optim.result import Result
 
 __all__ = ["Solver", "register", "get_solver", "available", "minimize", "progress_bar"]
 

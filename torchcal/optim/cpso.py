@@ -17,9 +17,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .base import register
-from .problem import Problem
-from .pso import PSO, SwarmState
+from torchcal.optim.base import register
+from torchcal.problems.base import Problem
+from torchcal.optim.pso import PSO, SwarmState
 
 __all__ = ["ChaoticPSO", "logistic_sequence", "avoid_fixed_points"]
 

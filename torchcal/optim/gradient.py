@@ -15,10 +15,10 @@ import math
 import torch
 from torch import Tensor
 
-from .base import Solver, register
-from .lm import _JAC_MODES, LsqEvaluator, Reporter, bounds64, fitness_is_sum_of_squares, require_residuals
-from .problem import Problem
-from .result import Result
+from torchcal.optim.base import Solver, register
+from torchcal.optim.lm import _JAC_MODES, LsqEvaluator, Reporter, bounds64, fitness_is_sum_of_squares, require_residuals
+from torchcal.problems.base import Problem
+from torchcal.optim.result import Result
 
 __all__ = ["GaussNewton", "LBFGS", "Adam"]
 

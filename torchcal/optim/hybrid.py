@@ -12,9 +12,9 @@ from typing import Any, Callable
 
 import torch
 
-from .base import Solver, get_solver, register
-from .problem import Problem
-from .result import Result
+from torchcal.optim.base import Solver, get_solver, register
+from torchcal.problems.base import Problem
+from torchcal.optim.result import Result
 
 __all__ = ["Hybrid"]
 

@@ -14,9 +14,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .base import Solver, progress_bar, register
-from .problem import LeastSquaresProblem, Problem
-from .result import Result
+from torchcal.optim.base import Solver, progress_bar, register
+from torchcal.problems.base import LeastSquaresProblem, Problem
+from torchcal.optim.result import Result
 
 __all__ = ["LevenbergMarquardt"]
 
@@ -35,15 +35,9 @@ def require_residuals(problem: Problem, who: str) -> None:
 
 
 def fitness_is_sum_of_squares(problem: Problem) -> bool:
-    """True when ``problem.fitness`` is the default ``sum(r**2)``, so a solver may reuse its own
-    sum of squares instead of calling ``fitness`` again."""
-    if getattr(problem, "fitness_is_sse", False):
-        return True
-    fit = type(problem).fitness
-    if fit is Problem.fitness:
-        return True
-    return (fit is LeastSquaresProblem.fitness and isinstance(problem, LeastSquaresProblem)
-            and problem._fitness_fn is None)
+    """True when ``problem.fitness`` is the sum of squared residuals, so a solver may reuse its own
+    sum of squares instead of calling ``fitness`` again (:attr:`Problem.fitness_is_sse`)."""
+    return problem.fitness_is_sse
 
 
 def bounds64(problem: Problem) -> tuple[Tensor, Tensor, bool]:

@@ -20,7 +20,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .result import Result
+from torchcal.optim.result import Result
 
 __all__ = ["lm_batched", "BatchedLMResult"]
 

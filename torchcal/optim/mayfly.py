@@ -19,10 +19,10 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .base import Solver, register
-from .ga import _evaluate, _Reporter
-from .problem import Problem
-from .result import Result
+from torchcal.optim.base import Solver, register
+from torchcal.optim.ga import _evaluate, _Reporter
+from torchcal.problems.base import Problem
+from torchcal.optim.result import Result
 
 __all__ = ["Mayfly", "ModifiedMayfly", "MayflyState", "improved_tent_map"]
 

@@ -25,9 +25,9 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from .base import Solver, progress_bar, register
-from .problem import Problem
-from .result import Result
+from torchcal.optim.base import Solver, progress_bar, register
+from torchcal.problems.base import Problem
+from torchcal.optim.result import Result
 
 __all__ = ["PSO", "LDPSO_BT", "ldpso_pop_sizes", "SwarmState"]
 

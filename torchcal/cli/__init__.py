@@ -1,0 +1,1 @@
+"""The ``torchcal`` command line: ``calibrate``, ``loop``, ``correct``, ``fleet``, ``plan``."""

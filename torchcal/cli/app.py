@@ -1,0 +1,220 @@
+"""Command line: ``torchcal calibrate | loop | simulate | correct | plan | fleet`` (also ``python -m torchcal``).
+
+Every command refuses to overwrite what exists (``--force`` to replace it), checks that its
+output can be written before it works, writes under temporary names, and records in each output
+directory the exact options (``run.yaml``, which ``--config`` reads back) and the provenance of
+the result (``provenance.json``). Messages go to stderr through :mod:`logging` (``--quiet``,
+``--verbose``); tables and results to stdout.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from torchcal.version import __version__
+from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
+from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, nonnegative_float, robot_and_data,
+                         run_record, setup_logging)
+from torchcal.cli.correct import add_correct_parser
+from torchcal.cli.fleet import add_fleet_parser
+from torchcal.cli.plan import add_plan_parser
+from torchcal.effects import EFFECTS
+from torchcal.measure.io import UnitsError
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.report.loop import write_loop_report
+from torchcal.outputs import check_out_dir, check_out_file
+from torchcal.deploy.persist import save
+from torchcal.kinematics.robot import Robot
+from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
+
+__all__ = ["main", "build_parser"]
+
+logger = logging.getLogger("torchcal")
+
+
+def _print_stages(stages: list[dict], has_test: bool) -> None:
+    """The per-stage error table both commands print (mm)."""
+    w = max(12, max(len(s["name"]) for s in stages) + 2)
+    cols = ["train mean", "train max"] + (["test mean", "test max"] if has_test else [])
+    print(f"\n{'stage':<{w}}{'params':>7}" + "".join(f"{c:>12}" for c in cols))
+    for s in stages:
+        vals = [s["train"]["mean_mm"], s["train"]["max_mm"]]
+        if has_test:
+            vals += [s["test"]["mean_mm"], s["test"]["max_mm"]]
+        print(f"{s['name']:<{w}}{s['n_params']:>7}" + "".join(f"{v:>12.4f}" for v in vals) + "   [mm]")
+
+
+def _inputs(a) -> dict:
+    return {"urdf": a.robot, "data": a.data, "test": getattr(a, "test", None)}
+
+
+def _refuse(cmd: str, problems: list[str]) -> int:
+    for p in problems:
+        print(f"torchcal {cmd}: error: {p}", file=sys.stderr)
+    print(f"torchcal {cmd}: nothing was written", file=sys.stderr)
+    return 2
+
+
+def _calibrate(a, argv) -> int:
+    check_out_dir(a.out, a.force)
+    torch.set_num_threads(a.threads)
+    t0 = time.perf_counter()
+    robot, train, test = robot_and_data(a)
+    progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty()
+                                                          and not a.quiet)
+    res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
+                    progress=progress, polish=a.polish, free=a.free or None)
+    logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
+    if res.problems():
+        return _refuse("calibrate", res.problems())
+    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument,
+                   extra=lambda d: run_record(a, d, _inputs(a), argv))
+    print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
+    _print_stages(res.stages, test is not None)
+    print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
+    return 0
+
+
+def _loop(a, argv) -> int:
+    check_out_dir(a.out, a.force)
+    torch.set_num_threads(a.threads)
+    robot, train, test = robot_and_data(a)
+    progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
+    res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
+                   noise_mm=a.noise_mm, progress=progress, log=None)
+    for k, v in res.timings.items():
+        logger.info(f"stage {k}: {v:.1f} s")
+    if res.problems():
+        return _refuse("loop", res.problems())
+    from torchcal.outputs import staged_dir
+
+    cmd = "torchcal " + " ".join(shlex.quote(x) for x in argv) if a.command is None else a.command
+    with staged_dir(a.out, a.force) as d:
+        write_loop_report(res, d, command=cmd)
+        geo = robot.params(res.params.values[: robot.n_params])
+        note = None
+        if res.effects:
+            note = ("geometric part only: the calibrated model also applies " + "; ".join(
+                f"{e.name} ({', '.join(lab for lab, _ in e.modes())})" for e in res.effects) +
+                ". Those act through the saved model (torchcal.load('model'), torchcal correct), not through "
+                "this URDF")
+        robot.export_urdf(geo, d / "calibrated.urdf", with_instrument=a.with_instrument, note=note)
+        write_instrument(robot, geo, d / "instrument.json")
+        prov = run_record(a, d, _inputs(a), argv)
+        model = res.model()
+        model.meta.update({"provenance": prov, "options": (d / "run.yaml").read_text()})
+        save(model, d / "model")
+    out = Path(a.out)
+    _print_stages(res.stages, test is not None)
+    found = list(dict.fromkeys(e["name"] for e in res.accepted))  # an effect that gained modes later: once
+    print(f"effects found: {found or 'none'}; report in {out / 'report.md'}; calibrated "
+          f"URDF {out / 'calibrated.urdf'}" + (" (geometric part)" if res.effects else "") + f"; model in {out / 'model'}")
+    if res.suspects:
+        print(f"{len(res.suspects)} suspect observation(s), listed in the report (kept in the data)")
+    return 0
+
+
+def _simulate(a, argv) -> int:
+    out = Path(a.out)
+    truth = out.with_suffix(".truth.json")
+    check_out_file(out, a.force)
+    check_out_file(truth, a.force)
+    torch.set_num_threads(1)
+    robot = Robot.from_urdf(a.robot, markers=a.marker or None)
+    cfg = SimConfig(n=a.poses, noise=a.noise_mm * 1e-3, base_distance=a.base_distance, seed=a.seed,
+                    length_error=a.length_error_mm * 1e-3, angle_error=a.angle_error_mrad * 1e-3)
+    data, tr, effects = simulate_with_effects(robot, cfg, a.effect)
+    write_dataset(out, data, tr, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
+    print(f"wrote {len(data)} rows to {out} and the truth to {truth} (keep it away from the solver)")
+    return 0
+
+
+def _data_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", required=True, help="URDF file")
+    p.add_argument("--data", required=True, help="training CSV: joint columns (rad / m) + <marker>.x/.y/.z (m)")
+    p.add_argument("--test", help="held-out CSV (measured only, never fitted)")
+    p.add_argument("--holdout", type=fraction, default=0.0, help="without --test: fraction of rows held out")
+    p.add_argument("--marker", action="append", help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. "
+                                                     "Default: the marker columns of --data that are link names")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-instrument", action="store_true",
+                   help="calibrated URDF rooted in the instrument frame (default: the robot's own root; the "
+                        "registration goes to instrument.json)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="progress bar (default: on in a terminal)")
+    p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    add_common(p)
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict]:
+    ap = argparse.ArgumentParser(prog="torchcal", description="Robot calibration on torch tensors.")
+    ap.add_argument("--version", action="version", version=f"torchcal {__version__} (torch {torch.__version__})")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    c = sub.add_parser("calibrate", help="identify geometric errors from a measurement CSV")
+    c.add_argument("--method", default="lm", choices=["lm", "gn", "lbfgs", "pso", "ldpso-bt", "cpso", "ga", "ma", "mma",
+                                                      "hybrid"])
+    c.add_argument("--kind", default="position", choices=["position", "pose"])
+    c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"])
+    c.add_argument("--free", action="append", help="glob pattern of parameters to identify (repeatable)")
+    c.add_argument("--polish", action="store_true", help="after a swarm method, polish with LM")
+    _data_options(c)
+    c.set_defaults(func=_calibrate)
+
+    lp = sub.add_parser("loop", help="calibrate, trace the residual to the effect the model lacks, add it, report")
+    lp.add_argument("--candidates", nargs="*", choices=sorted(EFFECTS), metavar="EFFECT",
+                    help=f"effects to consider (default: all the data allows): {', '.join(sorted(EFFECTS))}")
+    lp.add_argument("--folds", type=int_at_least(2), default=5, help="cross-validation folds (≥ 2)")
+    lp.add_argument("--noise-mm", type=nonnegative_float, help="instrument noise for the report (mean error, mm)")
+    lp.add_argument("--no-elm", action="store_true", help="skip the residual ELM stage")
+    lp.add_argument("--command", help=argparse.SUPPRESS)
+    _data_options(lp)
+    lp.set_defaults(func=_loop)
+
+    s = sub.add_parser("simulate", help="simulate laser-tracker measurements with geometric errors")
+    s.add_argument("--robot", required=True)
+    s.add_argument("--marker", action="append")
+    s.add_argument("--poses", type=int_at_least(1), default=100)
+    s.add_argument("--noise-mm", type=nonnegative_float, default=0.02)
+    s.add_argument("--length-error-mm", type=nonnegative_float, default=0.5)
+    s.add_argument("--angle-error-mrad", type=nonnegative_float, default=1.0)
+    s.add_argument("--base-distance", type=nonnegative_float, default=3.0, help="instrument distance from the base (m)")
+    s.add_argument("--effect", action="append", default=[], help="physical effect to simulate (repeatable): "
+                   "joint_compliance, backlash, cyclic_joint_error, joint_scale, thermal_drift")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True, help="CSV path; the truth goes beside it as .truth.json")
+    add_common(s, units=False)
+    s.set_defaults(func=_simulate)
+
+    add_correct_parser(sub)
+    add_plan_parser(sub)
+    add_fleet_parser(sub)
+    return ap, sub.choices
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap, sub = build_parser()
+    try:
+        argv = expand_config(argv, sub)
+    except SystemExit as e:
+        print(e, file=sys.stderr)
+        return 2
+    a = ap.parse_args(argv)
+    setup_logging(a)
+    try:
+        return a.func(a, argv)
+    except (ValueError, UnitsError, FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError,
+            KeyError) as e:
+        print(f"torchcal {a.cmd}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,225 @@
+"""What every ``torchcal`` command shares: option checks at parse time, ``--config`` files,
+logging, the record each output directory keeps (``run.yaml``, ``provenance.json``), and the
+robot and data an integrator points the commands at."""
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from pathlib import Path
+
+import yaml
+
+from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, read_csv
+from torchcal.outputs import atomic_write_text, provenance
+from torchcal.kinematics.robot import Robot
+from torchcal.kinematics.tree import Marker, parse_marker
+from torchcal.kinematics.urdf import urdf_links
+
+__all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "add_common", "expand_config",
+           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
+
+logger = logging.getLogger("torchcal")
+
+# options holding paths: relative ones in a --config file are read from the file's folder
+PATH_OPTIONS = ("robot", "data", "test", "out", "model", "targets")
+_MAX_MARKER_GUESS_M = 2.0  # a marker point further than 2 m from its link is a guess in millimetres
+
+
+def int_at_least(lo: int):
+    def check(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"must be at least {lo}, got {v}")
+        return v
+    return check
+
+
+def _float(text: str, ok, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    if not ok(v):
+        raise argparse.ArgumentTypeError(f"must be {what}, got {v}")
+    return v
+
+
+def positive_float(text: str) -> float:
+    return _float(text, lambda v: v > 0, "positive")
+
+
+def nonnegative_float(text: str) -> float:
+    return _float(text, lambda v: v >= 0, "zero or positive")
+
+
+def fraction(text: str) -> float:
+    return _float(text, lambda v: 0 <= v < 1, "a fraction in [0, 1)")
+
+
+def add_common(p: argparse.ArgumentParser, units: bool = True) -> None:
+    """Options every command takes."""
+    p.add_argument("--config", help="YAML file of options (keys as the long options, e.g. 'noise-mm: 0.02'); "
+                                    "options given on the command line win; relative paths are read from the "
+                                    "file's folder")
+    p.add_argument("--force", action="store_true", help="replace an existing output (refused otherwise)")
+    p.add_argument("--threads", type=int_at_least(1), default=1, help="torch threads (≥ 1)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--quiet", action="store_true", help="warnings and errors only")
+    g.add_argument("--verbose", action="store_true", help="debug messages too")
+    if units:
+        p.add_argument("--units", action="append", choices=UNITS, default=[],
+                       help="declare units of the data and marker guesses: 'deg' for joint angles, 'mm' for "
+                            "positions and prismatic joints (repeatable); converted on reading. Without it, "
+                            "values that look like degrees or millimetres stop the run")
+
+
+def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> list[str]:
+    """``argv`` with the options of a ``--config`` YAML file put before the command line's own
+    (so that those win; repeatable options add up)."""
+    if not argv or argv[0] not in sub:
+        return argv
+    cfg = None
+    for i, tok in enumerate(argv):
+        if tok == "--config" and i + 1 < len(argv):
+            cfg = argv[i + 1]
+        elif tok.startswith("--config="):
+            cfg = tok.split("=", 1)[1]
+    if cfg is None:
+        return argv
+    path = Path(cfg)
+    if not path.is_file():
+        raise SystemExit(f"torchcal {argv[0]}: error: config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise SystemExit(f"torchcal {argv[0]}: error: {path} is not valid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise SystemExit(f"torchcal {argv[0]}: error: {path} must hold a mapping of option: value")
+    actions = {a.dest: a for a in sub[argv[0]]._actions if a.option_strings}
+    tokens: list[str] = []
+    for key, value in data.items():
+        dest = str(key).replace("-", "_")
+        a = actions.get(dest)
+        if a is None or dest in ("help", "config"):
+            known = sorted(k.replace("_", "-") for k in actions if k not in ("help", "config"))
+            raise SystemExit(f"torchcal {argv[0]}: error: {path}: unknown option {key!r}; options are {known}")
+        flag = a.option_strings[-1] if a.option_strings[-1].startswith("--") else a.option_strings[0]
+        if dest in PATH_OPTIONS and value is not None:
+            value = str((path.parent / str(value)).resolve()) if not Path(str(value)).is_absolute() else str(value)
+        if isinstance(a, argparse._StoreTrueAction):
+            if value:
+                tokens.append(flag)
+        elif isinstance(a, argparse.BooleanOptionalAction):
+            if value is not None:
+                tokens.append(flag if value else flag.replace("--", "--no-", 1))
+        elif isinstance(value, list):
+            if a.nargs in ("*", "+"):
+                tokens += [flag] + [str(v) for v in value]
+            else:
+                for v in value:
+                    tokens += [flag, str(v)]
+        elif value is not None:
+            tokens += [flag, str(value)]
+    return [argv[0]] + tokens + argv[1:]
+
+
+class _Stderr(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is when a message comes (a notebook, a test harness or
+    a caller may have replaced it since the handler was made), like logging's last resort."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def setup_logging(a: argparse.Namespace) -> None:
+    """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``."""
+    level = logging.WARNING if getattr(a, "quiet", False) else logging.DEBUG if getattr(a, "verbose", False) \
+        else logging.INFO
+    logger.setLevel(level)
+    if not any(getattr(h, "_torchcal", False) for h in logger.handlers):
+        h = _Stderr()
+        h.setFormatter(logging.Formatter("%(message)s"))
+        h._torchcal = True
+        logger.addHandler(h)
+        logger.propagate = False
+
+
+def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -> dict:
+    """Write ``run.yaml`` (the exact options, absolute paths: ``--config run.yaml`` repeats the
+    run) and ``provenance.json`` into ``out``; return the provenance."""
+    skip = {"func", "config", "cmd", "command", "force"}
+    opts = {}
+    for k, v in sorted(vars(a).items()):
+        if k in skip or v is None or v == [] or v is False:
+            continue
+        if k in PATH_OPTIONS:
+            v = str(Path(v).resolve())
+        opts[k.replace("_", "-")] = v
+    prov = provenance(files, ["torchcal", *argv])
+    atomic_write_text(out / "run.yaml", "# torchcal " + a.cmd + ": the exact options of this run; "
+                      "`torchcal " + a.cmd + " --config run.yaml` repeats it\n" + yaml.safe_dump(opts, sort_keys=True))
+    import json
+
+    atomic_write_text(out / "provenance.json", json.dumps(prov, indent=2) + "\n")
+    return prov
+
+
+def parse_markers(specs: list[str], units: list[str] | None) -> list[Marker]:
+    """Declared markers, their guesses (m) converted from millimetres when declared, refused when
+    they look like millimetres otherwise. ``units``: the command's ``--units``, or None for a
+    command without that option (the refusal then asks for metres only)."""
+    out = []
+    for spec in specs:
+        m = parse_marker(spec)
+        xyz = tuple(v / 1000.0 for v in m.xyz) if units and "mm" in units else m.xyz
+        far = max(abs(v) for v in xyz)
+        if far > _MAX_MARKER_GUESS_M:
+            raise ValueError(f"marker {spec!r}: a guess {far:.3g} m from its link looks like millimetres; give metres "
+                             f"(e.g. {m.name}@{m.link}={','.join(f'{v / 1000:g}' for v in m.xyz)})"
+                             + (" or declare --units mm" if units is not None else ""))
+        out.append(Marker(m.name, m.link, xyz, m.rpy))
+    return out
+
+
+def robot_for(urdf, markers: list[str] | None, data_path, units: list[str]) -> Robot:
+    """The robot with its markers: those declared, or else the marker columns of the CSV
+    ``data_path`` that are links of the URDF."""
+    if not markers:
+        header, _ = read_csv(data_path)
+        cols = marker_columns_in(header)
+        links = set(urdf_links(urdf))
+        unknown = [c for c in cols if c not in links]
+        if unknown:
+            raise ValueError(f"marker column(s) {unknown} are not links of {urdf}; declare each as an unknown point "
+                             f"on a link, e.g. --marker {unknown[0]}@LINK or --marker {unknown[0]}@LINK=0.05,0,0.1 (m)")
+        if not cols:
+            raise ValueError(f"{data_path} has no '<marker>.x/.y/.z' columns")
+        markers = cols
+    return Robot.from_urdf(urdf, markers=parse_markers(markers, units))
+
+
+def robot_and_data(a: argparse.Namespace):
+    """The robot (markers declared, or the data's marker columns that are links) and the
+    training and held-out measurements, in metres and radians."""
+    units = list(getattr(a, "units", []) or [])
+    robot = robot_for(a.robot, a.marker, a.data, units)
+    train = load_measurements(a.data, robot, units=units)
+    test = load_measurements(a.test, robot, units=units) if a.test else None
+    if test is None and getattr(a, "holdout", 0):
+        train, test = train.split(a.holdout, seed=a.seed)
+    return robot, train, test

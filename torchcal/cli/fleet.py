@@ -1,0 +1,120 @@
+"""``torchcal fleet``: calibrate every robot of one model from a folder of measurement CSVs.
+
+One CSV per robot (the robot id is the file's stem), in the format ``torchcal calibrate`` reads.
+Writes ``OUT/<robot>/calibrated.urdf``, ``report.md``, ``report.json`` and ``OUT/fleet.md``,
+``OUT/fleet.json`` (the spread of every parameter over the fleet, and the robots flagged).
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+from pathlib import Path
+
+import torch
+
+from torchcal.cli.common import add_common, int_at_least, positive_float, robot_for, run_record
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.measure.io import UnitsError, load_measurements, read_csv
+from torchcal.outputs import check_out_dir, staged_dir
+from torchcal.kinematics.urdf import load_joints
+
+__all__ = ["add_fleet_parser", "fleet_main", "fleet_files"]
+
+
+def fleet_files(spec: str) -> list[Path]:
+    """The CSV files of a fleet: every ``*.csv`` in a directory, or the files a glob matches."""
+    p = Path(spec)
+    files = sorted(p.glob("*.csv")) if p.is_dir() else sorted(Path(f) for f in glob.glob(spec) if f.endswith(".csv"))
+    if not files:
+        where = f"the directory {spec}" if p.is_dir() else f"{spec!r}"
+        raise ValueError(f"no CSV files in {where}; give a directory of <robot>.csv files or a glob such as "
+                         "'data/*.csv' (quote it so the shell does not expand it)")
+    stems = [f.stem for f in files]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise ValueError(f"robot ids must be unique, but several files are named {dup[:5]}; rename them")
+    return files
+
+
+def _same_joints(files: list[Path], urdf: str) -> None:
+    """Refuse a fleet whose files name different joints: they are not one robot model."""
+    _, joints, _ = load_joints(urdf)
+    known = {j.name for j in joints}
+    first = None
+    for f in files:
+        header, _ = read_csv(f)
+        cols = sorted(c for c in header if c in known)
+        if first is None:
+            first = (f, cols)
+        elif cols != first[1]:
+            raise ValueError(f"{f.name} has joint columns {cols} but {first[0].name} has {first[1]}; every file of a "
+                             "fleet must come from the same robot model (same joint columns)")
+
+
+def _load_all(files: list[Path], robot, units: list[str]) -> dict:
+    """Robot id -> measurements (m, rad) of every file; a file in other units than the rest is
+    named, with the reminder that ``--units`` holds for every file of the fleet."""
+    out = {}
+    for f in files:
+        try:
+            out[f.stem] = load_measurements(f, robot, units=units)
+        except UnitsError as e:
+            raise UnitsError(f"{e}. --units applies to every file of the fleet: convert the files that differ, so "
+                             "that all share one unit") from None
+    return out
+
+
+def add_fleet_parser(sub) -> argparse.ArgumentParser:
+    """Add the ``fleet`` sub-command to an ``argparse`` sub-parser set."""
+    f = sub.add_parser("fleet", help="calibrate many robots of one model in one batched solve",
+                       description="Calibrate every robot of one model: one CSV per robot (robot id = file stem). "
+                                   "Writes OUT/<robot>/calibrated.urdf, report.md/json and OUT/fleet.md/json.")
+    f.add_argument("--robot", required=True, help="URDF file of the model")
+    f.add_argument("--data", required=True, help="directory of <robot>.csv files, or a glob ('data/*.csv')")
+    f.add_argument("--test", help="held-out CSVs, named like the training files (directory or glob)")
+    f.add_argument("--marker", action="append", help="LINK or NAME@LINK[=x,y,z] (m); repeatable")
+    f.add_argument("--prior", choices=["fleet"], help="hierarchical prior: each robot's errors around the fleet mean")
+    f.add_argument("--effect", action="append", choices=["joint_compliance"],
+                   help="fit joint compliance per robot (needs URDF inertials)")
+    f.add_argument("--payload", choices=["shared", "per_robot"], default="shared",
+                   help="with --effect: one unknown payload for the fleet, or one per robot")
+    f.add_argument("--z", type=positive_float, default=5.0, help="robust z-score beyond which a parameter is flagged")
+    f.add_argument("--min-rows", type=int_at_least(1), default=3, help="refuse robots with fewer rows")
+    f.add_argument("--ray", metavar="ADDRESS", help="run on Ray: 'local' (in-process), 'auto' or ray://host:port "
+                                                   "(pip install torchcal[ray])")
+    f.add_argument("--shards", type=int_at_least(1), help="with --ray: how many tasks the fleet is cut into")
+    f.add_argument("--no-figures", action="store_true", help="skip the error histograms per robot")
+    f.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    add_common(f)
+    f.set_defaults(func=fleet_main)
+    return f
+
+
+def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
+    """Run ``torchcal fleet`` with parsed arguments (see :func:`add_fleet_parser`)."""
+    check_out_dir(a.out, a.force)
+    torch.set_num_threads(a.threads)
+    units = list(a.units or [])
+    files = fleet_files(a.data)
+    _same_joints(files, a.robot)
+    robot = robot_for(a.robot, a.marker, files[0], units)
+    data = _load_all(files, robot, units)
+    test_files = fleet_files(a.test) if a.test else []
+    test = _load_all(test_files, robot, units) or None
+    fr = calibrate_fleet(robot, data, test=test, prior=a.prior, effects=a.effect, payload=a.payload,
+                         z_threshold=a.z, min_rows=a.min_rows, ray=a.ray, ray_shards=a.shards)
+    inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}
+    with staged_dir(a.out, a.force) as d:
+        fr.save(d, figures=not a.no_figures)
+        run_record(a, d, inputs, list(argv or []))
+    out = Path(a.out)
+    print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s; wrote {out}{os.sep}<robot>/ and "
+          f"{out / 'fleet.md'}")
+    if fr.flags:
+        print(f"{len(fr.flags)} flag(s) (robust |z| > {a.z:g}):")
+        for fl in fr.flags[:20]:
+            print(f"  {fl['robot']}: {fl['parameter']} z = {fl['z']:+.1f}")
+    else:
+        print("no robot stands out")
+    return 0

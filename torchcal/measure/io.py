@@ -1,0 +1,484 @@
+"""Measurement files: CSV with one column per joint, ``<marker>.x/.y/.z`` (m) per measured
+marker, optional ``<marker>.qw/.qx/.qy/.qz`` orientation, and any other numeric column as a
+covariate (time, temperature, direction of last motion …).
+
+An empty cell means that value was not measured: a marker seen in one or two axes only (a
+motion-capture camera pair, a dial gauge) keeps the axes it has; the row still counts for the
+other markers.
+
+Measurements that are not positions:
+
+* ``<marker>.plane``: the marker touched a plane, named in the cell (any label: ``A``, ``table``,
+  ``1``; empty = no contact). Only the distance along the plane's normal is measured (zero at
+  contact); the plane's pose is unknown and identified with the robot. The marker's x/y/z cells
+  stay empty in that row.
+* ``<a>.dist.<b>`` (m): a distance measured from marker ``a``. When ``b`` is another marker, the
+  distance between the two in that row; otherwise ``b`` names a fixed point whose position is
+  unknown and identified (the pivot of a ball bar, the centre of a sphere the probe touches).
+"""
+from __future__ import annotations
+
+import csv
+import difflib
+import io
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchcal.outputs import atomic_write_text
+
+__all__ = ["Measurements", "load_measurements", "save_measurements", "marker_columns_in", "read_csv", "UNITS",
+           "UnitsError"]
+
+UNITS = ("deg", "mm")
+
+
+class UnitsError(ValueError):
+    """Values that look like degrees or millimetres where torchcal expects radians and metres."""
+
+_POS = (".x", ".y", ".z")
+_QUAT = (".qw", ".qx", ".qy", ".qz")
+_PLANE = ".plane"
+_DIST = ".dist."
+
+
+@dataclass
+class Measurements:
+    """Joint values and what an instrument saw, row by row.
+
+    Attributes:
+        q: ``(N, dof)`` joint values (rad / m) in ``joint_names`` order.
+        positions: ``(N, M, 3)`` measured marker positions (m, instrument frame); NaN = not seen.
+        quaternions: ``(N, M, 4)`` measured orientations (w, x, y, z) or ``None``; NaN = not seen.
+        marker_names: the M markers, in the robot's marker order.
+        covariates: other columns, name -> ``(N,)``.
+        planes: ``(N, M)`` integer index into ``plane_names`` of the plane each marker touched in
+            each row, -1 = none (or ``None``: no plane contacts).
+        plane_names: the planes' labels.
+        distances: ``(a, b) -> (N,)`` measured distances (m, NaN = not measured) from marker ``a``
+            to marker ``b`` in the same row, or to the fixed point named ``b`` when ``b`` is not a
+            marker of these rows.
+    """
+
+    q: Tensor
+    positions: Tensor
+    marker_names: list[str]
+    joint_names: list[str]
+    quaternions: Tensor | None = None
+    covariates: dict[str, Tensor] = field(default_factory=dict)
+    source: str | None = None
+    planes: Tensor | None = None
+    plane_names: list[str] = field(default_factory=list)
+    distances: dict[tuple[str, str], Tensor] = field(default_factory=dict)
+
+    def __post_init__(self):
+        N = self.q.shape[0]
+        if self.positions.shape != (N, len(self.marker_names), 3):
+            raise ValueError(f"positions must be (N, M, 3) = ({N}, {len(self.marker_names)}, 3), "
+                             f"got {tuple(self.positions.shape)}")
+        if self.quaternions is not None and self.quaternions.shape != (N, len(self.marker_names), 4):
+            raise ValueError(f"quaternions must be (N, M, 4), got {tuple(self.quaternions.shape)}")
+        for k, v in self.covariates.items():
+            if v.shape != (N,):
+                raise ValueError(f"covariate {k!r} has shape {tuple(v.shape)}, expected ({N},)")
+        if self.planes is not None:
+            if self.planes.shape != (N, len(self.marker_names)) or self.planes.dtype != torch.long:
+                raise ValueError(f"planes must be an integer (N, M) = ({N}, {len(self.marker_names)}) tensor, got "
+                                 f"{self.planes.dtype} {tuple(self.planes.shape)}")
+            if self.planes.numel() and (int(self.planes.max()) >= len(self.plane_names) or int(self.planes.min()) < -1):
+                raise ValueError(f"planes must index plane_names ({len(self.plane_names)} planes) or be -1")
+            both = (self.planes >= 0) & ~torch.isnan(self.positions).all(-1)
+            if bool(both.any()):
+                i, m = torch.nonzero(both)[0].tolist()
+                raise ValueError(f"row {i}: marker {self.marker_names[m]!r} has a plane contact and a position; a "
+                                 "contact measures only the distance along the plane's normal: give one or the other")
+        for (a, b), v in self.distances.items():
+            if a not in self.marker_names:
+                raise ValueError(f"distance from {a!r}: not a marker of these rows ({self.marker_names})")
+            if a == b:
+                raise ValueError(f"distance from {a!r} to itself")
+            if v.shape != (N,):
+                raise ValueError(f"distance {a}.dist.{b} has shape {tuple(v.shape)}, expected ({N},)")
+            if bool((v < 0).any() | torch.isinf(v).any()):
+                raise ValueError(f"distance {a}.dist.{b} has negative or infinite values; distances are metres, zero or "
+                                 "more (NaN where not measured)")
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+    def __repr__(self) -> str:
+        seen = ", ".join(f"{m}: {int(n)}" for m, n in zip(self.marker_names, self.seen.sum(0).tolist()))
+        part = int((self.observed & ~self.seen).sum())
+        more = f", {part} partial" if part else ""
+        if self.planes is not None and bool((self.planes >= 0).any()):
+            more += f", {int((self.planes >= 0).sum())} contacts on planes {self.plane_names}"
+        if self.distances:
+            more += f", {sum(int(torch.isfinite(v).sum()) for v in self.distances.values())} distances"
+        cov = f", covariates {sorted(self.covariates)}" if self.covariates else ""
+        src = f" from {self.source}" if self.source else ""
+        return (f"Measurements({len(self)} rows × {len(self.joint_names)} joints, markers seen {{{seen}}}{more}{cov}"
+                f"{src}; q in rad / m, positions in m)")
+
+    @property
+    def seen(self) -> Tensor:
+        """``(N, M)`` bool: marker position measured in that row, all three axes."""
+        return ~torch.isnan(self.positions).any(-1)
+
+    @property
+    def axes_seen(self) -> Tensor:
+        """``(N, M, 3)`` bool: which position axes were measured."""
+        return ~torch.isnan(self.positions)
+
+    @property
+    def observed(self) -> Tensor:
+        """``(N, M)`` bool: at least one position axis of the marker measured in that row."""
+        return self.axes_seen.any(-1)
+
+    @property
+    def pivots(self) -> list[str]:
+        """Fixed points that distances are measured to (not markers), in order of appearance."""
+        out = []
+        for _, b in self.distances:
+            if b not in self.marker_names and b not in out:
+                out.append(b)
+        return out
+
+    @property
+    def n_values(self) -> int:
+        """Number of measured scalars: position axes, plane contacts and distances."""
+        n = int(self.axes_seen.sum())
+        if self.planes is not None:
+            n += int((self.planes >= 0).sum())
+        return n + sum(int(torch.isfinite(v).sum()) for v in self.distances.values())
+
+    @property
+    def positions_only(self) -> bool:
+        """Every observation is a full 3-D position (no partial axes, planes or distances)."""
+        return (bool((self.observed == self.seen).all()) and not self.distances
+                and (self.planes is None or not bool((self.planes >= 0).any())))
+
+    def _with(self, q, positions, markers, quaternions, covariates, planes, distances) -> "Measurements":
+        return Measurements(q, positions, markers, list(self.joint_names), quaternions, covariates, self.source,
+                            planes, list(self.plane_names), distances)
+
+    def subset(self, idx) -> "Measurements":
+        """Rows ``idx`` (indices or a bool mask)."""
+        idx = torch.as_tensor(idx)
+        if idx.dtype == torch.bool:
+            idx = torch.nonzero(idx).flatten()
+        return self._with(self.q[idx], self.positions[idx], list(self.marker_names),
+                          None if self.quaternions is None else self.quaternions[idx],
+                          {k: v[idx] for k, v in self.covariates.items()},
+                          None if self.planes is None else self.planes[idx],
+                          {k: v[idx] for k, v in self.distances.items()})
+
+    def select_markers(self, names: list[str]) -> "Measurements":
+        """The same rows with only the markers ``names`` (in that order), e.g. one point of a
+        motion-capture rigid body for a protocol that uses one."""
+        missing = [n for n in names if n not in self.marker_names]
+        if missing:
+            raise ValueError(f"no marker {missing}; these rows have {self.marker_names}")
+        k = [self.marker_names.index(n) for n in names]
+        dist = {(a, b): v for (a, b), v in self.distances.items()
+                if a in names and (b in names or b not in self.marker_names)}
+        return self._with(self.q, self.positions[:, k], list(names),
+                          None if self.quaternions is None else self.quaternions[:, k], dict(self.covariates),
+                          None if self.planes is None else self.planes[:, k], dist)
+
+    def split(self, holdout: float, seed: int = 0) -> tuple["Measurements", "Measurements"]:
+        """Random split into (train, test) with ``holdout`` of the rows in test."""
+        if not 0 < holdout < 1:
+            raise ValueError(f"holdout must be a fraction in (0, 1), got {holdout}")
+        g = torch.Generator().manual_seed(seed)
+        perm = torch.randperm(len(self), generator=g)
+        n_test = max(1, int(round(holdout * len(self))))
+        return self.subset(perm[n_test:].sort().values), self.subset(perm[:n_test].sort().values)
+
+    def to(self, device=None, dtype=None) -> "Measurements":
+        f = lambda t: None if t is None else t.to(device=device, dtype=dtype or t.dtype)  # noqa: E731
+        return self._with(f(self.q), f(self.positions), list(self.marker_names), f(self.quaternions),
+                          {k: f(v) for k, v in self.covariates.items()},
+                          None if self.planes is None else self.planes.to(device=device),
+                          {k: f(v) for k, v in self.distances.items()})
+
+
+def marker_columns_in(header: list[str]) -> list[str]:
+    """Marker names that have measurement columns in a CSV header (position, plane contact, or a
+    distance measured from them), in order of appearance."""
+    out = []
+    for c in header:
+        name = None
+        for s in _POS + (_PLANE,):
+            if c.endswith(s):
+                name = c[: -len(s)]
+        if _DIST in c:
+            name = c.split(_DIST)[0]
+        if name and name not in out:
+            out.append(name)
+    return out
+
+
+def _distance_columns(header: list[str]) -> dict[str, tuple[str, str]]:
+    return {c: tuple(c.split(_DIST, 1)) for c in header if _DIST in c}
+
+
+def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list[str]]]:
+    """Header and rows of a comma-separated file, checked: an Excel byte-order mark is dropped,
+    a semicolon-separated file (Excel in many locales) is named as such, every row has the
+    header's number of cells, column names are unique."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{what} not found: {p}")
+    try:
+        with open(p, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: strip Excel's BOM
+            rows = list(csv.reader(fh))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not UTF-8 text ({e}); save the file as CSV UTF-8") from None
+    rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
+    if not rows:
+        raise ValueError(f"{p}: the file is empty; it needs a header row and one row per pose")
+    if len(rows[0]) == 1 and rows[0][0].count(";") >= 2:
+        raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales); torchcal reads "
+                         "comma-separated files with '.' as the decimal point: save it as 'CSV UTF-8 (comma "
+                         "delimited)' or convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(out)")
+    header = [h.strip() for h in rows[0]]
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise ValueError(f"{p}: duplicate column names {dup}")
+    for i, r in enumerate(rows[1:], start=2):
+        if len(r) != len(header):
+            raise ValueError(f"{p}, line {i}: {len(r)} cells but the header has {len(header)} columns")
+    return header, rows[1:]
+
+
+def _number(cell: str, line: int, col: str, path) -> float:
+    s = cell.strip()
+    if s == "" or s.lower() == "nan":
+        return math.nan
+    try:
+        return float(s)
+    except ValueError:
+        raise ValueError(f"{path}, line {line}, column {col!r}: {cell!r} is not a number") from None
+
+
+def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | None = None,
+                      units: list[str] | tuple[str, ...] = ()) -> Measurements:
+    """Read a measurement CSV and check it against ``robot``.
+
+    Every actuated joint of the robot must have a column (named as in the URDF), every marker
+    of the robot its ``.x/.y/.z`` columns (or plane / distance columns, see the module
+    docstring). Marker columns must name markers of the robot (declare unknown points with
+    ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or ``--marker`` on the command line).
+
+    Args:
+        units: ``"deg"``: revolute joint columns are in degrees; ``"mm"``: positions and prismatic
+            joints are in millimetres. Both are converted. Without them, values that look like
+            degrees or millimetres raise :class:`UnitsError`, which says how to convert: a wrong
+            unit gives a wrong calibration, not a warning.
+    Raises ``ValueError`` saying exactly what is wrong; warns about rows that repeat another
+    row exactly (they count twice; cross-validation keeps them in one fold).
+    """
+    bad_units = [u for u in units if u not in UNITS]
+    if bad_units:
+        raise ValueError(f"unknown unit(s) {bad_units}; declare 'deg' (joint angles) and/or 'mm' (positions)")
+    header, rows = read_csv(path)
+    if not rows:
+        raise ValueError(f"{path}: the file has a header but no rows")
+    joints = list(robot.joint_names)
+    cols = set(header)
+    missing = [j for j in joints if j not in cols]
+    if missing:
+        hints = []
+        for j in missing:
+            close = difflib.get_close_matches(j, header, n=1)
+            if close:
+                hints.append(f"{j!r} (is {close[0]!r} meant?)")
+            else:
+                hints.append(repr(j))
+        raise ValueError(f"{path}: no column for joint(s) {', '.join(hints)}. The robot's joints are {joints}; "
+                         "name the joint columns exactly as in the URDF")
+    markers_in_file = marker_columns_in(header)
+    robot_markers = list(robot.marker_names)
+    unknown = [m for m in markers_in_file if m not in robot_markers]
+    if unknown:
+        raise ValueError(f"{path}: measurement column(s) for {unknown}, which the robot does not have (its markers: "
+                         f"{robot_markers}). Declare them, e.g. Robot.from_urdf(urdf, markers=['{unknown[0]}@LINK']) "
+                         f"or --marker {unknown[0]}@LINK[=x,y,z]")
+    dist_cols = _distance_columns(header)
+    for c, (a_, b_) in dist_cols.items():
+        if not b_ or a_ == b_:
+            raise ValueError(f"{path}: distance column {c!r} must be named '<marker>.dist.<other marker or fixed "
+                             "point>'")
+    measured = [m for m in robot_markers if m in markers_in_file or any(b_ == m for _, b_ in dist_cols.values())]
+    if not measured:
+        raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' (or "
+                         f"'<marker>.plane', '<marker>.dist.<point>') for one of {robot_markers}")
+    absent = [m for m in robot_markers if m not in measured]
+    if absent:
+        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no columns for them (it has "
+                         f"{markers_in_file}); declare only the markers that were measured")
+    for m in measured:
+        have = [m + s for s in _POS if m + s in cols]
+        if have and len(have) < 3:
+            raise ValueError(f"{path}: marker {m!r} has position columns {have} but not "
+                             f"{[m + s for s in _POS if m + s not in cols]}; give all three columns (leave the cells "
+                             "of an axis that was not measured empty)")
+    has_quat = [m for m in measured if any(m + s in cols for s in _QUAT)]
+    for m in has_quat:
+        absent = [m + s for s in _QUAT if m + s not in cols]
+        if absent:
+            raise ValueError(f"{path}: marker {m!r} has some orientation columns but not {absent}")
+    plane_cols = {m: m + _PLANE for m in measured if m + _PLANE in cols}
+    used = (set(joints) | {m + s for m in measured for s in _POS} | {m + s for m in has_quat for s in _QUAT}
+            | set(plane_cols.values()) | set(dist_cols))
+    covariates = [c for c in header if c not in used]
+    idx = {c: i for i, c in enumerate(header)}
+    numeric = [c for c in header if c not in plane_cols.values()]
+    N = len(rows)
+    data = np.full((N, len(header)), np.nan)
+    for i, r in enumerate(rows):
+        for c in numeric:
+            j = idx[c]
+            data[i, j] = _number(r[j], i + 2, c, path)
+    Q = data[:, [idx[j] for j in joints]]
+    bad = np.argwhere(~np.isfinite(Q))
+    if len(bad):
+        i, j = bad[0]
+        raise ValueError(f"{path}, line {i + 2}: joint {joints[j]!r} is empty or not finite; every row needs all "
+                         "joint values (drop the row if the robot state was not recorded)")
+    P = np.stack([data[:, [idx[m + s] for s in _POS]] if m + _POS[0] in cols else np.full((N, 3), np.nan)
+                  for m in measured], 1)
+    if np.isinf(P).any():
+        i, m = np.argwhere(np.isinf(P).any(-1))[0]
+        raise ValueError(f"{path}, line {i + 2}: marker {measured[m]!r} has an infinite coordinate")
+    planes, plane_names = None, []
+    if plane_cols:
+        planes = np.full((N, len(measured)), -1, dtype=np.int64)
+        for k, m in enumerate(measured):
+            if m not in plane_cols:
+                continue
+            j = idx[plane_cols[m]]
+            for i, r in enumerate(rows):
+                lab = r[j].strip()
+                if not lab:
+                    continue
+                if np.isfinite(P[i, k]).any():
+                    raise ValueError(f"{path}, line {i + 2}: marker {m!r} has a plane contact ({lab!r}) and position "
+                                     "cells; a contact measures only the distance along the plane's normal: leave "
+                                     "x/y/z empty in contact rows")
+                if lab not in plane_names:
+                    plane_names.append(lab)
+                planes[i, k] = plane_names.index(lab)
+    D = {(a_, b_): data[:, idx[c]] for c, (a_, b_) in dist_cols.items()}
+    for (a_, b_), v in D.items():
+        if np.isinf(v).any() or (v[np.isfinite(v)] < 0).any():
+            i = int(np.argmax(np.isinf(v) | (np.nan_to_num(v) < 0)))
+            raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length; a distance is "
+                             "a finite number of metres, zero or more: correct the cell, or leave it empty where "
+                             "nothing was measured")
+    n_contacts = 0 if planes is None else int((planes >= 0).sum())
+    if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
+        raise ValueError(f"{path}: no marker was seen in any row")
+    Q, P, D = _units(path, robot, Q, P, D, units)
+    _warn_duplicates(path, data)
+    Qt = None
+    if has_quat:
+        Qt = np.full((N, len(measured), 4), np.nan)
+        for k, m in enumerate(measured):
+            if m in has_quat:
+                qq = data[:, [idx[m + s] for s in _QUAT]]
+                norm = np.linalg.norm(qq, axis=1)
+                ok = np.isfinite(norm)
+                if ok.any() and np.abs(norm[ok] - 1).max() > 1e-3:
+                    i = int(np.argmax(np.where(ok, np.abs(norm - 1), 0)))
+                    raise ValueError(f"{path}, line {i + 2}: quaternion of {m!r} has norm {norm[i]:.4f}; "
+                                     "give unit quaternions (qw, qx, qy, qz)")
+                Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
+    dt = dtype or robot.dtype
+    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", _stacklevel=3).to(robot.device)
+    cov = {c: torch.as_tensor(data[:, idx[c]], dtype=dt, device=robot.device) for c in covariates}
+    return Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
+                        None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path),
+                        None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
+                        {k: torch.as_tensor(v, dtype=dt, device=robot.device) for k, v in D.items()})
+
+
+def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Convert declared units; refuse values that look like degrees or millimetres otherwise."""
+    rev = np.array([u == "rad" for u in robot.joint_units])
+    if "deg" in units:
+        Q = np.where(rev, np.deg2rad(Q), Q)
+    if "mm" in units:
+        Q = np.where(rev, Q, Q / 1000.0)
+        P = P / 1000.0
+        D = {k: v / 1000.0 for k, v in D.items()}
+    lo, hi = (x.cpu().numpy() for x in robot.joint_limits)
+    for j, n in enumerate(robot.joint_names):
+        v = float(np.abs(Q[:, j]).max())
+        span = max(abs(lo[j]), abs(hi[j])) if np.isfinite(lo[j]) and np.isfinite(hi[j]) else 0.0
+        if rev[j] and v > max(2.2 * np.pi, 1.5 * span):
+            raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.1f}, which looks like degrees; torchcal "
+                             "expects radians: convert (rad = deg × π/180) or declare the unit (--units deg, "
+                             "load_measurements(..., units=['deg']))")
+        if not rev[j] and v > max(5.0, 3 * span):
+            raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.1f}, which looks like "
+                             "millimetres; torchcal expects metres: divide by 1000 or declare --units mm")
+    for what, vals in (("marker coordinates", P[np.isfinite(P)]),
+                       ("distances", np.concatenate([v[np.isfinite(v)] for v in D.values()] or [np.zeros(0)]))):
+        med = float(np.median(np.abs(vals))) if vals.size else 0.0
+        if med > 20.0:
+            raise UnitsError(f"{path}: {what} have median |value| {med:.0f}, which looks like millimetres; torchcal "
+                             "expects metres: divide by 1000 or declare the unit (--units mm, "
+                             "load_measurements(..., units=['mm']))")
+    return Q, P, D
+
+
+def _warn_duplicates(path, data: np.ndarray) -> None:
+    _, first, counts = np.unique(np.nan_to_num(data, nan=np.inf), axis=0, return_index=True, return_counts=True)
+    n_dup = int((counts - 1).sum())
+    if n_dup:
+        lines = sorted(int(i) + 2 for i, c in zip(first, counts) if c > 1)[:5]
+        warnings.warn(f"{path}: {n_dup} row(s) repeat another row exactly (first at line(s) {lines}); each copy counts "
+                      "in the fit, and cross-validation keeps copies in one fold", stacklevel=3)
+
+
+def save_measurements(path: str | os.PathLike, data: Measurements, digits: int = 17) -> None:
+    """Write measurements in the format :func:`load_measurements` reads (NaN -> empty cell)."""
+    header = list(data.joint_names)
+    cols = [data.q[:, i] for i in range(data.q.shape[1])]
+    labels: dict[int, list[str]] = {}
+    for k, m in enumerate(data.marker_names):
+        if bool((~torch.isnan(data.positions[:, k])).any()) or data.planes is None:
+            for a, s in enumerate(_POS):
+                header.append(m + s)
+                cols.append(data.positions[:, k, a])
+        if data.quaternions is not None:
+            for a, s in enumerate(_QUAT):
+                header.append(m + s)
+                cols.append(data.quaternions[:, k, a])
+        if data.planes is not None and bool((data.planes[:, k] >= 0).any()):
+            labels[len(header)] = ["" if int(i) < 0 else data.plane_names[int(i)] for i in data.planes[:, k].tolist()]
+            header.append(m + _PLANE)
+            cols.append(torch.full((len(data),), float("nan")))
+    for (a, b), v in data.distances.items():
+        header.append(f"{a}{_DIST}{b}")
+        cols.append(v)
+    for c, v in data.covariates.items():
+        header.append(c)
+        cols.append(v)
+    M = torch.stack([c.detach().cpu().double() for c in cols], 1).numpy()
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for i, row in enumerate(M):
+        cells = ["" if not np.isfinite(v) else f"{v:.{digits}g}" for v in row]
+        for j, lab in labels.items():
+            cells[j] = lab[i]
+        w.writerow(cells)
+    atomic_write_text(path, buf.getvalue())

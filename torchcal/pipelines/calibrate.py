@@ -1,0 +1,330 @@
+"""Geometric calibration end to end: base registration, identifiability reduction, the fit,
+standard errors, and error statistics on training and held-out data."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchcal.measure.io import Measurements
+from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
+from torchcal.optim import Result, get_solver
+from torchcal.params import ParamSet, display_unit
+from torchcal.problems.fitting import fit_identified
+from torchcal.problems.calibration import CalibrationProblem
+from torchcal.problems.uncertainty import standard_errors
+from torchcal.measure.registration import register_base
+from torchcal.outputs import atomic_write_text, staged_dir
+from torchcal.report.calibration import error_details, error_figure, error_stats, stage_problems, write_json
+from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
+
+__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats", "errors_by_marker"]
+
+SWARM_METHODS = ("pso", "ldpso-bt", "cpso", "ga", "ma", "mma")
+_SEARCH = {"m": 5e-3, "rad": 0.05}  # default swarm search box around the start (± per unit)
+
+
+def stage_stats(robot, params: Tensor, data: Measurements | None) -> dict | None:
+    """Position-error statistics (mm) of ``params`` on ``data``, overall and per marker."""
+    if data is None or len(data) == 0:
+        return None
+    blk = PositionResidual(robot, data)
+    return errors_by_marker(blk.errors(params[None])[0], blk.obs_index[:, 1], data.marker_names)
+
+
+def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict:
+    """:func:`~torchcal.report.calibration.error_stats` of errors ``e (n_obs,)`` (m), overall and per marker
+    (``marker (n_obs,)`` indexes ``marker_names``)."""
+    out = error_stats(e)
+    per = {}
+    for k, m in enumerate(marker_names):
+        sel = marker == k
+        if bool(sel.any()):
+            per[m] = error_stats(e[sel])
+    out["per_marker"] = per
+    return out
+
+
+def _position_errors(robot, params: Tensor, data: Measurements | None) -> Tensor:
+    if data is None or len(data) == 0:
+        return torch.zeros(0)
+    return PositionResidual(robot, data).errors(params[None])[0]
+
+
+def _errors(robot, params: Tensor, train: Measurements, test: Measurements | None) -> dict:
+    out = {}
+    for split, d in (("train", train), ("test", test)):
+        det = error_details(robot, params, d) if d is not None and len(d) else None
+        out[split] = _position_errors(robot, params, d)
+        if det is not None:
+            out[f"{split}_details"] = det
+    return out
+
+
+def write_instrument(robot, params: ParamSet, path) -> None:
+    """The instrument registration (instrument frame <- robot base) as JSON: translation in
+    metres and rotation as a unit quaternion (w, x, y, z)."""
+    b = params.values[:6]
+    R = so3_exp(b[3:])
+    write_json(path, {"frame": "instrument <- robot base: p_instrument = R p_base + t",
+                      "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
+                      "rotation_vector_rad": b[3:].tolist(),
+                      "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
+                              "saw it"})
+
+
+@dataclass
+class CalibrationResult:
+    """What :func:`calibrate` found.
+
+    Attributes:
+        params: identified values (full ParamSet; its free flags mark what was fitted).
+        std_errors: standard error of every fitted parameter (m or rad), from
+            ``σ² (JᵀJ)⁻¹`` with ``σ² = SSR / (m − k)``.
+        unidentifiable: parameters that were free but could not be identified, with reasons.
+        stages: ``[{"name", "n_params", "train", "test"}]``: "nominal" (base registration only)
+            and "geometric".
+        solver: the optimiser's :class:`~torchcal.optim.Result`.
+    """
+
+    robot: object
+    params: ParamSet
+    std_errors: dict[str, float]
+    unidentifiable: dict[str, str]
+    stages: list[dict]
+    solver: Result
+    method: str
+    n_train: int
+    n_test: int
+    start: ParamSet
+    identifiability: object = None
+    loss: str = "l2"
+    wall_time_s: float = 0.0
+    errors: dict = field(default_factory=dict)  # stage -> {"train": Tensor, "test": Tensor} (m)
+
+    def __repr__(self) -> str:
+        last = self.stages[-1]
+        te = f", held-out mean {last['test']['mean_mm']:.4f} mm" if last.get("test") else ""
+        return (f"CalibrationResult({self.robot.name}, {self.method}: {len(self.std_errors)} parameters fitted, "
+                f"{len(self.unidentifiable)} not identifiable; training mean {last['train']['mean_mm']:.4f} mm{te})")
+
+    def problems(self) -> list[str]:
+        """Reasons not to trust this calibration, in words (empty when none): worse than the
+        nominal model on its own training rows, or held-out rows that do not fit this robot."""
+        return stage_problems(self.stages)
+
+    def report(self) -> dict:
+        """The JSON-serialisable report (shape shared with ``torchcal loop``)."""
+        ident = self.params.free_names
+        return {
+            "robot": self.robot.name, "method": self.method, "loss": self.loss,
+            "n_train": self.n_train, "n_test": self.n_test,
+            "stages": self.stages,
+            "unidentifiable": sorted(self.unidentifiable),
+            "unidentifiable_reasons": self.unidentifiable,
+            "parameters": {n: {"value": v, "std_error": self.std_errors.get(n),
+                               "unit": u} for n, v, u in zip(self.params.names, self.params.values.tolist(),
+                                                            self.params.units) if n in ident},
+            "solver": {"method": self.solver.method, "fun": self.solver.fun, "n_iter": self.solver.n_iter,
+                       "n_evals": self.solver.n_evals, "wall_time_s": self.solver.wall_time_s,
+                       "converged": self.solver.converged, "message": self.solver.message},
+            "wall_time_s": self.wall_time_s, "problems": self.problems(),
+        }
+
+    def markdown(self) -> str:
+        lines = [f"# Calibration of {self.robot.name}", "",
+                 f"Method `{self.method}`, loss `{self.loss}`, {self.n_train} training rows"
+                 + (f", {self.n_test} held-out rows." if self.n_test else ", no held-out data."), "",
+                 "## Position error per stage (mm)", "",
+                 "| stage | parameters | train mean | train std | train max | test mean | test std | test max |",
+                 "|---|---|---|---|---|---|---|---|"]
+        for s in self.stages:
+            tr, te = s.get("train") or {}, s.get("test") or {}
+            f = lambda d, k: f"{d[k]:.4f}" if k in d else "–"  # noqa: E731
+            lines.append(f"| {s['name']} | {s['n_params']} | {f(tr, 'mean_mm')} | {f(tr, 'std_mm')} | "
+                         f"{f(tr, 'max_mm')} | {f(te, 'mean_mm')} | {f(te, 'std_mm')} | {f(te, 'max_mm')} |")
+        if self.errors:
+            lines += ["", "![error histograms](errors.png)"]
+        lines += ["", "## Identified parameters", "",
+                  "| parameter | value | std. error | unit |", "|---|---|---|---|"]
+        for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
+            if n in self.std_errors:
+                sc, us = display_unit(u)
+                lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
+        if self.unidentifiable:
+            lines += ["", "## Not identifiable from these measurements", ""]
+            lines += [f"- `{n}`: {why}" for n, why in sorted(self.unidentifiable.items())]
+        s = self.solver
+        lines += ["", f"Solver: {s.method}, {s.n_iter} iterations, {s.n_evals} evaluations, "
+                      f"{s.wall_time_s:.3f} s; {s.message}", ""]
+        return "\n".join(lines)
+
+    def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
+        """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
+        instrument frame as its root), ``instrument.json``, ``params.json``, ``report.json``,
+        ``report.md`` and the error figures into ``out_dir``, built under a temporary name.
+        Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
+        says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename."""
+        if self.problems():
+            raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
+        with staged_dir(out_dir, force) as out:
+            self.robot.export_urdf(self.params, out / "calibrated.urdf", with_instrument=with_instrument)
+            write_instrument(self.robot, self.params, out / "instrument.json")
+            write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
+                                             "values": self.params.values.tolist(),
+                                             "free": self.params.free.tolist(),
+                                             "std_errors": self.std_errors})
+            write_json(out / "report.json", self.report())
+            atomic_write_text(out / "report.md", self.markdown())
+            for split in ("train", "test"):
+                st = [(name, e[f"{split}_details"]) for name, e in self.errors.items()
+                      if e.get(split) is not None and e[split].numel()]
+                if st:
+                    error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
+                                 title=f"{self.robot.name}: position error", split=split)
+            if extra is not None:
+                extra(out)
+        return Path(out_dir)
+
+
+def _select_free(params: ParamSet, free) -> ParamSet:
+    params = params.clone()
+    if free is None:
+        return params
+    if isinstance(free, str):
+        free = [free]
+    return params.only(*free)
+
+
+def _search_box(params: ParamSet, radius: dict) -> ParamSet:
+    p = params.clone()
+    r = torch.tensor([radius.get(u, 0.05) for u in p.units], dtype=p.values.dtype, device=p.values.device)
+    p.lower = torch.maximum(p.lower, p.values - r)
+    p.upper = torch.minimum(p.upper, p.values + r)
+    return p
+
+
+def calibrate(robot, data: Measurements, *, test: Measurements | None = None, method: str = "lm",
+              params: ParamSet | None = None, free=None, kind: str = "position", rot_weight: float = 0.1,
+              loss: str = "l2", loss_scale: float | None = None, register: bool = True,
+              reduce: bool = True, prefer=None, fitness: str = "sse", search_radius: dict | None = None,
+              options: dict | None = None, seed: int = 0, progress: bool = False,
+              polish: bool | None = None) -> CalibrationResult:
+    """Identify geometric errors from measurements.
+
+    Steps: (1) base registration by Kabsch (when the base parameters are free and ``register``);
+    (2) identifiability: the free set is reduced to a base subset by column-pivoted QR of the
+    Jacobian at the start, every dropped parameter reported with a reason; (3) the fit with
+    ``method`` ("lm", "gn", "lbfgs", "adam", "pso", "ldpso-bt", "cpso", "ga", "ma", "mma",
+    "hybrid"); (4) standard errors and error statistics on ``data`` and ``test``.
+
+    Args:
+        free: glob patterns of parameters to identify (default: the ParamSet's free flags:
+            base, joint origins/DH errors, offsets, marker positions).
+        kind: "position" or "pose" (needs orientation columns).
+        loss: "l2", "huber" or "cauchy"; ``loss_scale`` (m) defaults to 2.5 × a robust σ of the
+            residuals, re-estimated over three rounds (iteratively reweighted fits).
+        search_radius: swarm search box half-widths around the start, per unit
+            (default ``{"m": 5e-3, "rad": 0.05}``), intersected with the ParamSet bounds.
+        polish: run LM after a swarm method (default: no, so swarm results are reported as
+            they are).
+    """
+    t0 = time.perf_counter()
+    if kind not in ("position", "pose"):
+        raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
+    if len(data) == 0:
+        raise ValueError("no training rows")
+    for d, what in ((data, "training"), (test, "held-out")):
+        if d is not None and (d.distances or (d.planes is not None and bool((d.planes >= 0).any()))):
+            raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
+                             "fits positions, partial ones included): use torchcal.run_loop / 'torchcal loop', which "
+                             "identifies the planes' poses and the fixed points with the robot")
+    p = _select_free(params if params is not None else robot.params(), free)
+    if not (set(data.marker_names) <= set(robot.marker_names)):
+        raise ValueError(f"the data has markers {data.marker_names} but the robot has {robot.marker_names}")
+    # markers the data never sees cannot be identified: fix their offsets
+    for m in robot.marker_names:
+        if m not in data.marker_names:
+            p.fix(f"{m}.*")
+    if kind == "position":
+        for m in robot.marker_names:
+            p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
+    base_free = bool(p.free[[p.index(n) for n in ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")]].any())
+    if register and base_free:
+        p = register_base(robot, data, p)
+    start = p.clone()
+
+    def p_cand(cur: ParamSet) -> ParamSet:
+        nxt = start.clone()
+        nxt.values = cur.values.clone()
+        return nxt
+
+    def blocks(loss_obj):
+        if kind == "pose":
+            return [PoseResidual(robot, data, rot_weight=rot_weight, loss=loss_obj)]
+        return [PositionResidual(robot, data, loss=loss_obj)]
+
+    nominal = start.values
+    stages = [{"name": "nominal", "n_params": 0, "train": stage_stats(robot, nominal, data)}]
+    if test is not None:
+        stages[0]["test"] = stage_stats(robot, nominal, test)
+
+    swarm = method.lower() in SWARM_METHODS or method.lower() in ("hybrid", "pso+lm")
+    loss_obj = None
+
+    def make_problem(q: ParamSet, lo=None) -> CalibrationProblem:
+        box = _search_box(q, search_radius or _SEARCH) if swarm else q
+        return CalibrationProblem(robot, box, blocks(lo), fitness=fitness)
+
+    opts = dict(options or {})
+    if method.lower() in ("lm", "levenberg-marquardt"):
+        # the registered start is close to the solution: little initial damping, fewer Jacobians
+        opts.setdefault("tau", 1e-6)
+
+    def solve(prob):
+        s = get_solver(method, seed=seed, progress=progress, **opts).minimize(prob)
+        if polish and method.lower() in SWARM_METHODS:
+            prob.x0 = s.x.clone()
+            s2 = get_solver("lm").minimize(prob)
+            s2.history, s2.method = s.history + s2.history, f"{s.method}+lm"
+            s = s2
+        return s
+
+    # robust losses: the scale is re-estimated from the residuals until it settles (IRLS-style);
+    # the first estimate comes from a start millimetres off, so it shrinks over several rounds
+    report = None
+    scale_prev = None
+    for rnd in range(1 if loss == "l2" or loss_scale is not None else 12):
+        if loss != "l2":
+            scale = float(loss_scale) if loss_scale is not None else max(
+                2.5 * 1.4826 * float(PositionResidual(robot, data).errors(p.values[None])[0].median()), 1e-9)
+            if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
+                break
+            scale_prev = scale
+            loss_obj = Loss(loss, scale)
+        p, s, rep = fit_identified(lambda q: make_problem(q, loss_obj), p if rnd == 0 else p_cand(p),
+                                   solve=solve, markers=robot.marker_names, kind=kind, prefer=prefer,
+                                   reduce=reduce)
+        report = rep or report
+    unident = {n: report.reasons.get(n, "not identifiable") for n in report.dropped} if report else {}
+
+    # standard errors on the fitted (identifiable) set
+    prob = CalibrationProblem(robot, p, blocks(loss_obj), fitness="sse")
+    x = p.values[p.free_index]
+    J = prob.jacobian(x)
+    r = prob.residuals(x[None])[0]
+    se = standard_errors(J, r)
+    std_errors = dict(zip(p.free_names, se.tolist()))
+
+    geo = {"name": "geometric", "n_params": int(p.free.sum()), "train": stage_stats(robot, p.values, data)}
+    if test is not None:
+        geo["test"] = stage_stats(robot, p.values, test)
+    stages.append(geo)
+    errors = {"nominal": _errors(robot, nominal, data, test), "geometric": _errors(robot, p.values, data, test)}
+    return CalibrationResult(robot=robot, params=p, std_errors=std_errors, unidentifiable=unident, stages=stages,
+                             solver=s, method=method, n_train=len(data), n_test=0 if test is None else len(test),
+                             start=start, identifiability=report, loss=loss if loss_obj is None else repr(loss_obj),
+                             wall_time_s=time.perf_counter() - t0, errors=errors)

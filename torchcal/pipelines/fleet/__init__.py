@@ -1,0 +1,4 @@
+"""Many robots of one type calibrated in one batched run, on one machine or several (Ray)."""
+from torchcal.pipelines.fleet.run import FleetResult, calibrate_fleet
+
+__all__ = ["calibrate_fleet", "FleetResult"]

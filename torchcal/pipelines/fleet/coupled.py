@@ -1,0 +1,354 @@
+"""A fleet whose robots share something: a hierarchical prior, a payload, or both.
+
+**Hierarchical prior.** Each robot's geometric errors (joint origins, offsets, DH errors; not the
+instrument frame, nor the marker points) are drawn around the fleet mean ``m``:
+``x_rj ~ N(m_j, τ_j²)``. The MAP fit adds the rows ``(σ/τ_j)(x_rj − m_j)`` to every robot and
+fits ``m`` with them; a robot with few poses is pulled towards its siblings along the directions its
+own data cannot see. The scales ``τ_j`` and the noise ``σ`` are estimated from the fleet by
+expectation-maximisation (empirical Bayes): ``τ_j² = mean_r((x_rj − m_j)² + Var_rj)`` and
+``σ² = (SSR + σ² Σ_r tr(H_r⁻¹ J_rᵀJ_r)) / n_rows``, until they settle.
+
+**Joint compliance fleet-wide.** Each robot's joints twist with the gravity torque,
+``Δq_j = c_rj τ_j(q; μ)`` (:class:`~torchcal.effects.JointCompliance`: URDF inertials plus an
+unknown payload ``μ = (m, m·s)``), with its own compliances ``c_r`` and a payload shared by the
+fleet or its own. The Jacobian columns of ``c`` and ``μ`` follow from the zero-offset columns of the
+analytic kinematic Jacobian (an offset moves the chain exactly as the joint does).
+
+Both are solved by :func:`~torchcal.optim.lm_arrow.lm_arrow` over per-robot blocks and the shared
+parameters, and judged on the pooled design (one identifiable set for every robot).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchcal.effects import JointCompliance
+from torchcal.pipelines.fleet.data import check_rows
+from torchcal.problems.fitting import imprecise
+from torchcal.pipelines.fleet.identify import decide, explain
+from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
+
+__all__ = ["solve_coupled", "CoupledSolution", "PRIOR_START"]
+
+PRIOR_START = {"m": 1e-3, "rad": 1e-3}  # starting prior scales (m, rad) before they are estimated
+_EM_ROUNDS, _EM_RTOL = 100, 1e-3  # scale updates on the linearised fleet: rounds without kinematics
+_OUTER, _OUTER_RTOL = 4, 1e-2  # relinearisations: the fit depends little on a scale's last per cent
+_TAU_FLOOR = 1e-3  # relative to PRIOR_START: below 1 µm / 1 µrad a scale's relative change is moot
+_SIGMA_START = 2e-5  # m: a tracker's noise, only to weigh the first round; EM replaces it
+# plausible sizes of effect parameters (one standard error): beyond them the data do not see them
+PLAUSIBLE_EFFECT = {"rad/(N*m)": 1e-3, "kg": 50.0, "kg*m": 10.0}
+_PAYLOAD = [("payload.m", "kg"), ("payload.mx", "kg*m"), ("payload.my", "kg*m"), ("payload.mz", "kg*m")]
+
+
+@dataclass
+class CoupledSolution:
+    X: Tensor  # (R, K) geometry
+    free: Tensor  # (R, K + E) what each robot fitted (geometry, then its effect parameters)
+    reasons: list
+    solver: list
+    r: Tensor  # (R, m) data residuals (then prior rows)
+    J: Tensor  # (R, m, K + E)
+    se: Tensor  # (R, K + E)
+    effects: dict | None
+    prior: dict | None
+    test_errors: object = None
+    n_extra: Tensor | None = None
+
+
+class _Model:
+    """Residuals and Jacobians of every robot. Per robot ``z = (x (K) geometry, c (T) compliances,
+    μ (4) payload when each robot has its own)``; shared ``s = (m (np) prior means, μ (4) payload
+    when the fleet shares it)``. The prior rows are on when ``w`` (their weights) is set."""
+
+    def __init__(self, robot, fd, compliance: JointCompliance | None, payload: str):
+        self.robot, self.fd, self.comp = robot, fd, compliance
+        self.K = robot.n_params
+        self.T = len(compliance.joints) if compliance is not None else 0
+        self.own_mu = compliance is not None and payload == "per_robot"
+        self.n_pay = 4 if compliance is not None and payload == "shared" else 0
+        self.kz = self.K + self.T + (4 if self.own_mu else 0)
+        self.P, self.w = None, None  # prior: indices into the geometry, weights σ/τ (m per unit)
+        self.scales: dict[str, float] = {}  # the latest estimates of σ and of each τ, by name
+        self.md = fd.seen.shape[1] * fd.seen.shape[2] * 3
+        if compliance is not None:
+            self.dof = torch.tensor([robot.joint_names.index(j) for j in compliance.joints], device=robot.device)
+            self.off = torch.tensor([robot.param_names.index(f"{j}.offset") for j in compliance.joints],
+                                    device=robot.device)
+            self.Wt = self.torque_features(fd)
+
+    @property
+    def np(self) -> int:
+        return 0 if self.P is None else int(self.P.numel())
+
+    @property
+    def ks(self) -> int:
+        return self.np + self.n_pay
+
+    def torque_features(self, fd) -> Tensor:
+        """``(R, N, T, 5)`` gravity torque on each compliant joint from the URDF bodies (0) and per
+        unit payload mass moment (1–4), at every robot's commands (padded rows 0)."""
+        R_, N = fd.q.shape[:2]
+        out = fd.q.new_zeros(R_, N, self.T, 5)
+        for r in range(R_):
+            n = fd.rows[r]
+            if n:
+                out[r, :n] = self.comp.prepare(fd.q[r, :n], {}).features["Wt"][:, :, 0, :]
+        return out
+
+    def joints(self, Z: Tensor, pay: Tensor, Wt: Tensor, q: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Joint values with the twists ``(R, N, dof)``, and the torques ``(R, N, T)`` (N·m)."""
+        if self.comp is None:
+            return q, None
+        c = Z[:, self.K: self.K + self.T]
+        mu = Z[:, self.K + self.T:] if self.own_mu else pay.expand(Z.shape[0], 4)
+        tau = Wt[..., 0] + torch.einsum("rntb,rb->rnt", Wt[..., 1:], mu)
+        return q.index_add(2, self.dof, c[:, None, :] * tau), tau
+
+    def data(self, Z: Tensor, pay: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Position residuals ``(R, md)`` (m), their Jacobian in ``z`` and in a shared payload."""
+        fd, R_ = self.fd, Z.shape[0]
+        idx = torch.arange(R_, device=Z.device)
+        x = Z[:, : self.K]
+        qe, tau = self.joints(Z, pay, getattr(self, "Wt", None), fd.q)
+        J = fd.jacobian(self.robot, x, idx, q=qe)
+        r = ((fd.positions(self.robot, x, idx, q=qe) - fd.measured) * fd.seen[..., None]).reshape(R_, -1)
+        parts, Jpay = [J], Z.new_zeros(R_, self.md, self.n_pay)
+        if self.comp is not None:
+            Jq = J[:, :, self.off].reshape(R_, fd.q.shape[1], -1, self.T)  # d/dq_j of each row, (R, N, M·3, T)
+            parts.append((Jq * tau[:, :, None, :]).reshape(R_, -1, self.T))
+            c = Z[:, self.K: self.K + self.T]
+            Jmu = torch.einsum("rnkt,rt,rntb->rnkb", Jq, c, self.Wt[..., 1:]).reshape(R_, -1, 4)
+            if self.own_mu:
+                parts.append(Jmu)
+            else:
+                Jpay = Jmu
+        return r, torch.cat(parts, -1), Jpay
+
+    def __call__(self, Z: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        R_, n = Z.shape[0], self.np
+        r, Jz, Jpay = self.data(Z, s[n:])
+        Js = torch.cat([Z.new_zeros(R_, r.shape[1], n), Jpay], -1)
+        if n and self.w is not None:
+            ar = torch.arange(n, device=Z.device)
+            rp = self.w * (Z[:, self.P] - s[:n])
+            Jp = Z.new_zeros(R_, n, self.kz)
+            Jp[:, ar, self.P] = self.w
+            Jsp = Z.new_zeros(R_, n, self.ks)
+            Jsp[:, ar, ar] = -self.w
+            r, Jz, Js = torch.cat([r, rp], 1), torch.cat([Jz, Jp], 1), torch.cat([Js, Jsp], 1)
+        return r, Jz, Js
+
+
+def _layout(robot, template, model) -> tuple[list[str], list[str], list[str], list[str]]:
+    """Names and units of the per-robot block and of the payload the fleet may share."""
+    names = list(template.names) + [f"{j}.twist" for j in (model.comp.joints if model.comp else [])]
+    units = list(template.units) + ["rad/(N*m)"] * model.T
+    if model.own_mu:
+        names += [n for n, _ in _PAYLOAD]
+        units += [u for _, u in _PAYLOAD]
+    shared = _PAYLOAD if model.n_pay else []
+    return names, units, [n for n, _ in shared], [u for _, u in shared]
+
+
+def _judge(model, Z, pay, cand, names, units, prefer, noise: float):
+    """One identifiable set for every robot, judged on the pooled design: all robots' rows at the
+    fleet mean, the instrument frame at 0 (the robot base frame). Effect parameters the pooled
+    data determine worse than their plausible size (:data:`PLAUSIBLE_EFFECT`, one standard error
+    at ``noise`` m) are dropped too: a twist about an axis gravity hardly loads is noise."""
+    Zm = Z.mean(0, keepdim=True).expand_as(Z).clone()
+    Zm[:, :6] = 0.0
+    _, Jz, Jpay = model.data(Zm, pay)
+    J = torch.cat([Jz, Jpay], -1)
+    J = J.reshape(1, -1, J.shape[-1])[:, :, cand]
+    nm, un = [names[i] for i in cand.tolist()], [units[i] for i in cand.tolist()]
+    d = decide(J, nm, model.robot.marker_names, prefer)
+    why = explain(d, nm, un)[0]
+    keep = torch.nonzero(d.kept[0]).flatten().tolist()
+    loose = imprecise(J[0][:, keep], [nm[i] for i in keep], [un[i] for i in keep], noise, PLAUSIBLE_EFFECT)
+    for n, se in loose.items():
+        d.kept[0, nm.index(n)] = False
+        why[n] = (f"{n} is determined only to ±{se:.3g} {un[nm.index(n)]} by the fleet's poses (noise "
+                  f"{noise * 1e3:.3g} mm), more than it can plausibly be")
+    kept = torch.zeros(len(names), dtype=torch.bool, device=Z.device)
+    kept[cand] = d.kept[0]
+    return kept, why
+
+
+def solve_coupled(robot, fd, template, X0, names, *, prior=None, prior_scale=None, effects=(), payload="shared",
+                  prefer=None, options=None) -> CoupledSolution:
+    """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring)."""
+    comp = _compliance(robot, effects, payload)
+    opts = {k: v for k, v in (options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
+    R_, K = X0.shape
+    dev = X0.device
+    model = _Model(robot, fd, comp, payload)
+    names_z, units_z, names_p, units_p = _layout(robot, template, model)
+    geo = torch.tensor([not n.startswith("base.") and n.split(".")[0] not in robot.marker_names
+                        for n in template.names], device=dev)
+    cand = torch.nonzero(torch.cat([template.free, torch.ones(model.kz - K + model.n_pay, dtype=torch.bool,
+                                                               device=dev)])).flatten()
+    Z = torch.cat([X0, X0.new_zeros(R_, model.kz - K)], 1)
+    pay = X0.new_zeros(model.n_pay)
+    free, why, fit = None, {}, None
+    # rounds as fit_identified: judge, fit, judge again at the solution while the set grows; the
+    # payload's columns vanish while the compliances are 0, so it enters in the second round
+    noise = _SIGMA_START
+    for _ in range(3):
+        kept, why_new = _judge(model, Z, pay, cand, names_z + names_p, units_z + units_p, prefer, noise)
+        if free is not None and bool((kept == free).all()):
+            break
+        free, why = kept, why_new
+        if not prior:
+            check_rows(fd, free[None, :K].expand(R_, -1), names)
+        model.P = torch.nonzero(free[:K] & geo).flatten() if prior else None
+        s = torch.cat([Z[:, model.P].mean(0) if prior else pay[:0], pay])
+        fit = _fit(model, Z, s, free[: model.kz], free[model.kz:], prior, prior_scale, template, opts)
+        Z, pay = fit["Z"], fit["s"][model.np:]
+        md = model.fd.n_obs.sum() * 3
+        noise = fit["sigma"] or float((fit["res"].r[:, : model.md] ** 2).sum() / (md - free.sum() * R_).clamp(min=1)) ** 0.5
+    return _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior)
+
+
+def _compliance(robot, effects, payload) -> JointCompliance | None:
+    if not effects:
+        return None
+    bad = [e for e in effects if e != "joint_compliance"]
+    if bad:
+        raise ValueError(f"fleet-wide effects: only 'joint_compliance' is supported, got {bad}; run the loop "
+                         "(torchcal.run_loop) per robot for the others")
+    if payload not in ("shared", "per_robot"):
+        raise ValueError(f"payload must be 'shared' or 'per_robot', got {payload!r}")
+    comp = JointCompliance(robot)
+    if comp.lumped:
+        raise ValueError("fleet-wide joint compliance needs link inertials in the URDF (the gravity torque); "
+                         "this model has none")
+    if any(f"{j}.offset" not in robot.param_names for j in comp.joints):
+        raise ValueError("fleet-wide joint compliance needs a URDF robot (joint offsets named '<joint>.offset')")
+    return comp
+
+
+def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> dict:
+    """One fit; with a prior, its scales and the noise by EM until they settle."""
+    R_ = Z.shape[0]
+    zfree = free_z.expand(R_, -1)
+    if not prior:
+        res = lm_arrow(model, Z, s, zfree, free_s, **opts)
+        return {"Z": res.Z, "s": res.s, "res": res, "tau": None, "sigma": None, "rounds": 0, "estimated": False}
+    P = model.P
+    names = [template.names[i] for i in P.tolist()]
+    units = [template.units[i] for i in P.tolist()]
+    # an earlier identifiability round's estimates are the best start
+    tau = torch.tensor([model.scales.get(n, (prior_scale or PRIOR_START)[u]) for n, u in zip(names, units)],
+                       dtype=Z.dtype, device=Z.device)
+    floor = torch.tensor([_TAU_FLOOR * PRIOR_START[u] for u in units], dtype=Z.dtype, device=Z.device)
+    sfree = torch.cat([torch.ones(model.np, dtype=torch.bool, device=Z.device), free_s])
+    n_rows = float(model.fd.n_obs.sum()) * 3
+    sigma, rounds = model.scales.get("sigma", _SIGMA_START), 0
+    for _ in range(_OUTER):
+        model.w = sigma / tau
+        res = lm_arrow(model, Z, s, zfree, sfree, **opts)
+        Z, s = res.Z, res.s
+        tau0, sigma0 = tau, sigma
+        tau, sigma, n = _scales(model, Z, s, zfree, sfree, tau, sigma, floor, prior_scale is None, n_rows)
+        rounds += n
+        if max(abs(sigma / sigma0 - 1), _rel(tau, tau0, floor)) < _OUTER_RTOL:
+            break
+    model.scales = {"sigma": sigma, **dict(zip(names, tau.tolist()))}
+    model.w = sigma / tau
+    res = lm_arrow(model, Z, s, zfree, sfree, **opts)
+    return {"Z": res.Z, "s": res.s, "res": res, "tau": tau, "sigma": sigma, "rounds": rounds,
+            "estimated": prior_scale is None}
+
+
+def _scales(model, Z, s, zfree, sfree, tau, sigma, floor, estimate_tau: bool, n_rows: float):
+    """The noise σ and the prior scales τ that the fleet's data support, on the model linearised
+    at ``(Z, s)``: each round one exact solve of the linear MAP problem, then MacKay's evidence
+    updates ``σ² = SSR / (n − Σ edf)`` and ``τ_j² = Σ_r (x_rj − m_j)² / Σ_r γ_rj``, where
+    ``γ = 1 − Var / τ²`` counts how much a robot's own data, not the prior, determine ``x_rj``."""
+    n, P = model.np, model.P
+    cols = torch.nonzero(zfree.any(0)).flatten()
+    zc, f = zfree[:, cols], zfree[:, cols].to(Z.dtype)
+    Pc = torch.searchsorted(cols, P)
+    d0, Jd, Jpay = model.data(Z, s[n:])
+    Jd = Jd[:, :, cols] * f[:, None, :]
+    JdT = Jd.transpose(-1, -2)
+    Hd, Hdp, gd = torch.bmm(JdT, Jd), torch.bmm(JdT, Jpay), torch.bmm(JdT, d0[..., None])[..., 0]
+    Hpp, gp = torch.einsum("rmi,rmj->ij", Jpay, Jpay), torch.einsum("rmi,rm->i", Jpay, d0)
+    e0 = Z[:, P] - s[:n]
+    R_, ar = Z.shape[0], torch.arange(n, device=Z.device)
+    rounds = 0
+    for rounds in range(1, _EM_ROUNDS + 1):
+        w2 = (sigma / tau) ** 2
+        Hzz = Hd.clone()
+        Hzz[:, Pc, Pc] += w2
+        Hzs = torch.cat([Z.new_zeros(R_, cols.numel(), n), Hdp], -1)
+        Hzs[:, Pc, ar] = -w2
+        Hss = torch.block_diag(torch.diag(R_ * w2), Hpp)
+        gz = gd.clone()
+        gz[:, Pc] += w2 * e0
+        gs = torch.cat([-(w2 * e0).sum(0), gp])
+        dz, ds, L = arrow_solve(Hzz, Hzs, Hss, gz, gs, zc, sfree)
+        Hinv = torch.cholesky_inverse(L)
+        d = d0 + torch.bmm(Jd, dz[..., None])[..., 0] + Jpay @ ds[n:]
+        edf = float(torch.einsum("rij,rji->", Hinv, Hd))
+        sigma_new = (float((d * d).sum()) / max(n_rows - edf, 1.0)) ** 0.5
+        tau_new = tau
+        if estimate_tau:
+            gamma = (1 - sigma ** 2 * Hinv[:, Pc, Pc] / tau ** 2).clamp(min=1e-6)
+            dev = (e0 + dz[:, Pc] - ds[:n]) ** 2
+            tau_new = (dev.sum(0) / gamma.sum(0)).sqrt().clamp(min=1e-12)
+        change = max(abs(sigma_new / sigma - 1), _rel(tau_new, tau, floor))
+        sigma, tau = sigma_new, tau_new
+        if change < _EM_RTOL:
+            break
+    return tau, sigma, rounds
+
+
+def _rel(a: Tensor, b: Tensor, floor: Tensor) -> float:
+    """Largest relative change; a scale on its way to 0 need not settle in relative terms."""
+    return float(((a - b).abs() / torch.maximum(b, floor)).max()) if a.numel() else 0.0
+
+
+def _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> CoupledSolution:
+    from torchcal.optim import Result
+
+    res, fd, K = fit["res"], model.fd, model.K
+    Z, s = fit["Z"], fit["s"]
+    R_ = Z.shape[0]
+    fz = free[: model.kz].expand(R_, -1).clone()
+    f = fz.to(Z.dtype)
+    H = torch.bmm(res.Jz.transpose(-1, -2), res.Jz) * f[:, :, None] * f[:, None, :] + torch.diag_embed(1 - f)
+    if prior:
+        sigma2 = torch.full((R_,), fit["sigma"] ** 2, dtype=Z.dtype, device=Z.device)
+    else:  # each robot's own noise, as calibrate() estimates it
+        sigma2 = (res.r[:, : model.md] ** 2).sum(-1) / (3 * fd.n_obs - fz.sum(-1)).clamp(min=1).to(Z.dtype)
+    se = torch.sqrt(torch.linalg.inv(H).diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
+    se = torch.where(fz, se, float("nan"))
+    solver = [Result(x=Z[b, fz[b]], fun=float((res.r[b] ** 2).sum()), n_evals=res.n_iter + 1, n_iter=res.n_iter,
+                     wall_time_s=res.wall_time_s, converged=res.converged, message=res.message, method="lm-arrow")
+              for b in range(R_)]
+    effects, test_errors = None, None
+    pay = s[model.np:]
+    if model.comp is not None:
+        vals = [[v if ok else None for v, ok in zip(row, fr)] for row, fr in zip(Z[:, K:].tolist(), fz[:, K:].tolist())]
+        effects = {"names": names_z[K:], "units": units_z[K:], "values": vals,
+                   "free": fz[:, K:].tolist(), "std_errors": se[:, K:].tolist(),
+                   "shared": {n: float(v) for n, v, ok in zip(names_p, pay.tolist(), free[model.kz:].tolist()) if ok},
+                   "shared_units": dict(zip(names_p, units_p)), "payload": "per_robot" if model.own_mu else "shared"}
+
+        def test_errors(fd_test):
+            qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
+            idx = torch.arange(R_, device=Z.device)
+            return (fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured).norm(dim=-1)
+    prior_info = None
+    if prior:
+        P = model.P
+        prior_info = {"parameters": [template.names[i] for i in P.tolist()], "mean": s[: model.np].tolist(),
+                      "tau": fit["tau"].tolist(), "units": [template.units[i] for i in P.tolist()],
+                      "sigma_m": fit["sigma"], "n_outer": fit["rounds"], "scales_estimated": fit["estimated"]}
+    reasons = [dict(why) for _ in range(R_)]
+    return CoupledSolution(X=Z[:, :K], free=fz, reasons=reasons, solver=solver, r=res.r[:, : model.md],
+                           J=res.Jz[:, : model.md], se=se, effects=effects, prior=prior_info, test_errors=test_errors,
+                           n_extra=fz[:, K:].sum(-1))

@@ -1,0 +1,185 @@
+"""A fleet's measurements as one padded batch, its validation at the door, and the batched
+registration of every robot's instrument frame."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchcal.measure.io import Measurements
+from torchcal.params import ParamSet
+from torchcal.kinematics.robot import Robot
+from torchcal.kinematics.transforms import kabsch, so3_log
+
+__all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "check_rows", "BASE_NAMES"]
+
+BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
+
+
+@dataclass
+class FleetData:
+    """Measurements of ``R`` robots of one model, padded to one shape.
+
+    Attributes:
+        q: ``(R, N, dof)`` joint values (rad / m); padded rows hold zeros.
+        measured: ``(R, N, M, 3)`` marker positions (m, each robot's instrument frame), markers in
+            the robot model's order; 0 where not seen.
+        seen: ``(R, N, M)`` bool: a real observation.
+        rows: the number of real rows of each robot.
+    """
+
+    q: Tensor
+    measured: Tensor
+    seen: Tensor
+    rows: list[int]
+    covariates: list[dict] = field(default_factory=list)
+
+    @classmethod
+    def build(cls, robot: Robot, datasets: list[Measurements]) -> "FleetData":
+        R, N, M = len(datasets), max(len(d) for d in datasets), len(robot.marker_names)
+        dt = dict(dtype=robot.dtype, device=robot.device)
+        q = torch.zeros(R, N, robot.dof, **dt)
+        meas = torch.zeros(R, N, M, 3, **dt)
+        seen = torch.zeros(R, N, M, dtype=torch.bool, device=robot.device)
+        for r, d in enumerate(datasets):
+            n = len(d)
+            mk = [robot.marker_names.index(m) for m in d.marker_names]
+            q[r, :n] = d.q.to(**dt)
+            s = d.seen.to(robot.device)
+            seen[r, :n, mk] = s
+            meas[r, :n, mk] = torch.where(s[..., None], d.positions.to(**dt), 0.0)
+        return cls(q, meas, seen, [len(d) for d in datasets], [dict(d.covariates) for d in datasets])
+
+    @property
+    def n_obs(self) -> Tensor:
+        """``(R,)`` marker observations per robot."""
+        return self.seen.sum((1, 2))
+
+    def positions(self, robot: Robot, X: Tensor, idx: Tensor, q: Tensor | None = None) -> Tensor:
+        """``(b, N, M, 3)`` model positions (m) of robots ``idx`` with parameters ``X (b, K)``
+        (joint values ``q (b, N, dof)`` when they differ from the commands)."""
+        return robot.positions(self.q[idx] if q is None else q, X, check=False)
+
+    def residuals(self, robot: Robot, X: Tensor, idx: Tensor) -> Tensor:
+        """``(b, N·M·3)`` model minus measured positions (m), zero where nothing was seen."""
+        r = (self.positions(robot, X, idx) - self.measured[idx]) * self.seen[idx][..., None]
+        return r.reshape(r.shape[0], -1)
+
+    def jacobian(self, robot: Robot, X: Tensor, idx: Tensor, q: Tensor | None = None) -> Tensor:
+        """``(b, N·M·3, K)`` analytic Jacobian of :meth:`residuals` (m per unit)."""
+        J = robot.param_jacobian(self.q[idx] if q is None else q, X, check=False)
+        J = J * self.seen[idx][..., None, None]
+        return J.reshape(J.shape[0], -1, J.shape[-1])
+
+    def errors(self, robot: Robot, X: Tensor) -> Tensor:
+        """``(R, N, M)`` Euclidean errors (m) of every robot with its own parameters ``X (R, K)``."""
+        idx = torch.arange(self.q.shape[0], device=self.q.device)
+        return (self.positions(robot, X, idx) - self.measured).norm(dim=-1)
+
+
+def fleet_template(robot: Robot, marker_names: list[str], params: ParamSet | None = None, free=None) -> ParamSet:
+    """The candidate parameters of every robot, as :func:`torchcal.pipelines.calibrate` chooses them for
+    position data: ``free`` patterns (default the ParamSet's flags), markers the data never see
+    fixed, marker orientations fixed."""
+    p = (params if params is not None else robot.params()).clone()
+    if free is not None:
+        p.only(*([free] if isinstance(free, str) else list(free)))
+    for m in robot.marker_names:
+        if m not in marker_names:
+            p.fix(f"{m}.*")
+        p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
+    return p
+
+
+def _named(data, names, what: str) -> tuple[list[str], list]:
+    if isinstance(data, dict):
+        return [str(k) for k in data], list(data.values())
+    if isinstance(data, Measurements) or not isinstance(data, (list, tuple)):
+        raise TypeError(f"{what} must be a list of Measurements (one per robot) or a dict robot id -> Measurements, "
+                        f"got {type(data).__name__}")
+    if names is None:
+        names = [f"robot_{i:03d}" for i in range(len(data))]
+    names = [str(n) for n in names]
+    if len(names) != len(data):
+        raise ValueError(f"{what}: {len(data)} data sets for {len(names)} robot ids; give one per robot, in the same "
+                         "order (or a dict robot id -> Measurements)")
+    return names, list(data)
+
+
+def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3):
+    """Check a fleet's inputs: ``(names, datasets, tests or None)``, or an error that says what is
+    wrong and how to fix it."""
+    if not isinstance(robot, Robot):
+        raise TypeError(f"robot must be a torchcal.Robot (Robot.from_urdf(...)), got {type(robot).__name__}")
+    names, datasets = _named(data, names, "data")
+    if not datasets:
+        raise ValueError("no robots: give a list of Measurements, one per robot")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"robot ids must be unique; repeated: {dup[:5]}")
+    first = None
+    for n, d in zip(names, datasets):
+        if not isinstance(d, Measurements):
+            raise TypeError(f"robot {n!r}: expected Measurements (torchcal.load_measurements), got {type(d).__name__}")
+        if list(d.joint_names) != list(robot.joint_names):
+            raise ValueError(f"robot {n!r}: joint columns {list(d.joint_names)} differ from the model's "
+                             f"{robot.joint_names}; every robot of a fleet is the same model")
+        unknown = [m for m in d.marker_names if m not in robot.marker_names]
+        if unknown:
+            raise ValueError(f"robot {n!r}: markers {unknown} are not markers of the model {robot.marker_names}")
+        if first is None:
+            first = (n, sorted(d.marker_names))
+        elif sorted(d.marker_names) != first[1]:
+            raise ValueError(f"robot {n!r} measures markers {sorted(d.marker_names)} but robot {first[0]!r} measures "
+                             f"{first[1]}; the robots of a fleet share one marker set")
+        if len(d) < min_rows or int(d.seen.sum()) < 3:
+            raise ValueError(f"robot {n!r} has {len(d)} rows ({int(d.seen.sum())} marker observations); a calibration "
+                             f"needs at least {max(min_rows, 3)} rows. Measure more poses or leave this robot out")
+    tests = None
+    if test is not None:
+        tnames, tsets = _named(test, names if not isinstance(test, dict) else None, "test")
+        extra = [t for t in tnames if t not in names]
+        if extra:
+            raise ValueError(f"held-out data for robots {extra[:5]}, which are not in the fleet (its robots: "
+                             f"{names[:5]}{' …' if len(names) > 5 else ''}); name each robot's held-out data as its "
+                             "training data (the same file name <robot>.csv, or the same dict key)")
+        by = dict(zip(tnames, tsets))
+        tests = [by.get(n) for n in names]
+        for n, d in zip(names, tests):
+            if d is not None and (not isinstance(d, Measurements) or list(d.joint_names) != list(robot.joint_names)):
+                raise ValueError(f"robot {n!r}: held-out data must be Measurements with the model's joint columns")
+    return names, datasets, tests
+
+
+def register_fleet(robot: Robot, fd: FleetData, X: Tensor) -> Tensor:
+    """Every robot's instrument frame by one batched Kabsch registration of its nominal marker
+    positions (current non-base errors) onto the measured ones: ``X (R, K)`` with base entries set."""
+    bi = [robot.param_names.index(n) for n in BASE_NAMES]
+    X = X.clone()
+    X[:, bi] = 0.0
+    idx = torch.arange(X.shape[0], device=X.device)
+    model = fd.positions(robot, X, idx)  # robot base frame
+    R_, N, M = fd.seen.shape
+    w = fd.seen.reshape(R_, N * M).to(X.dtype)
+    try:
+        Rb, t = kabsch(model.reshape(R_, N * M, 3), fd.measured.reshape(R_, N * M, 3), weights=w)
+    except ValueError as e:
+        raise ValueError(f"base registration failed: {e} (problems are robots in fleet order)") from None
+    X[:, bi] = torch.cat([t, so3_log(Rb)], -1)
+    return X
+
+
+def check_rows(fd: FleetData, free: Tensor, names: list[str]) -> None:
+    """Refuse robots with too few rows: those whose residuals do not outnumber their identifiable
+    parameters (the fit would pass through every point), and those too short to identify what their
+    siblings identify (few rows limit the rank, so the identifiable set alone hides them)."""
+    m, k = 3 * fd.n_obs, free.sum(-1)
+    typical = int(k.sort().values[k.numel() // 2])  # the upper median: what most robots identify
+    short = torch.nonzero((m <= k) | ((k < typical) & (m <= typical))).flatten().tolist()
+    if short:
+        need = typical // 3 + 1
+        raise ValueError("too few rows: " + "; ".join(
+            f"robot {names[i]!r} has {fd.rows[i]} rows ({int(m[i])} residuals) for the {typical} parameters the "
+            f"fleet identifies" for i in short[:5]) + f". Measure at least {need} marker positions per robot, leave "
+            "those robots out, or use prior='fleet' so that they borrow strength from the fleet")

@@ -1,0 +1,154 @@
+"""Identifiability for a fleet: the decision of :func:`~torchcal.problems.identifiability.analyse_jacobian`
+made for many robots at once.
+
+Every robot's Jacobian is judged on its own, as :func:`torchcal.pipelines.calibrate` judges it: columns
+normalised to unit length, reduced to the ``k x k`` R factor of a thin QR, then a greedy pivoted
+selection run tier by tier (:data:`~torchcal.problems.identifiability.DEFAULT_PREFER`), each tier against
+the span of the columns already kept, with the same tie-breaking boost for earlier columns. The
+greedy steps are batched over robots, so a fleet costs ``k`` small batched products instead of one
+LAPACK call and a Python report per robot. The reasons in words come from the same helpers as the
+single-robot report, with one batched least-squares solve per distinct kept set.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchcal.problems.identifiability import TIE_BOOST, dependency_reason, preference_tiers, zero_column_reason
+
+__all__ = ["FleetDecision", "decide", "explain", "check_rank"]
+
+
+@dataclass
+class FleetDecision:
+    """Which columns each robot identifies.
+
+    Attributes:
+        kept: ``(B, k)`` bool, identifiable; ``zero``: ``(B, k)`` bool, columns that move nothing.
+        An: ``(B, n, k)`` the column-normalised Jacobians (reduced to their R factors when tall);
+        norms: ``(B, k)`` column norms (m per unit parameter).
+    """
+
+    kept: Tensor
+    zero: Tensor
+    An: Tensor
+    norms: Tensor
+
+
+def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> Tensor:
+    """Tiered greedy column selection, batched: in each tier pick the column with the largest
+    (boosted) residual norm while its residual norm exceeds ``rtol`` times the first pick's."""
+    Bn, n, k = An.shape
+    dev = An.device
+    kept = torch.zeros(Bn, k, dtype=torch.bool, device=dev)
+    Q = An.new_zeros(Bn, n, k)  # the kept directions (zero columns where a robot picked nothing)
+    nq = 0
+    tol = An.new_zeros(Bn)
+    tol_set = torch.zeros(Bn, dtype=torch.bool, device=dev)
+    rows = torch.arange(Bn, device=dev)
+    for tier in tiers:
+        T = An[:, :, tier]
+        if nq:
+            # project out the kept span twice: once loses orthogonality for nearly dependent columns
+            Qk = Q[:, :, :nq]
+            for _ in range(2):
+                T = T - Qk @ (Qk.transpose(-1, -2) @ T)
+        boost = 1.0 + TIE_BOOST * torch.arange(len(tier), 0, -1, dtype=An.dtype, device=dev)
+        T = T * boost
+        avail = valid[:, tier].clone()
+        cols = torch.as_tensor(tier, device=dev)
+        going = avail.any(-1)
+        for _ in range(len(tier)):
+            if not bool(going.any()):
+                break
+            nrm = torch.where(avail, T.norm(dim=1), -1.0)
+            best, j = nrm.max(-1)
+            d = best / boost[j]
+            fresh = going & ~tol_set
+            tol = torch.where(fresh, rtol * torch.where(d > 0, d, torch.ones_like(d)), tol)
+            tol_set |= fresh
+            going = going & (d > tol)
+            if not bool(going.any()):
+                break
+            v = T[rows, :, j]
+            v = v * (going / v.norm(dim=1).clamp(min=1e-300))[:, None]
+            T = T - v[:, :, None] * (v[:, None, :] @ T)
+            Q[:, :, nq] = v
+            nq += 1
+            avail[rows, j] &= ~going
+            kept[rows, cols[j]] |= going
+            going = going & avail.any(-1)
+    return kept
+
+
+def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1e-9) -> FleetDecision:
+    """The identifiable columns of each robot's Jacobian.
+
+    Args:
+        J: ``(B, m, k)`` Jacobians (rows: each robot's residuals, padded rows zero; columns: the
+            candidate parameters ``names``, m per unit).
+        markers, prefer, rtol: as for :func:`~torchcal.problems.identifiability.analyse_jacobian` (whose
+            SVD cross-check of the rank is :func:`check_rank`).
+    """
+    J = J.to(torch.float64)
+    Bn, m, k = J.shape
+    norms = J.norm(dim=1)
+    big = norms.amax(-1, keepdim=True)
+    zero = torch.where(big > 0, norms <= rtol * big, torch.ones_like(norms, dtype=torch.bool))
+    An = torch.where(zero[:, None, :], torch.zeros_like(J), J / torch.where(zero, 1.0, norms)[:, None, :])
+    if m > k:
+        An = torch.linalg.qr(An, mode="r").R
+    tiers = [t for t in preference_tiers(markers, names, prefer) if t]
+    kept = _greedy(An, tiers, ~zero, rtol)
+    return FleetDecision(kept, zero, An, norms)
+
+
+def check_rank(dec: FleetDecision, rows: list[int] | None = None, labels=None, rtol: float = 1e-9) -> None:
+    """Warn, as :func:`~torchcal.problems.identifiability.analyse_jacobian` does, where the SVD of a robot's
+    Jacobian counts another rank than the selection kept (the rank is ambiguous at ``rtol``);
+    ``labels[row]`` names the robot of a decision row."""
+    rows = list(range(dec.kept.shape[0])) if rows is None else list(rows)
+    if not rows:
+        return
+    s = torch.linalg.svdvals(dec.An[rows])
+    svd_rank = (s > rtol * s[:, :1]).sum(-1) * (s[:, 0] > 0)
+    odd = torch.nonzero(svd_rank != dec.kept[rows].sum(-1)).flatten().tolist()
+    if odd:
+        who = [labels[rows[i]] if labels else str(rows[i]) for i in odd[:5]]
+        warnings.warn(f"numerical rank is ambiguous at rtol={rtol:g} for robot(s) {who}: the pose set nearly fails "
+                      "to identify some parameters", RuntimeWarning, stacklevel=2)
+
+
+def explain(dec: FleetDecision, names: list[str], units: list[str], kind: str = "position",
+            rtol: float = 1e-9, rows: list[int] | None = None) -> list[dict[str, str]]:
+    """A sentence per dropped parameter for robots ``rows`` (default all), as
+    :func:`~torchcal.problems.identifiability.analyse_jacobian` words them."""
+    rows = list(range(dec.kept.shape[0])) if rows is None else list(rows)
+    out: dict[int, dict[str, str]] = {b: {} for b in rows}
+    if not rows:
+        return []
+    sel = torch.as_tensor(rows, device=dec.kept.device)
+    patterns, inverse = torch.unique(dec.kept[sel], dim=0, return_inverse=True)
+    for p, pat in enumerate(patterns):
+        members = sel[inverse == p]
+        kept = torch.nonzero(pat).flatten().tolist()
+        An, zero, norms = dec.An[members], dec.zero[members], dec.norms[members]
+        todo = [i for i in range(len(names)) if i not in set(kept)]
+        if kept and todo:
+            Bk, rhs = An[:, :, kept], An[:, :, todo]
+            coef = torch.linalg.lstsq(Bk, rhs, driver="gelsd" if Bk.device.type == "cpu" else None).solution
+            res = (rhs - Bk @ coef).norm(dim=1)
+        for r, b in enumerate(members.tolist()):
+            zr, nr = zero[r].tolist(), norms[r].cpu().numpy()
+            for t, i in enumerate(todo):
+                if zr[i]:
+                    out[b][names[i]] = zero_column_reason(names[i], kind)
+                elif kept:
+                    out[b][names[i]] = dependency_reason(i, coef[r, :, t].cpu().numpy(), float(res[r, t]), kept,
+                                                         names, units, nr, rtol)[0]
+                else:
+                    out[b][names[i]] = f"{names[i]} is numerically dependent on the identifiable parameters"
+    return [out[b] for b in rows]

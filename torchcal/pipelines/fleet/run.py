@@ -1,0 +1,330 @@
+"""A fleet of robots of one model, calibrated in one batched solve.
+
+The kinematics are batched over parameter populations; a fleet is such a population with its own
+rows per member. :func:`calibrate_fleet` stacks every robot's measurements (ragged row counts
+padded and masked), registers every instrument frame with one batched Kabsch, judges each robot's
+identifiable parameters (:mod:`torchcal.pipelines.fleet.identify`), and fits all robots with one
+block-diagonal Levenberg-Marquardt (:func:`~torchcal.optim.lm_batched.lm_batched`): each robot's
+parameters, Jacobian, damping and stopping test are its own, and the result for each robot is what
+``calibrate(robot, data, method="lm")`` gives it. On top of that it reports how every parameter
+spreads over the fleet and flags robots far from their siblings (:mod:`torchcal.report.fleet`),
+and optionally couples the robots: a hierarchical prior around the fleet mean, joint compliance
+with a payload shared by the fleet (:mod:`torchcal.pipelines.fleet.coupled`).
+"""
+from __future__ import annotations
+
+import numbers
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchcal.pipelines.calibrate import CalibrationResult, errors_by_marker
+from torchcal.pipelines.fleet.identify import check_rank, decide, explain
+from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
+from torchcal.pipelines.fleet.coupled import solve_coupled
+from torchcal.pipelines.fleet.data import BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet, validate_fleet
+from torchcal.optim.lm_batched import lm_batched
+from torchcal.params import ParamSet
+from torchcal.kinematics.robot import Robot
+
+__all__ = ["calibrate_fleet", "FleetResult", "FleetData", "fleet_template", "validate_fleet"]
+
+_LM_DEFAULTS = {"tau": 1e-6, "reuse": 0.9}
+_PRIOR_MIN_ROBOTS = 3  # a spread estimated from fewer robots is no estimate
+
+
+@dataclass
+class FleetResult:
+    """What :func:`calibrate_fleet` found.
+
+    Attributes:
+        names: robot ids, in order.
+        results: per robot, a :class:`~torchcal.pipelines.calibrate.CalibrationResult` (what
+            ``calibrate(robot, data, method="lm")`` returns: parameters, standard errors, reasons,
+            error statistics per stage); index the result by robot id or position.
+        values: ``(R, K)`` identified parameters; ``free``: ``(R, K)`` which were fitted.
+        spread: per parameter, its distribution over the fleet and the robots flagged as outliers
+            (:func:`~torchcal.report.fleet.parameter_spread`); ``flags``: those robots, worst first.
+        prior: the hierarchical prior (fleet mean, scales, noise) when one was used.
+        effects: per robot, the fitted effect parameters (name -> value), and the shared ones.
+        wall_time_s: the whole fleet solve (every robot's result is part of it).
+    """
+
+    robot: Robot
+    names: list[str]
+    results: list[CalibrationResult]
+    values: Tensor
+    free: Tensor
+    spread: dict
+    flags: list[dict]
+    identify: str
+    z_threshold: float
+    prior: dict | None = None
+    effects: dict | None = None
+    wall_time_s: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, key: int | str) -> CalibrationResult:
+        if isinstance(key, str):
+            if key not in self.names:
+                raise KeyError(f"no robot {key!r} in this fleet; robots: {self.names[:5]}…")
+            key = self.names.index(key)
+        return self.results[key]
+
+    def report(self) -> dict:
+        """The fleet report (``fleet.json``): parameter spread, flags, prior, timings."""
+        return fleet_report(self)
+
+    def markdown(self) -> str:
+        """The fleet report as Markdown (``fleet.md``)."""
+        return fleet_markdown(self)
+
+    def save(self, out_dir, figures: bool = True) -> Path:
+        """Write ``<robot>/calibrated.urdf``, ``report.md``, ``report.json`` (and error histograms
+        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``."""
+        return save_fleet(self, out_dir, figures)
+
+
+def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_c: list[str], prefer=None):
+    """The identifiable candidates of the pooled design: every robot's poses at the fleet's mean
+    parameters in the robot base frame, judged as one data set (one kept set for all robots)."""
+    bi = [robot.param_names.index(n) for n in BASE_NAMES]
+    xm = X.mean(0, keepdim=True).clone()
+    xm[:, bi] = 0.0
+    R_ = X.shape[0]
+    idx = torch.arange(R_, device=X.device)
+    J = fd.jacobian(robot, xm.expand(R_, -1), idx)[:, :, cand]
+    return decide(J.reshape(1, -1, J.shape[-1]), names_c, robot.marker_names, prefer)
+
+
+def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts):
+    """Rounds of judge -> batched LM -> judge again at the solution, per robot, as
+    :func:`torchcal.problems.fitting.fit_identified` does for one robot. The LM's Jacobian at its solution
+    serves the next judgement and the next round's start; the reasons in words are written once,
+    for the decision each robot ends with."""
+    R_, K = X0.shape
+    dev = X0.device
+    cand = template.free_index
+    names_c = [template.names[i] for i in cand.tolist()]
+    units_c = [template.units[i] for i in cand.tolist()]
+    everyone = torch.arange(R_, device=dev)
+
+    def judge(X, J, idx):
+        if identify == "pooled":
+            d = pooled_decision(robot, fd, X, cand, names_c, prefer)
+            return d, d.kept.expand(idx.numel(), -1), torch.zeros(idx.numel(), dtype=torch.long, device=dev)
+        d = decide(J[:, :, cand], names_c, robot.marker_names, prefer)
+        return d, d.kept, torch.arange(idx.numel(), device=dev)
+
+    J = fd.jacobian(robot, X0, everyone)
+    dec, kept, row = judge(X0, J, everyone)
+    decisions = [(dec, row, everyone)]  # (decision, its row per robot, robots): later entries win
+    free = torch.zeros(R_, K, dtype=torch.bool, device=dev)
+    free[:, cand] = kept
+    check_rows(fd, free, names)
+    X = X0.clone()
+    m = J.shape[1]
+    r_fin, J_fin = X.new_zeros(R_, m), X.new_zeros(R_, m, K)
+    solver = [None] * R_
+    todo = everyone
+    for _ in range(3):
+        sub = todo
+        res = lm_batched(lambda Xb, i: fd.residuals(robot, Xb, sub[i]), lambda Xb, i: fd.jacobian(robot, Xb, sub[i]),
+                         X[sub], free[sub], template.lower, template.upper, jac0=J, **opts)
+        X[sub], r_fin[sub], J_fin[sub] = res.x, res.residuals, res.jacobian
+        for j, b in enumerate(sub.tolist()):
+            solver[b] = res.result(j, free[b])
+        d2, kept2, row2 = judge(X[sub], res.jacobian, sub)
+        nxt = torch.zeros(sub.numel(), K, dtype=torch.bool, device=dev)
+        nxt[:, cand] = kept2
+        grew = (nxt & ~free[sub]).any(-1)
+        if not bool(grew.any()):
+            break
+        todo = sub[grew]
+        free[todo] = nxt[grew]
+        decisions.append((d2, row2[grew], todo))
+        # a robot that grows after the last round is judged, not refitted (as fit_identified)
+        J = res.jacobian[grew]
+    reasons: list[dict] = [{} for _ in range(R_)]
+    last = torch.full((R_,), -1, dtype=torch.long, device=dev)
+    for t, (_, _, who) in enumerate(decisions):
+        last[who] = t
+    for t, (d, row, who) in enumerate(decisions):
+        mine = torch.nonzero(last[who] == t).flatten()
+        if mine.numel():
+            rows = row[mine].tolist()
+            uniq = sorted(set(rows))
+            check_rank(d, uniq, {rw: names[b] for rw, b in zip(rows, who[mine].tolist())})
+            at = dict(zip(uniq, explain(d, names_c, units_c, rows=uniq)))
+            for b, rw in zip(who[mine].tolist(), rows):
+                reasons[b] = at[rw]
+    J_fin = J_fin * free[:, None, :].to(X.dtype)  # the Jacobian of each robot's final free set
+    return X, free, reasons, solver, r_fin, J_fin
+
+
+def standard_errors(J: Tensor, r: Tensor, free: Tensor, n_res: Tensor) -> Tensor:
+    """``(R, K)`` standard errors ``sqrt(diag(σ² (JᵀJ)⁻¹))`` of each robot's free parameters, with
+    ``σ² = SSR / max(m − k, 1)``; NaN where ``JᵀJ`` is singular (as :func:`torchcal.pipelines.calibrate`)."""
+    f = free.to(J.dtype)
+    A = torch.bmm(J.transpose(-1, -2), J) * f[:, :, None] * f[:, None, :] + torch.diag_embed(1.0 - f)
+    inv, info = torch.linalg.inv_ex(A)
+    dof = (n_res - free.sum(-1)).clamp(min=1).to(J.dtype)
+    sigma2 = (r * r).sum(-1) / dof
+    se = torch.sqrt(inv.diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
+    return torch.where((info != 0)[:, None], torch.full_like(se, float("nan")), se)
+
+
+def _stage(e: Tensor, seen: Tensor, robot: Robot) -> dict:
+    mk = torch.nonzero(seen)[:, 1]
+    return errors_by_marker(e[seen], mk, robot.marker_names)
+
+
+def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin, J_fin,
+             wall_time_s: float, test_errors=None, stage: str = "geometric", n_extra: Tensor | None = None,
+             se: Tensor | None = None) -> list[CalibrationResult]:
+    """Per robot, the :class:`~torchcal.pipelines.calibrate.CalibrationResult` ``calibrate()`` would return.
+
+    ``test_errors``: ``(R, N', M)`` held-out errors (m) of the final model (default: the geometry
+    ``X`` alone); ``stage``, ``n_extra``: the final stage's name and each robot's parameters
+    beyond the geometry; ``se``: ``(R, K)`` standard errors when the solver has its own."""
+    K = X.shape[1]
+    se = (standard_errors(J_fin, r_fin, free, 3 * fd.n_obs) if se is None else se)[:, :K]
+    free = free[:, :K]
+    R_, N, M = fd.seen.shape
+    E0, E = fd.errors(robot, X0), r_fin.reshape(R_, -1)[:, :N * M * 3].reshape(R_, N, M, 3).norm(dim=-1)
+    Et0 = Et = None
+    if fd_test is not None:
+        Et0 = fd_test.errors(robot, X0)
+        Et = fd_test.errors(robot, X) if test_errors is None else test_errors
+    n_extra = torch.zeros(R_, dtype=torch.long) if n_extra is None else n_extra
+    out = []
+    cand = template.free
+    for b in range(R_):
+        p = template.clone()
+        p.values, p.free = X[b].clone(), free[b].clone()
+        start = template.clone()
+        start.values = X0[b].clone()
+        fb = torch.nonzero(free[b]).flatten()
+        std = dict(zip(p.free_names, se[b, fb].tolist()))
+        dropped = [n for n, c, f in zip(p.names, cand.tolist(), free[b].tolist()) if c and not f]
+        has_test = tests is not None and tests[b] is not None
+        stages, errors = [], {}
+        for name, e, et, k in (("nominal", E0, Et0, 0), (stage, E, Et, int(free[b].sum() + n_extra[b]))):
+            st = {"name": name, "n_params": k, "train": _stage(e[b], fd.seen[b], robot)}
+            errors[name] = {"train": e[b][fd.seen[b]], "test": torch.zeros(0)}
+            if has_test:
+                st["test"] = _stage(et[b], fd_test.seen[b], robot)
+                errors[name]["test"] = et[b][fd_test.seen[b]]
+            stages.append(st)
+        out.append(CalibrationResult(robot=robot, params=p, std_errors=std,
+                                     unidentifiable={n: reasons[b].get(n, "not identifiable") for n in dropped},
+                                     stages=stages, solver=solver[b], method="lm", n_train=len(datasets[b]),
+                                     n_test=len(tests[b]) if has_test else 0, start=start, loss="l2",
+                                     wall_time_s=wall_time_s, errors=errors))
+    return out
+
+
+def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=None, params: ParamSet | None = None,
+                    free=None, prior: str | None = None, prior_scale: dict | None = None, effects=None,
+                    payload: str = "shared", identify: str | None = None, register: bool = True, prefer=None,
+                    min_rows: int = 3, z_threshold: float = 5.0, options: dict | None = None,
+                    ray: str | None = None, ray_shards: int | None = None) -> FleetResult:
+    """Calibrate ``R`` robots of one model in one batched solve.
+
+    Args:
+        robot: the model (:class:`~torchcal.kinematics.robot.Robot`) every robot is an instance of.
+        data: one :class:`~torchcal.measure.io.Measurements` per robot (``q: (N_r, dof)`` rad, marker
+            positions ``(N_r, M, 3)`` m in that robot's instrument frame; ``N_r`` may differ), as a
+            list (ids from ``names``, default ``robot_000``…) or a dict id -> Measurements.
+        test: held-out Measurements per robot (same form; missing robots allowed in a dict).
+        params, free: the template ParamSet and glob patterns of parameters to identify, as for
+            :func:`torchcal.pipelines.calibrate`.
+        prior: ``None`` (every robot alone: the result equals ``calibrate(..., method="lm")``) or
+            ``"fleet"``: each robot's geometric errors are drawn around the fleet mean, with
+            scales and noise estimated from the fleet (empirical Bayes) unless ``prior_scale``
+            gives them (``{"m": metres, "rad": radians}``). It needs at least 3 robots (2 when
+            ``prior_scale`` is given).
+        effects: ``None`` or ``["joint_compliance"]``: each robot's joints twist with the gravity
+            torque (its own compliances), under a payload ``"shared"`` by the fleet or fitted
+            ``"per_robot"`` (``payload``); needs URDF inertials.
+        identify: ``"per_robot"`` (default without coupling) or ``"pooled"``: one identifiable
+            set judged on all robots' poses together (always so with a prior or effects).
+        min_rows: robots with fewer rows are refused.
+        z_threshold: robust z-score beyond which a robot's parameter is flagged.
+        options: Levenberg-Marquardt options (``max_iter``, ``tau``, ``gtol``, ``xtol``, ``ftol``).
+        ray: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``, or ``"local"`` for an
+            in-process one) to spread the robots over (``pip install torchcal[ray]``); ``ray_shards``
+            robots are solved per task batch (default: one shard per worker CPU).
+    Returns:
+        a :class:`FleetResult`.
+    """
+    t0 = time.perf_counter()
+    names, datasets, tests = validate_fleet(robot, data, names, test, min_rows)
+    effects = [effects] if isinstance(effects, str) else effects
+    coupled = prior is not None or bool(effects)
+    if prior not in (None, "fleet"):
+        raise ValueError(f"prior must be None or 'fleet', got {prior!r}")
+    if payload not in ("shared", "per_robot"):
+        raise ValueError(f"payload must be 'shared' or 'per_robot', got {payload!r}")
+    if not (isinstance(z_threshold, numbers.Real) and 0 < z_threshold < float("inf")):
+        raise ValueError(f"z_threshold is a robust z-score beyond which a parameter is flagged: give a positive number "
+                         f"(default 5), got {z_threshold!r}")
+    need = _PRIOR_MIN_ROBOTS if prior_scale is None else 2
+    if prior is not None and len(names) < need:
+        raise ValueError(f"prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
+                         + (", which is estimated from the fleet" if prior_scale is None else "")
+                         + f": {len(names)} robot(s) are too few to tell. Give at least {need} robots"
+                         + (" (or prior_scale={'m': …, 'rad': …} with 2)" if prior_scale is None else "")
+                         + ", or leave out the prior")
+    if identify not in (None, "per_robot", "pooled"):
+        raise ValueError(f"identify must be 'per_robot' or 'pooled', got {identify!r}")
+    if coupled and identify == "per_robot":
+        raise ValueError("a prior or fleet-wide effects couple the robots: their parameters are judged on the pooled "
+                         "design; use identify='pooled' (or leave it out)")
+    identify = identify or ("pooled" if coupled else "per_robot")
+    opts = {**_LM_DEFAULTS, **dict(options or {})}
+    if ray is not None:
+        if coupled:
+            raise ValueError("on Ray the robots are solved independently; a prior or a shared payload couples them. "
+                             "Run those in-process (leave out ray=)")
+        from torchcal.pipelines.fleet.distributed import calibrate_fleet_ray
+
+        return calibrate_fleet_ray(robot, dict(zip(names, datasets)), test=None if tests is None else
+                                   {n: t for n, t in zip(names, tests) if t is not None}, address=ray,
+                                   shards=ray_shards, params=params, free=free, identify=identify, register=register,
+                                   prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, options=options)
+    template = fleet_template(robot, datasets[0].marker_names, params, free)
+    fd = FleetData.build(robot, datasets)
+    fd_test = None
+    if tests is not None:
+        none = torch.zeros(0, dtype=torch.long)
+        fd_test = FleetData.build(robot, [t if t is not None else datasets[i].subset(none) for i, t in enumerate(tests)])
+    X0 = template.values.expand(len(names), -1).clone()
+    bi = [robot.param_names.index(n) for n in BASE_NAMES]
+    if register and bool(template.free[bi].any()):
+        X0 = register_fleet(robot, fd, X0)
+    extra = prior_info = None
+    if coupled:
+        sol = solve_coupled(robot, fd, template, X0, names, prior=prior, prior_scale=prior_scale,
+                            effects=list(effects or []), payload=payload, prefer=prefer, options=opts)
+        extra, prior_info = sol.effects, sol.prior
+        stage = "geometric + joint_compliance" if effects else "geometric"
+        wall = time.perf_counter() - t0
+        results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, sol.X, sol.free, sol.reasons,
+                           sol.solver, sol.r, sol.J, wall, stage=stage, n_extra=sol.n_extra, se=sol.se,
+                           test_errors=sol.test_errors(fd_test) if fd_test is not None and sol.test_errors else None)
+        X, free = sol.X, sol.free[:, : X0.shape[1]]
+    else:
+        X, free, reasons, solver, r_fin, J_fin = _solve_independent(robot, fd, template, X0, names, identify,
+                                                                    prefer, opts)
+        results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin,
+                           J_fin, time.perf_counter() - t0)
+    spread, flags = parameter_spread(names, results, z_threshold, extra=extra)
+    return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
+                       identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,
+                       wall_time_s=time.perf_counter() - t0)

@@ -1,0 +1,421 @@
+"""The loop's candidate models: fit on the training rows, cross-validate, and the linear step that
+starts an effect where it means something.
+
+A :class:`Model` is what the loop compares: which parameters are free, a prior on the geometric
+errors (or none), the effects, the fit on all training rows and the cross-validated per-row
+scores (:mod:`torchcal.pipelines.loop.selection`). Fits use the Huber loss with the round's threshold; the
+folds start from the full fit with the same free set.
+
+**An effect's start.** An effect is added around the current model: the residual is regressed,
+to first order, on the model's free parameters and the effect's *linear* coordinates
+(:meth:`~torchcal.effects.Effect.linear_basis`), selecting the modes of a family on the way
+(:class:`~torchcal.pipelines.loop.selection.LinearCV`). The effect's parameters start from that solution
+(:meth:`~torchcal.effects.Effect.from_linear`), so identifiability is then judged at a point
+where a bilinear effect's columns do not vanish, and judged again at the solution.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchcal.effects import effect_params
+from torchcal.problems.fitting import fit_identified
+from torchcal.measure.io import Measurements
+from torchcal.measure.blocks import Loss
+from torchcal.measure.observations import Setup
+from torchcal.params import ParamSet
+from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.measure.registration import register_base
+from torchcal.pipelines.loop.selection import HUBER_K, LinearCV, effective_params, penalised, rmse_mm, robust_sigma, row_scores
+
+__all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
+           "folds_of",
+           "split_params", "assemble", "PRIOR_SCALES_MM"]
+
+# Prior σ of every geometric error when the data cannot carry the full set: mm for lengths, mrad
+# for angles (equal at a 1 m lever), strongest first.
+PRIOR_SCALES_MM = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0)
+
+
+@dataclass
+class Context:
+    """What every fit of a loop run shares: robot, training rows, folds, the Huber threshold
+    ``c`` (m), the per-axis noise estimate ``sigma`` (m) the priors are scaled by, and the
+    set-up's unknowns (planes, fixed points; None for position data)."""
+
+    robot: object
+    data: Measurements
+    folds: list[Tensor]
+    c: float | None
+    sigma: float
+    setup: Setup | None = None
+
+    @property
+    def n_obs(self) -> float:
+        """Observations in 3-D equivalents (measured scalars / 3): a plane contact counts a third
+        of a position, so penalties weigh what was measured."""
+        return self.data.n_values / 3
+
+    @property
+    def n_geo(self) -> int:
+        """Entries of the geometry block: the robot's parameters and the set-up's unknowns."""
+        return self.robot.n_params + (0 if self.setup is None else self.setup.n_params)
+
+    def at(self, c: float | None, sigma: float | None = None) -> "Context":
+        """The same context with another Huber threshold (and noise estimate)."""
+        return Context(self.robot, self.data, self.folds, c, self.sigma if sigma is None else sigma, self.setup)
+
+    def loss(self) -> Loss:
+        return Loss("l2") if self.c is None else Loss("huber", self.c)
+
+
+@dataclass
+class Model:
+    """A fitted candidate: ``params`` (geometry then each effect's parameters; ``free`` = what
+    was fitted), its effects, the geometric prior σ (mm and mrad; None = none), the effective
+    number of parameters ``k``, cross-validated per-row ``scores`` (m², what decides), plain
+    cross-validated squared errors per row ``sq`` (m², what a person reads as an RMSE) and the
+    fold fits."""
+
+    label: str
+    params: ParamSet
+    effects: list
+    prior_mm: float | None
+    k: float
+    scores: Tensor
+    fold_fits: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+    sq: Tensor | None = None
+
+    def cv_rmse_mm(self, n_obs: int) -> float:
+        """Plain cross-validated RMSE per observation (mm)."""
+        return rmse_mm(self.sq if self.sq is not None else self.scores, n_obs)
+
+
+def folds_of(n: int, k: int, seed: int, groups: Tensor | None = None) -> list[Tensor]:
+    """``k`` folds of row indices; rows sharing a group id (duplicates) stay together."""
+    g = torch.Generator().manual_seed(seed)
+    if groups is None:
+        perm = torch.randperm(n, generator=g)
+        return [perm[i::k].sort().values for i in range(k)]
+    uniq = torch.unique(groups)
+    perm = uniq[torch.randperm(len(uniq), generator=g)]
+    return [torch.nonzero(torch.isin(groups, perm[i::k])).flatten() for i in range(k)]
+
+
+def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = None) -> ParamSet:
+    """The robot's parameters registered to the instrument, free: markers' positions, and the
+    errors matching ``patterns`` (None: the robot's default free set); then the set-up's unknowns.
+
+    Without three full positions there is nothing to register: with no position at all (planes,
+    distances) the instrument frame is fixed at the robot base, since the planes and fixed points
+    absorb where it stands; with partial positions only it starts there and is fitted."""
+    p = robot.params()
+    for m in robot.marker_names:
+        if m not in data.marker_names:
+            p.fix(f"{m}.*")
+        p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
+    if patterns is not None:
+        keep = set(p.free_names)
+        p.free[:] = False
+        for pat in patterns:
+            try:
+                p.unfix(pat)
+            except KeyError:
+                pass
+        for m in data.marker_names:
+            p.unfix(f"{m}.dx", f"{m}.dy", f"{m}.dz")
+        p.free &= torch.tensor([n in keep for n in p.names], device=p.free.device)
+    if int(data.seen.sum()) >= 3:
+        p = register_base(robot, data, p)
+    elif not bool(data.observed.any()):
+        p.fix("base.*")
+    return p if setup is None else ParamSet.concat(p, setup.params())
+
+
+def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float) -> Tensor | None:
+    """Prior weights ``σ_noise / σ_prior`` for every geometric error (not the instrument frame,
+    not the marker points: unknowns of the set-up, not errors of the robot); ``σ_prior`` is
+    ``prior_mm`` mm for lengths and ``prior_mm`` mrad for angles (equal at a 1 m lever)."""
+    if prior_mm is None:
+        return None
+    setup = ("base.",) + tuple(f"{m}." for m in robot.marker_names)
+    w = torch.zeros(len(params), dtype=params.values.dtype, device=params.values.device)
+    K = robot.n_params
+    is_err = torch.tensor([not n.startswith(setup) for n in params.names[:K]], device=w.device)
+    w[:K][is_err] = sigma / (prior_mm * 1e-3)
+    return w
+
+
+def _problem(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior: Tensor | None = None,
+             loss: bool = True):
+    return EffectCalibrationProblem(ctx.robot, params, effects, data, loss=ctx.loss() if loss else None, prior=prior,
+                                    setup=ctx.setup)
+
+
+def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
+    make = lambda p: _problem(ctx, p, effects, data, prior)  # noqa: E731
+    opts = {"max_iter": 200 if reduce else 100, "tau": 1e-6}
+    # under a prior nothing is dropped for imprecision: the prior holds what the data barely see;
+    # otherwise the current model's noise says how well a parameter is seen
+    noise = ctx.c / HUBER_K if prior is None and ctx.c is not None else None
+    optional = tuple(f"{e.name}." for e in effects)
+    ps, _, _ = fit_identified(make, params, reduce=reduce, markers=ctx.robot.marker_names, options=opts, noise=noise,
+                              zero_dropped=optional)
+    return ps
+
+
+def observation_model(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> EffectCalibrationProblem:
+    """The measurement model of ``params`` and ``effects`` on ``data`` (plain squared errors, no
+    prior): residual vectors, their observations, Jacobians."""
+    return _problem(ctx, params, effects, data, loss=False)
+
+
+def observation_errors(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> tuple[Tensor, Tensor]:
+    """Per-observation error vectors ``(n_obs, 3)`` (model − measured, m; zero in components not
+    measured) and their rows."""
+    prob = _problem(ctx, params, effects, data, loss=False)
+    return prob.residual_vectors(params.values[None])[0], prob.rows
+
+
+def rescore(ctx: Context, m: Model) -> Tensor:
+    """A model's cross-validated per-row scores under the context's (new) threshold, from its
+    fold fits."""
+    out = torch.zeros(len(ctx.data), dtype=ctx.robot.dtype, device=ctx.robot.device)
+    for f, p in zip(ctx.folds, m.fold_fits):
+        e, rows = observation_errors(ctx, p, m.effects, ctx.data.subset(f))
+        out[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
+    return out
+
+
+def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm: float | None,
+             reduce: bool = True, info: dict | None = None) -> Model:
+    """Fit ``start`` on all training rows (identifiable subset, judged at the start and again
+    at the solution), then K-fold cross-validate it from that fit."""
+    prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma)
+    full = _fit(ctx, start, effects, ctx.data, prior, reduce)
+    prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma)
+    prob = _problem(ctx, full, effects, ctx.data, prior)
+    x = prob.x0
+    J = prob.data_jacobian(x) * prob.observation_weights(x).repeat_interleave(3)[:, None]
+    pf = None if prior is None else prior[full.free_index]
+    k = effective_params(J, pf)
+    info = dict(info or {})
+    info["se"] = standard_errors(J, pf, full.free_names, noise_sigma_of(ctx, full, effects, k))
+    scores = torch.zeros(len(ctx.data), dtype=ctx.robot.dtype, device=ctx.robot.device)
+    sq = torch.zeros_like(scores)
+    fits = []
+    for f in ctx.folds:
+        mask = torch.ones(len(ctx.data), dtype=torch.bool)
+        mask[f] = False
+        p = _fit(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
+        e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))
+        scores[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
+        sq[f] = row_scores(e.norm(dim=-1), rows, len(f), None)
+        fits.append(p)
+    # the free set before identifiability: later fits judge it again, with the noise they see then
+    info.setdefault("candidates", start.free[: ctx.n_geo].clone())
+    return Model(label, full, list(effects), prior_mm, k, scores, fits, info, sq)
+
+
+def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm: float,
+                   info: dict | None = None, tried: list | None = None) -> Model:
+    """:func:`evaluate` with the prior scale chosen by the penalised CV error: from ``prior_mm``,
+    climb :data:`PRIOR_SCALES_MM` up, else down, while it falls (the scale is a setting of the
+    model, chosen by the same CV, not a structure the acceptance rule weighs). Every model tried is
+    appended to ``tried``."""
+    n_obs = ctx.n_obs
+    best = evaluate(ctx, label, start, effects, prior_mm, info=info)
+    seen = [best]
+    i0 = PRIOR_SCALES_MM.index(prior_mm)
+    for step in (1, -1):
+        i = i0 + step
+        while 0 <= i < len(PRIOR_SCALES_MM):
+            m = evaluate(ctx, label, start, effects, PRIOR_SCALES_MM[i], info=info)
+            seen.append(m)
+            if penalised(m.scores, m.k, n_obs) >= penalised(best.scores, best.k, n_obs):
+                break
+            best, i = m, i + step
+        if best.prior_mm != prior_mm:
+            break
+    if tried is not None:
+        tried += seen
+    return best
+
+
+def noise_sigma_of(ctx: Context, params: ParamSet, effects: list, k: float) -> float:
+    """Robust per-axis noise estimate (m) from a fit's training residuals (``k`` parameters), over
+    the measured components only."""
+    prob = _problem(ctx, params, effects, ctx.data, loss=False)
+    e = prob.residual_vectors(params.values[None])[0]
+    return robust_sigma(e[prob.obs.mask], int(round(k)))
+
+
+def noise_sigma(ctx: Context, m: Model) -> float:
+    """Robust per-axis noise estimate (m) from a fitted model's training residuals."""
+    return noise_sigma_of(ctx, m.params, m.effects, m.k)
+
+
+def standard_errors(J: Tensor, prior: Tensor | None, names: list[str], sigma: float) -> dict[str, float]:
+    """``name -> σ sqrt((JᵀJ + W²)⁻¹_ii)`` for the free parameters of a fit (its units), with the
+    robust noise ``σ`` (m per axis): how far noise alone moves each value."""
+    A = J.T @ J
+    if prior is not None:
+        A = A + torch.diag(prior * prior)
+    s = A.diagonal().clamp(min=1e-300).sqrt()
+    cov = torch.linalg.pinv(A / s[:, None] / s[None, :]) / s[:, None] / s[None, :]
+    return dict(zip(names, (sigma * cov.diagonal().clamp(min=0).sqrt()).tolist()))
+
+
+# ----------------------------------------------------------------------------- parameters by effect
+def split_params(params: ParamSet, robot, effects: list) -> tuple[ParamSet, list[ParamSet]]:
+    """``params`` cut into the geometry (with the set-up's unknowns) and one ParamSet per effect."""
+    K = len(params) - sum(e.n_params for e in effects)
+    idx = [list(range(K))]
+    o = K
+    for e in effects:
+        idx.append(list(range(o, o + e.n_params)))
+        o += e.n_params
+
+    def take(ii):
+        return ParamSet([params.names[i] for i in ii], [params.units[i] for i in ii], params.values[ii],
+                        params.free[ii], params.lower[ii], params.upper[ii])
+    parts = [take(ii) for ii in idx]
+    return parts[0], parts[1:]
+
+
+def assemble(geo: ParamSet, parts: list[ParamSet]) -> ParamSet:
+    return ParamSet.concat(geo, *parts) if parts else geo.clone()
+
+
+# ----------------------------------------------------------------------------- an effect's start
+def _basis_columns(ctx: Context, prob: EffectCalibrationProblem, eff) -> tuple[Tensor, list[list[int]], int]:
+    """``(3 n_obs, L)`` the effect's linear coordinates' columns in the observations' residuals,
+    with the joint deflections carried through the current model (``prob``)."""
+    robot, params = ctx.robot, prob.params
+    geo = params.values[: robot.n_params]
+    basis = eff.linear_basis(eff.prepare(ctx.data.q, ctx.data.covariates))
+    L = sum(len(g) for g in basis.groups)
+    N, M = len(ctx.data), len(robot.marker_names)
+    D = torch.zeros(N, M, 3, L, dtype=robot.dtype, device=robot.device)  # every marker's displacement
+    Rb, _ = robot.base_transform(geo)
+    if basis.dq is not None:
+        q = prob.joint_values(params.values[None])[0]
+        Jq = robot.joint_jacobian(q, geo, check=False)[:, :, :3, :]  # instrument frame, (N, M, 3, dof)
+        D = D + Jq @ basis.dq[:, None]
+    if basis.dp is not None:
+        D = D + Rb @ basis.dp
+    p = prob.marker_positions(params.values[None])[0]
+    out = prob.obs.project(p, D, params.values[prob.K:prob.K + prob.S])
+    return out.reshape(-1, L), basis.groups, basis.shared
+
+
+def _bilinear_starts(lin: Tensor) -> list[Tensor]:
+    """Starts for the shared parameters ``s`` of a bilinear effect from its linear solution,
+    rows ``[a_k, b_k]`` with ``b_k ≈ c_k s`` and ``a_k ≈ c_k``: the a²-weighted ratio, the
+    leading singular direction of ``B`` scaled to ``a``, and zero."""
+    a, B = lin[:, 0], lin[:, 1:]
+    out = [torch.zeros(B.shape[1], dtype=lin.dtype)]
+    den = float((a * a).sum())
+    if den > 0:
+        out.append((a[:, None] * B).sum(0) / den)
+    if B.abs().sum() > 0:
+        U, S, Vh = torch.linalg.svd(B, full_matrices=False)
+        u, v = U[:, 0], Vh[0] * S[0]
+        lam = float(a @ u) / float(u @ u)
+        if abs(lam) > 1e-300:
+            out.append(v / lam)
+    return out
+
+
+def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
+    """Where a candidate effect starts: modes chosen (for a family) and start values from the
+    linear step around ``current`` without the ``superseded`` effects.
+
+    Returns a dict: ``effect`` (restricted to the chosen modes), ``params`` (start values, free
+    flags of the current model plus the effect's), ``effects`` (the trial's effect list),
+    ``selection`` (per step: each mode's t and the threshold) and ``reason`` (why nothing is
+    proposed; then ``effect`` is None)."""
+    robot = ctx.robot
+    geo, parts = split_params(current.params, robot, current.effects)
+    keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
+    base_effects = [e for e, _ in keep]
+    base = assemble(geo, [p for _, p in keep])
+    prior = prior_weights(robot, base, current.prior_mm, ctx.sigma)
+    prob = _problem(ctx, base, base_effects, ctx.data, prior)
+    x = prob.x0
+    r = prob.residual_vectors(base.values[None])[0]
+    Jb = prob.data_jacobian(x)
+    w = prob.observation_weights(x)
+    pb = None if prior is None else prior[base.free_index]
+    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
+    labels = [lab for lab, _ in eff.modes()]
+    gcols = [cols_all[:, g] for g in groups]
+    lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
+    out = {"selection": [], "prior_mm": current.prior_mm}
+    if eff.selectable:
+        forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
+        forced = [labels.index(lab) for lab in forced_labels if lab in labels]
+
+        # what to beat: the model as it is, at the prior its own CV chose (so a prior that moves
+        # with the effect lends it nothing the current model could have had alone)
+        baseline = (lcv.scores(forced), lcv.k_eff(forced))
+
+        def select(s_mm):
+            w_ = prior_weights(robot, base, s_mm, ctx.sigma)
+            lcv.set_prior(None if w_ is None else w_[base.free_index])
+            chosen, hist, sc, k = lcv.forward(forced, ctx.n_obs, baseline)
+            return {"chosen": chosen, "hist": hist, "pen": penalised(sc, k, ctx.n_obs), "prior_mm": s_mm,
+                    "new": [g for g in chosen if g not in forced]}
+
+        best = select(current.prior_mm)
+        if current.prior_mm is not None:
+            # the effect may want another prior on the geometry: climb the grid while the effect
+            # is still selected and the penalised score falls
+            i0 = PRIOR_SCALES_MM.index(current.prior_mm)
+            for step in (1, -1):
+                i = i0 + step
+                while 0 <= i < len(PRIOR_SCALES_MM):
+                    cand = select(PRIOR_SCALES_MM[i])
+                    if not cand["new"] or (best["new"] and cand["pen"] >= best["pen"]):
+                        break
+                    best, i = cand, i + step
+                if best["prior_mm"] != current.prior_mm:
+                    break
+        w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma)
+        lcv.set_prior(None if w_ is None else w_[base.free_index])
+        chosen, hist = best["chosen"], best["hist"]
+        out["prior_mm"] = best["prior_mm"]
+        name = lambda g: "all modes at once" if g == -1 else labels[g]  # noqa: E731
+        out["selection"] = [{"threshold": h["threshold"],
+                             "added": None if h["added"] is None else [labels[g] for g in h["added"]],
+                             "t": {name(g): t for g, t in h["tried"].items()}} for h in hist]
+        if not best["new"]:
+            out.update(effect=None, reason="no mode passed the selection")
+            return out
+        ok, why = eff.proposes([labels[g] for g in chosen])
+        if not ok:
+            out.update(effect=None, reason=why)
+            return out
+        chosen = sorted(chosen)  # the restricted effect keeps the catalogue's order
+        eff = eff.with_modes([labels[g] for g in chosen])
+    else:
+        chosen = list(range(len(groups)))
+    coef = lcv.coefficients(chosen)
+    kb = Jb.shape[1]
+    step = coef[:kb]
+    if shared:
+        step, own, sv = lcv.bilinear(chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
+        eff.theta = eff.from_bilinear(own, sv).to(robot.dtype)
+    else:
+        eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
+    start = base.clone()
+    start.values[base.free_index] = base.values[base.free_index] + step
+    # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
+    start.free[: ctx.n_geo] = current.info["candidates"]
+    params = ParamSet.concat(start, effect_params([eff]))
+    out.update(effect=eff, params=params, effects=base_effects + [eff], reason="",
+               info={"candidates": current.info["candidates"]})
+    return out

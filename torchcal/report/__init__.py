@@ -1,0 +1,1 @@
+"""Reports: error statistics, JSON / Markdown files and plots for calibrations, loops and fleets."""
