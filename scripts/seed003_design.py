@@ -51,7 +51,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from seed003_pmpsd import CENTRES, FACING, HOME, TARGET_MM, design_sets, fresh_errors, true_errors  # noqa: E402
-from torchcal.pipelines.psd import Laser, PSDData, calibrate_psd, psd_frame, simulate_psd, spot_covariance  # noqa: E402
+from torchcal.pipelines.psd import calibrate_psd  # noqa: E402
+from torchcal.sim.psd import simulate_psd  # noqa: E402
+from torchcal.measure.psd import PSDData, spot_covariance  # noqa: E402
+from torchcal.measure.laser import Laser, psd_frame  # noqa: E402
 from torchcal.pipelines.psd_design import information, measure_psd, predicted_max_error, select_design  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import random_configs  # noqa: E402

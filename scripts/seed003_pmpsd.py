@@ -59,8 +59,10 @@ torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from torchcal.pipelines.psd import (Laser, PointConstraint, SpotResidual, analyse_block, calibrate_psd,  # noqa: E402
-                          psd_frame, simulate_psd)
+from torchcal.pipelines.psd import calibrate_psd
+from torchcal.problems.psd import PointConstraint, SpotResidual, analyse_block
+from torchcal.sim.psd import simulate_psd
+from torchcal.measure.laser import Laser, psd_frame
 from torchcal.report.calibration import error_stats  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import SimConfig, random_configs  # noqa: E402

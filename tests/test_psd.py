@@ -6,9 +6,11 @@ import math
 import pytest
 import torch
 
-from torchcal.pipelines.psd import (Laser, PointConstraint, SpotResidual, analyse_block, beam_pair_point, calibrate_psd,
-                          closest_points, fit_psd_poses, laser_beams, modify_poses, plane_intersection, psd_frame,
-                          simulate_psd)
+from torchcal.pipelines.psd import calibrate_psd, modify_poses
+from torchcal.pipelines.psd import fit_psd_poses
+from torchcal.problems.psd import PointConstraint, SpotResidual, analyse_block
+from torchcal.sim.psd import simulate_psd
+from torchcal.measure.laser import Laser, beam_pair_point, closest_points, laser_beams, plane_intersection, psd_frame
 from torchcal.kinematics.robots import shipped
 
 F64 = dict(dtype=torch.float64)

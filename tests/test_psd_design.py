@@ -4,8 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchcal.pipelines.psd import (Laser, PSDData, SpotResidual, calibrate_psd, laser_beams, plane_intersection, psd_frame,
-                          spot_covariance, spot_sensitivity, spot_whitening)
+from torchcal.pipelines.psd import calibrate_psd
+from torchcal.problems.psd import SpotResidual
+from torchcal.measure.psd import PSDData, spot_covariance, spot_sensitivity, spot_whitening
+from torchcal.measure.laser import Laser, laser_beams, plane_intersection, psd_frame
 from torchcal.pipelines.psd_design import _greedy, information, measure_psd, predicted_max_error, select_design
 from torchcal.kinematics.robots import shipped
 

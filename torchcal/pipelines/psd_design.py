@@ -30,9 +30,11 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from torchcal.params import ParamSet
-from torchcal.pipelines.psd import Laser, PSDData, SpotResidual, laser_beams, plane_intersection, spot_covariance, spot_whitening
 from torchcal.kinematics.transforms import skew
+from torchcal.measure.laser import Laser, laser_beams, plane_intersection
+from torchcal.measure.psd import PSDData, spot_covariance, spot_whitening
+from torchcal.params import ParamSet
+from torchcal.problems.psd import SpotResidual
 
 __all__ = ["PSDDesign", "whitened_rows", "information", "predicted_max_error", "select_design", "measure_psd"]
 
