@@ -62,7 +62,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchcal import CalibratedModel, calibrate, plan_poses, run_loop  # noqa: E402
 from torchcal.effects import build_effect, effect_params  # noqa: E402
-from torchcal.problems.fitting import fit_identified  # noqa: E402
+from torchcal.pipelines.fitting import fit_identified  # noqa: E402
 from torchcal.problems.identifiability import stacked_jacobian  # noqa: E402
 from torchcal.pipelines.loop.fit import geometric_start  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402

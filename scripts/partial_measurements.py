@@ -21,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from torchcal.kinematics import robots  # noqa: E402
-from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.pipelines.loop.run import run_loop  # noqa: E402
 from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot  # noqa: E402
 from torchcal.kinematics.transforms import similarity  # noqa: E402

@@ -93,7 +93,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from torchcal.problems.identifiability import identifiability  # noqa: E402
-from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.measure.blocks import PositionResidual  # noqa: E402
 from torchcal.optim import get_solver  # noqa: E402
 from torchcal.problems.calibration import CalibrationProblem  # noqa: E402

@@ -42,7 +42,7 @@ from torchcal import calibrate  # noqa: E402
 from torchcal.cli.correct import matrix_to_quat  # noqa: E402
 from torchcal.deploy.correct import Corrector  # noqa: E402
 from torchcal.deploy.elm import ELM, tune_elm  # noqa: E402
-from torchcal.measure.io import Measurements  # noqa: E402
+from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
 from torchcal.kinematics.robots import link_inertials, shipped  # noqa: E402
 from torchcal.sim.serial import SimConfig, random_errors  # noqa: E402

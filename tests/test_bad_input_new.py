@@ -12,12 +12,13 @@ import pytest
 import torch
 
 from torchcal import Robot
-from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.cli.app import main
-from torchcal.measure.io import Measurements, load_measurements, save_measurements
-from torchcal.measure.observations import Setup
-from torchcal.pipelines.plan.run import plan_poses
 from torchcal.kinematics.robots import shipped, urdf_path
+from torchcal.measure.data import Measurements
+from torchcal.measure.io import load_measurements, save_measurements
+from torchcal.measure.observations import Setup
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.pipelines.plan.run import plan_poses
 from torchcal.sim.serial import SimConfig, random_configs, simulate_fleet, simulated_robot
 
 KR5 = str(urdf_path("kuka_kr5_arc"))

@@ -15,10 +15,10 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate
-from torchcal.kinematics.transforms import quat_to_matrix
-from torchcal.measure.io import Measurements
-from torchcal.measure.blocks import PositionResidual
 from torchcal.kinematics.robots import SHIPPED, shipped
+from torchcal.kinematics.transforms import quat_to_matrix
+from torchcal.measure.blocks import PositionResidual
+from torchcal.measure.data import Measurements
 from torchcal.sim.serial import SimConfig, random_configs, random_errors, simulate
 
 D = torch.float64

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.deploy.elm import ELM, ELMProblem, fit_population, hidden_layer, solve_output_weights, tune_elm
+from torchcal.deploy.elm import ELM, tune_elm
 from torchcal.optim import FunctionProblem, get_solver
+from torchcal.problems.elm import ELMProblem, fit_population, hidden_layer, solve_output_weights
 
 torch.set_num_threads(1)
 

@@ -6,8 +6,8 @@ import torch
 
 from torchcal.cli.correct import matrix_to_quat
 from torchcal.kinematics.fk_compact import PositionKernel
-from torchcal.measure.io import Measurements
 from torchcal.measure.blocks import PoseResidual, PositionResidual
+from torchcal.measure.data import Measurements
 from torchcal.problems.calibration import CalibrationProblem
 
 FREE_SETS = {

@@ -14,10 +14,11 @@ import pytest
 import torch
 from torch.autograd.functional import jacobian
 
-from torchcal.measure.io import Measurements, load_measurements, save_measurements
-from torchcal.measure.blocks import DistanceResidual, Loss, PoseResidual, PositionResidual
-from torchcal.measure.registration import register_base
 from torchcal.kinematics.transforms import kabsch, so3_exp
+from torchcal.measure.blocks import DistanceResidual, Loss, PoseResidual, PositionResidual
+from torchcal.measure.data import Measurements
+from torchcal.measure.io import load_measurements, save_measurements
+from torchcal.measure.registration import register_base
 
 D = torch.float64
 

@@ -11,13 +11,15 @@ import torch
 
 from torchcal import load
 from torchcal.kinematics import robots
-from torchcal.measure.io import Measurements, load_measurements, save_measurements
-from torchcal.pipelines.loop.run import run_loop
-from torchcal.measure.observations import Observations, Setup, unseen
-from torchcal.problems.calibration import EffectCalibrationProblem
 from torchcal.kinematics.robot import Robot
-from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot
 from torchcal.kinematics.transforms import kabsch, similarity
+from torchcal.measure.data import Measurements
+from torchcal.measure.io import load_measurements, save_measurements
+from torchcal.measure.observations import Observations, Setup
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.unseen import unseen
+from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot
 
 NOISE = 0.02e-3  # m
 

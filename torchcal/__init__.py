@@ -5,20 +5,20 @@ Robot model -> measurement model -> problem -> solver -> result/report:
 :mod:`torchcal.measure.blocks` (residual blocks), :class:`torchcal.problems.calibration.CalibrationProblem`,
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
-from torchcal.pipelines.calibrate import CalibrationResult, calibrate
 from torchcal.deploy.correct import Corrector
 from torchcal.deploy.elm import ELM, tune_elm
-from torchcal.pipelines.fleet.run import FleetResult, calibrate_fleet
-from torchcal.measure.io import Measurements, load_measurements
-from torchcal.pipelines.loop.run import run_loop
 from torchcal.deploy.model import CalibratedModel
-from torchcal.params import ParamSet
 from torchcal.deploy.persist import load, save
-from torchcal.pipelines.plan.run import Plan, plan_poses
+from torchcal.kinematics import robots  # the shipped robots: torchcal.robots.shipped('ur5e')
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker
-from torchcal.kinematics import robots  # the shipped robots: torchcal.robots.shipped('ur5e')
-
+from torchcal.measure.data import Measurements
+from torchcal.measure.io import load_measurements
+from torchcal.params import ParamSet
+from torchcal.pipelines.calibrate import CalibrationResult, calibrate
+from torchcal.pipelines.fleet.run import FleetResult, calibrate_fleet
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.pipelines.plan.run import Plan, plan_poses
 from torchcal.version import __version__
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
            "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import torch
 
-from torchcal.params import ParamSet
 from torchcal.effects.base import TIME_COVARIATES, Effect, LinearBasis, Prepared
-from torchcal.effects.deformation import GravityDeformation, JointCompliance
+from torchcal.effects.compliance import JointCompliance
+from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
 from torchcal.effects.thermal import ThermalDrift, thermal_covariate
+from torchcal.params import ParamSet
 
 EFFECTS: dict[str, type[Effect]] = {c.name: c for c in
                                     (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift,

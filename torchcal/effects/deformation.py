@@ -23,9 +23,9 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.base import Effect, LinearBasis, Prepared
-from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_features, gravity_wrenches
+from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
 
-__all__ = ["GravityDeformation", "JointCompliance"]
+__all__ = ["GravityDeformation"]
 
 _AXES = "xyz"
 
@@ -378,113 +378,3 @@ class GravityDeformation(Effect):
         return out
 
 
-class JointCompliance(GravityDeformation):
-    """Joint deflection proportional to the gravity torque: ``Δq_j = c_j τ_j(q)`` (``c_j`` in
-    rad/(N·m)), the twist modes of :class:`GravityDeformation` on every joint.
-
-    With inertials in the URDF, ``τ`` comes from them plus an unknown payload on the tool link.
-    Without usable masses (``lumped=True`` or no inertials), gravity torque is linear in the
-    unknown mass moments of the links, so the products compliance × mass moment are identified
-    directly (4 per joint and link, most of them dropped again by identifiability).
-    """
-
-    name = "joint_compliance"
-    description = "joint deflection proportional to the gravity torque (incl. an unknown payload)"
-    selectable = True  # joint by joint: a joint that shows no twist gets no compliance
-    supersedes = ()
-
-    def __init__(self, robot, joints=None, geometry=None, modes: list[str] | None = None,
-                 tool_link: str | None = None, gravity=GRAVITY, lumped: bool | None = None):
-        self.lumped = (not body_inertials(robot)) if lumped is None else bool(lumped)
-        super().__init__(robot, joints, geometry, modes, tool_link, gravity)
-
-    def default_joints(self) -> list[str]:
-        return [n for n, u in zip(self.robot.joint_names, self.robot.joint_units) if u == "rad"]
-
-    def _default_mode(self, c: dict) -> bool:
-        return c["label"].endswith(".twist")
-
-    def with_modes(self, labels: list[str]) -> "JointCompliance":
-        return self._copy(joints=[j for j in self.joints if f"{j}.twist" in set(labels)])
-
-    def config(self) -> dict:
-        return {**super().config(), "lumped": self.lumped}
-
-    def applicable(self, data) -> tuple[bool, str]:
-        return True, ""
-
-    def proposes(self, labels):
-        return True, ""
-
-    # -- lumped form: no inertials --------------------------------------------------------------
-    def _lump_links(self) -> list[str]:
-        # one lumped body per link that follows an actuated joint (fixed children move with it)
-        return [jt.child for jt in self.robot.joints if jt.movable and jt.mimic is None]
-
-    @property
-    def has_payload(self) -> bool:
-        return not self.lumped and super().has_payload
-
-    def param_info(self):
-        if not self.lumped:
-            return super().param_info()
-        return [(f"{j}.{l}.{t}", u) for j in self.joints for l in self._lump_links()
-                for t, u in (("m", "rad/N"), ("mx", "rad/N/m"), ("my", "rad/N/m"), ("mz", "rad/N/m"))]
-
-    def modes(self):
-        if not self.lumped:
-            return super().modes()
-        per = 4 * len(self._lump_links())
-        return [(f"{j}.twist", list(range(i * per, (i + 1) * per))) for i, j in enumerate(self.joints)]
-
-    def prepare(self, q, covariates):
-        if not self.lumped:
-            return super().prepare(q, covariates)
-        idx = torch.tensor([self.robot.joint_names.index(j) for j in self.joints], device=q.device)
-        F = gravity_features(self.robot, q, self._lump_links(), self.gravity)  # (N, L, dof, 4)
-        return Prepared({"F": F[:, :, idx, :].permute(0, 2, 1, 3).reshape(q.shape[0], len(self.joints), -1)})
-
-    def joint_delta(self, theta, prep):
-        if not self.lumped:
-            return super().joint_delta(theta, prep)
-        th = theta.reshape(theta.shape[0], len(self.joints), -1)  # (P, J, 4L)
-        return self._scatter(torch.einsum("njf,pjf->pnj", prep.features["F"], th))
-
-    def position_delta(self, theta, prep):
-        return None if self.lumped else super().position_delta(theta, prep)
-
-    def linear_basis(self, prep):
-        return Effect.linear_basis(self, prep) if self.lumped else super().linear_basis(prep)
-
-    def from_linear(self, coef):
-        return coef.clone() if self.lumped else super().from_linear(coef)
-
-    def describe(self, theta=None, free=None):
-        if not self.lumped:
-            return super().describe(theta, free)
-        return [f"{j} deflects with the gravity torque (lumped link masses: {4 * len(self._lump_links())} "
-                "products of compliance and mass moment)" for j in self.joints]
-
-    def mode_words(self, label: str) -> str:
-        return f"{label.split('.')[0]} twists about its axis (joint compliance)"
-
-    def signature(self, prep, label, theta):
-        if not self.lumped:
-            return super().signature(prep, label, theta)
-        j = label.split(".")[0]
-        keep = torch.zeros_like(theta)
-        cols = dict(self.modes())[label]
-        keep[cols] = theta[cols]
-        d = self.joint_delta(keep[None], prep)[0][:, self.robot.joint_names.index(j)]
-        # no inertials, so no gravity torque to plot against: the fitted deflection stands in for it
-        return {"x": d, "xlabel": "fitted deflection (no inertials in the URDF: no torque to plot) [rad]",
-                "fitted": d, "ylabel": "joint twist [rad]", "dof": self.robot.joint_names.index(j)}
-
-    def torques(self, q, covariates=None, theta: Tensor | None = None) -> Tensor:
-        """Gravity torque per effect joint (N·m) at ``q`` with the identified payload, for
-        evidence plots (not available in lumped form)."""
-        if self.lumped:
-            raise ValueError("lumped compliance has no separate torque; plot its Δq instead")
-        prep = self.prepare(q, covariates or {})
-        th = self.theta if theta is None else theta
-        return torch.einsum("ntgb,gb->nt", prep.features["Wt"], self._load(th[None])[0])

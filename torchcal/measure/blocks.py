@@ -13,8 +13,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcal.measure.io import Measurements
 from torchcal.kinematics.transforms import quat_to_matrix, skew, so3_log
+from torchcal.measure.data import Measurements
 
 __all__ = ["Loss", "PositionResidual", "PoseResidual", "DistanceResidual", "ResidualBlock"]
 

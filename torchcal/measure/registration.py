@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from torchcal.measure.io import Measurements
-from torchcal.params import ParamSet
 from torchcal.kinematics.transforms import kabsch, so3_log
+from torchcal.measure.data import Measurements
+from torchcal.params import ParamSet
 
 __all__ = ["register_base"]
 

@@ -9,17 +9,17 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchcal.measure.io import Measurements
+from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
+from torchcal.measure.data import Measurements
+from torchcal.measure.registration import register_base
 from torchcal.optim import Result, get_solver
+from torchcal.outputs import atomic_write_text, staged_dir
 from torchcal.params import ParamSet, display_unit
-from torchcal.problems.fitting import fit_identified
+from torchcal.pipelines.fitting import fit_identified
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
-from torchcal.measure.registration import register_base
-from torchcal.outputs import atomic_write_text, staged_dir
 from torchcal.report.calibration import error_details, error_figure, error_stats, stage_problems, write_json
-from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 
 __all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats", "errors_by_marker"]
 

@@ -10,8 +10,8 @@ from torch import Tensor
 from torchcal.kinematics.fk_compact import PositionKernel
 from torchcal.measure.blocks import Loss, PositionResidual
 from torchcal.measure.observations import Observations, Setup
-from torchcal.optim import Problem
 from torchcal.params import ParamSet
+from torchcal.problems.base import Problem
 
 __all__ = ["CalibrationProblem", "EffectCalibrationProblem", "GAUGE_WEIGHT"]
 

@@ -31,10 +31,11 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from torchcal.problems.uncertainty import covariance
-from torchcal.problems.identifiability import IdentifiabilityReport, analyse_jacobian, observability_indices
-from torchcal.problems.base import Problem
 from torchcal.kinematics.rrru import N_PARAMS, PARAM_NAMES, PARAM_UNITS, RRRU
+from torchcal.problems.base import Problem
+from torchcal.problems.identifiability import analyse_jacobian, observability_indices
+from torchcal.problems.identifiability_report import IdentifiabilityReport
+from torchcal.problems.uncertainty import covariance
 
 __all__ = ["LINE_OFFSETS", "line_trajectories", "spiral_trajectory", "simulate_tracker",
            "RRRUCalibration", "DecorrelatedProblem", "identifiability", "observability_indices",

@@ -134,7 +134,7 @@ class Sample:
         """torchcal's ``Measurements`` (float64 unless ``dtype``); carries no truth."""
         import torch
 
-        from torchcal.measure.io import Measurements
+        from torchcal.measure.data import Measurements
         t = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=dtype or torch.float64)  # noqa: E731
         return Measurements(t(self.q), t(self.positions), list(self.marker_names), list(self.joint_names),
                             None, {k: t(v) for k, v in self.covariates.items()})

@@ -11,7 +11,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchcal.measure.io import Measurements, save_measurements
+from torchcal.measure.data import Measurements
+from torchcal.measure.io import save_measurements
 from torchcal.outputs import atomic_write_text
 from torchcal.params import ParamSet
 

@@ -25,10 +25,10 @@ import torch
 from torch import Tensor
 
 from torchcal.effects import JointCompliance
-from torchcal.pipelines.fleet.data import check_rows
-from torchcal.problems.fitting import imprecise
-from torchcal.pipelines.fleet.identify import decide, explain
 from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
+from torchcal.pipelines.fitting import imprecise
+from torchcal.pipelines.fleet.data import check_rows
+from torchcal.pipelines.fleet.identify import decide, explain
 
 __all__ = ["solve_coupled", "CoupledSolution", "PRIOR_START"]
 

@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchcal.measure.io import Measurements
-from torchcal.params import ParamSet
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
+from torchcal.measure.data import Measurements
+from torchcal.params import ParamSet
 
 __all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "check_rows", "BASE_NAMES"]
 

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.problems.identifiability import TIE_BOOST, dependency_reason, preference_tiers, zero_column_reason
+from torchcal.problems.identifiability import TIE_BOOST, preference_tiers
+from torchcal.problems.identifiability_report import dependency_reason, zero_column_reason
 
 __all__ = ["FleetDecision", "decide", "explain", "check_rank"]
 

@@ -21,14 +21,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchcal.pipelines.calibrate import CalibrationResult, errors_by_marker
-from torchcal.pipelines.fleet.identify import check_rank, decide, explain
-from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
-from torchcal.pipelines.fleet.coupled import solve_coupled
-from torchcal.pipelines.fleet.data import BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet, validate_fleet
+from torchcal.kinematics.robot import Robot
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
-from torchcal.kinematics.robot import Robot
+from torchcal.pipelines.calibrate import CalibrationResult, errors_by_marker
+from torchcal.pipelines.fleet.coupled import solve_coupled
+from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
+                                           validate_fleet)
+from torchcal.pipelines.fleet.identify import check_rank, decide, explain
+from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
 
 __all__ = ["calibrate_fleet", "FleetResult", "FleetData", "fleet_template", "validate_fleet"]
 
@@ -104,7 +105,7 @@ def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_
 
 def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts):
     """Rounds of judge -> batched LM -> judge again at the solution, per robot, as
-    :func:`torchcal.problems.fitting.fit_identified` does for one robot. The LM's Jacobian at its solution
+    :func:`torchcal.pipelines.fitting.fit_identified` does for one robot. The LM's Jacobian at its solution
     serves the next judgement and the next round's start; the reasons in words are written once,
     for the decision each robot ends with."""
     R_, K = X0.shape

@@ -21,14 +21,15 @@ import torch
 from torch import Tensor
 
 from torchcal.effects import effect_params
-from torchcal.problems.fitting import fit_identified
-from torchcal.measure.io import Measurements
 from torchcal.measure.blocks import Loss
+from torchcal.measure.data import Measurements
 from torchcal.measure.observations import Setup
-from torchcal.params import ParamSet
-from torchcal.problems.calibration import EffectCalibrationProblem
 from torchcal.measure.registration import register_base
-from torchcal.pipelines.loop.selection import HUBER_K, LinearCV, effective_params, penalised, rmse_mm, robust_sigma, row_scores
+from torchcal.params import ParamSet
+from torchcal.pipelines.fitting import fit_identified
+from torchcal.pipelines.loop.selection import (HUBER_K, LinearCV, effective_params, penalised, rmse_mm,
+                                               robust_sigma, row_scores)
+from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
            "folds_of",

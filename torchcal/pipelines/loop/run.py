@@ -30,17 +30,20 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchcal.effects import EFFECTS, build_effect
 from torchcal.deploy.elm import ELM
-from torchcal.problems.identifiability import analyse_jacobian
-from torchcal.measure.io import Measurements
-from torchcal.pipelines.loop.evidence import evidence_for
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate, evaluate_prior, folds_of,
-                       geometric_start, noise_sigma, observation_model, rescore, split_params)
-from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup, unseen
+from torchcal.effects import EFFECTS, build_effect
+from torchcal.measure.data import Measurements
+from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
 from torchcal.params import ParamSet
+from torchcal.pipelines.loop.evidence import evidence_for
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate,
+                                         evaluate_prior, folds_of, geometric_start, noise_sigma,
+                                         observation_model, rescore, split_params)
+from torchcal.pipelines.loop.selection import (HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm,
+                                               row_scores)
+from torchcal.problems.identifiability import analyse_jacobian
+from torchcal.problems.unseen import unseen
 from torchcal.report.calibration import error_details, error_stats, stage_problems
-from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm, row_scores
 
 __all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "stage_stats",
            "derive_directions"]

@@ -6,10 +6,11 @@ from typing import Callable
 
 import torch
 
-from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.measure.observations import SETUP_PREFIXES
-from torchcal.optim import Problem, Result, get_solver
+from torchcal.optim import Result, get_solver
 from torchcal.params import ParamSet, display_unit
+from torchcal.problems.base import Problem
+from torchcal.problems.identifiability import analyse_jacobian
 
 __all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "imprecise"]
 
