@@ -63,7 +63,7 @@ from torchcal.pipelines.psd import calibrate_psd
 from torchcal.problems.psd import PointConstraint, SpotResidual, analyse_block
 from torchcal.sim.psd import simulate_psd
 from torchcal.measure.laser import Laser, psd_frame
-from torchcal.report.calibration import error_stats  # noqa: E402
+from torchcal.measure.stats import error_stats  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import SimConfig, random_configs  # noqa: E402
 from torchcal.kinematics.transforms import kabsch  # noqa: E402

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal import Robot, load_measurements, run_loop  # noqa: E402
-from torchcal.pipelines.loop.run import stage_stats  # noqa: E402
+from torchcal.pipelines.loop.stages import stage_stats  # noqa: E402
 from torchcal.report.loop import write_loop_report  # noqa: E402
 
 POINTS = ("BL", "BR", "TR", "TL")

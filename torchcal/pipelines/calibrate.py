@@ -13,15 +13,16 @@ from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
 from torchcal.measure.data import Measurements
 from torchcal.measure.registration import register_base
+from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import atomic_write_text, staged_dir
 from torchcal.params import ParamSet, display_unit
 from torchcal.pipelines.fitting import fit_identified
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
-from torchcal.report.calibration import error_details, error_figure, error_stats, stage_problems, write_json
+from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
 
-__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats", "errors_by_marker"]
+__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
 
 SWARM_METHODS = ("pso", "ldpso-bt", "cpso", "ga", "ma", "mma")
 _SEARCH = {"m": 5e-3, "rad": 0.05}  # default swarm search box around the start (± per unit)
@@ -33,19 +34,6 @@ def stage_stats(robot, params: Tensor, data: Measurements | None) -> dict | None
         return None
     blk = PositionResidual(robot, data)
     return errors_by_marker(blk.errors(params[None])[0], blk.obs_index[:, 1], data.marker_names)
-
-
-def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict:
-    """:func:`~torchcal.report.calibration.error_stats` of errors ``e (n_obs,)`` (m), overall and per marker
-    (``marker (n_obs,)`` indexes ``marker_names``)."""
-    out = error_stats(e)
-    per = {}
-    for k, m in enumerate(marker_names):
-        sel = marker == k
-        if bool(sel.any()):
-            per[m] = error_stats(e[sel])
-    out["per_marker"] = per
-    return out
 
 
 def _position_errors(robot, params: Tensor, data: Measurements | None) -> Tensor:

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["error_stats", "write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
+__all__ = ["write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
            "FOREIGN_RATIO"]
 
 # held-out rows this many times worse than the training rows do not come from the same robot
@@ -31,16 +31,6 @@ def stage_problems(stages: list[dict]) -> list[str]:
                    f"{te / tr:.0f}× the training error ({tr:.4f} mm); are they from another robot, another set-up "
                    "(the instrument moved), or another marker?")
     return out
-
-
-def error_stats(err_m: Tensor) -> dict:
-    """Statistics of Euclidean errors given in metres, reported in millimetres."""
-    e = err_m.detach().double().flatten() * 1e3
-    if e.numel() == 0:
-        return {"n": 0}
-    return {"n": int(e.numel()), "mean_mm": float(e.mean()), "std_mm": float(e.std()) if e.numel() > 1 else 0.0,
-            "max_mm": float(e.max()), "rmse_mm": float(torch.sqrt((e * e).mean())),
-            "median_mm": float(e.median())}
 
 
 def _clean(o):

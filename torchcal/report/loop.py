@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchcal.pipelines.loop.run import LoopResult
+from torchcal.pipelines.loop.result import LoopResult
 from torchcal.params import display_unit
 from torchcal.report.calibration import error_figure, write_json
 

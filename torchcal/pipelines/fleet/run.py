@@ -22,9 +22,10 @@ import torch
 from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
+from torchcal.measure.stats import errors_by_marker
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
-from torchcal.pipelines.calibrate import CalibrationResult, errors_by_marker
+from torchcal.pipelines.calibrate import CalibrationResult
 from torchcal.pipelines.fleet.coupled import solve_coupled
 from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
                                            validate_fleet)

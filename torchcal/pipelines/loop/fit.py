@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchcal.effects import effect_params
 from torchcal.measure.blocks import Loss
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import Setup
@@ -31,9 +30,8 @@ from torchcal.pipelines.loop.selection import (HUBER_K, LinearCV, effective_para
                                                robust_sigma, row_scores)
 from torchcal.problems.calibration import EffectCalibrationProblem
 
-__all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights", "evaluate", "evaluate_prior", "effect_start",
-           "folds_of",
-           "split_params", "assemble", "PRIOR_SCALES_MM"]
+__all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights",
+           "evaluate", "evaluate_prior", "folds_of", "split_params", "assemble", "PRIOR_SCALES_MM"]
 
 # Prior σ of every geometric error when the data cannot carry the full set: mm for lengths, mrad
 # for angles (equal at a 1 m lever), strongest first.
@@ -150,14 +148,16 @@ def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float)
     return w
 
 
-def _problem(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior: Tensor | None = None,
-             loss: bool = True):
+def effect_problem(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior: Tensor | None = None,
+                   loss: bool = True) -> EffectCalibrationProblem:
+    """The loop's problem for ``params`` and ``effects`` on ``data``: the context's robust loss
+    (``loss=False``: plain least squares), set-up unknowns and an optional ``prior`` (row weights)."""
     return EffectCalibrationProblem(ctx.robot, params, effects, data, loss=ctx.loss() if loss else None, prior=prior,
                                     setup=ctx.setup)
 
 
 def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
-    make = lambda p: _problem(ctx, p, effects, data, prior)  # noqa: E731
+    make = lambda p: effect_problem(ctx, p, effects, data, prior)  # noqa: E731
     opts = {"max_iter": 200 if reduce else 100, "tau": 1e-6}
     # under a prior nothing is dropped for imprecision: the prior holds what the data barely see;
     # otherwise the current model's noise says how well a parameter is seen
@@ -171,13 +171,13 @@ def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prio
 def observation_model(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> EffectCalibrationProblem:
     """The measurement model of ``params`` and ``effects`` on ``data`` (plain squared errors, no
     prior): residual vectors, their observations, Jacobians."""
-    return _problem(ctx, params, effects, data, loss=False)
+    return effect_problem(ctx, params, effects, data, loss=False)
 
 
 def observation_errors(ctx: Context, params: ParamSet, effects: list, data: Measurements) -> tuple[Tensor, Tensor]:
     """Per-observation error vectors ``(n_obs, 3)`` (model − measured, m; zero in components not
     measured) and their rows."""
-    prob = _problem(ctx, params, effects, data, loss=False)
+    prob = effect_problem(ctx, params, effects, data, loss=False)
     return prob.residual_vectors(params.values[None])[0], prob.rows
 
 
@@ -198,7 +198,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma)
     full = _fit(ctx, start, effects, ctx.data, prior, reduce)
     prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma)
-    prob = _problem(ctx, full, effects, ctx.data, prior)
+    prob = effect_problem(ctx, full, effects, ctx.data, prior)
     x = prob.x0
     J = prob.data_jacobian(x) * prob.observation_weights(x).repeat_interleave(3)[:, None]
     pf = None if prior is None else prior[full.free_index]
@@ -249,7 +249,7 @@ def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, pri
 def noise_sigma_of(ctx: Context, params: ParamSet, effects: list, k: float) -> float:
     """Robust per-axis noise estimate (m) from a fit's training residuals (``k`` parameters), over
     the measured components only."""
-    prob = _problem(ctx, params, effects, ctx.data, loss=False)
+    prob = effect_problem(ctx, params, effects, ctx.data, loss=False)
     e = prob.residual_vectors(params.values[None])[0]
     return robust_sigma(e[prob.obs.mask], int(round(k)))
 
@@ -291,132 +291,3 @@ def assemble(geo: ParamSet, parts: list[ParamSet]) -> ParamSet:
     return ParamSet.concat(geo, *parts) if parts else geo.clone()
 
 
-# ----------------------------------------------------------------------------- an effect's start
-def _basis_columns(ctx: Context, prob: EffectCalibrationProblem, eff) -> tuple[Tensor, list[list[int]], int]:
-    """``(3 n_obs, L)`` the effect's linear coordinates' columns in the observations' residuals,
-    with the joint deflections carried through the current model (``prob``)."""
-    robot, params = ctx.robot, prob.params
-    geo = params.values[: robot.n_params]
-    basis = eff.linear_basis(eff.prepare(ctx.data.q, ctx.data.covariates))
-    L = sum(len(g) for g in basis.groups)
-    N, M = len(ctx.data), len(robot.marker_names)
-    D = torch.zeros(N, M, 3, L, dtype=robot.dtype, device=robot.device)  # every marker's displacement
-    Rb, _ = robot.base_transform(geo)
-    if basis.dq is not None:
-        q = prob.joint_values(params.values[None])[0]
-        Jq = robot.joint_jacobian(q, geo, check=False)[:, :, :3, :]  # instrument frame, (N, M, 3, dof)
-        D = D + Jq @ basis.dq[:, None]
-    if basis.dp is not None:
-        D = D + Rb @ basis.dp
-    p = prob.marker_positions(params.values[None])[0]
-    out = prob.obs.project(p, D, params.values[prob.K:prob.K + prob.S])
-    return out.reshape(-1, L), basis.groups, basis.shared
-
-
-def _bilinear_starts(lin: Tensor) -> list[Tensor]:
-    """Starts for the shared parameters ``s`` of a bilinear effect from its linear solution,
-    rows ``[a_k, b_k]`` with ``b_k ≈ c_k s`` and ``a_k ≈ c_k``: the a²-weighted ratio, the
-    leading singular direction of ``B`` scaled to ``a``, and zero."""
-    a, B = lin[:, 0], lin[:, 1:]
-    out = [torch.zeros(B.shape[1], dtype=lin.dtype)]
-    den = float((a * a).sum())
-    if den > 0:
-        out.append((a[:, None] * B).sum(0) / den)
-    if B.abs().sum() > 0:
-        U, S, Vh = torch.linalg.svd(B, full_matrices=False)
-        u, v = U[:, 0], Vh[0] * S[0]
-        lam = float(a @ u) / float(u @ u)
-        if abs(lam) > 1e-300:
-            out.append(v / lam)
-    return out
-
-
-def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
-    """Where a candidate effect starts: modes chosen (for a family) and start values from the
-    linear step around ``current`` without the ``superseded`` effects.
-
-    Returns a dict: ``effect`` (restricted to the chosen modes), ``params`` (start values, free
-    flags of the current model plus the effect's), ``effects`` (the trial's effect list),
-    ``selection`` (per step: each mode's t and the threshold) and ``reason`` (why nothing is
-    proposed; then ``effect`` is None)."""
-    robot = ctx.robot
-    geo, parts = split_params(current.params, robot, current.effects)
-    keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
-    base_effects = [e for e, _ in keep]
-    base = assemble(geo, [p for _, p in keep])
-    prior = prior_weights(robot, base, current.prior_mm, ctx.sigma)
-    prob = _problem(ctx, base, base_effects, ctx.data, prior)
-    x = prob.x0
-    r = prob.residual_vectors(base.values[None])[0]
-    Jb = prob.data_jacobian(x)
-    w = prob.observation_weights(x)
-    pb = None if prior is None else prior[base.free_index]
-    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
-    labels = [lab for lab, _ in eff.modes()]
-    gcols = [cols_all[:, g] for g in groups]
-    lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
-    out = {"selection": [], "prior_mm": current.prior_mm}
-    if eff.selectable:
-        forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
-        forced = [labels.index(lab) for lab in forced_labels if lab in labels]
-
-        # what to beat: the model as it is, at the prior its own CV chose (so a prior that moves
-        # with the effect lends it nothing the current model could have had alone)
-        baseline = (lcv.scores(forced), lcv.k_eff(forced))
-
-        def select(s_mm):
-            w_ = prior_weights(robot, base, s_mm, ctx.sigma)
-            lcv.set_prior(None if w_ is None else w_[base.free_index])
-            chosen, hist, sc, k = lcv.forward(forced, ctx.n_obs, baseline)
-            return {"chosen": chosen, "hist": hist, "pen": penalised(sc, k, ctx.n_obs), "prior_mm": s_mm,
-                    "new": [g for g in chosen if g not in forced]}
-
-        best = select(current.prior_mm)
-        if current.prior_mm is not None:
-            # the effect may want another prior on the geometry: climb the grid while the effect
-            # is still selected and the penalised score falls
-            i0 = PRIOR_SCALES_MM.index(current.prior_mm)
-            for step in (1, -1):
-                i = i0 + step
-                while 0 <= i < len(PRIOR_SCALES_MM):
-                    cand = select(PRIOR_SCALES_MM[i])
-                    if not cand["new"] or (best["new"] and cand["pen"] >= best["pen"]):
-                        break
-                    best, i = cand, i + step
-                if best["prior_mm"] != current.prior_mm:
-                    break
-        w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma)
-        lcv.set_prior(None if w_ is None else w_[base.free_index])
-        chosen, hist = best["chosen"], best["hist"]
-        out["prior_mm"] = best["prior_mm"]
-        name = lambda g: "all modes at once" if g == -1 else labels[g]  # noqa: E731
-        out["selection"] = [{"threshold": h["threshold"],
-                             "added": None if h["added"] is None else [labels[g] for g in h["added"]],
-                             "t": {name(g): t for g, t in h["tried"].items()}} for h in hist]
-        if not best["new"]:
-            out.update(effect=None, reason="no mode passed the selection")
-            return out
-        ok, why = eff.proposes([labels[g] for g in chosen])
-        if not ok:
-            out.update(effect=None, reason=why)
-            return out
-        chosen = sorted(chosen)  # the restricted effect keeps the catalogue's order
-        eff = eff.with_modes([labels[g] for g in chosen])
-    else:
-        chosen = list(range(len(groups)))
-    coef = lcv.coefficients(chosen)
-    kb = Jb.shape[1]
-    step = coef[:kb]
-    if shared:
-        step, own, sv = lcv.bilinear(chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
-        eff.theta = eff.from_bilinear(own, sv).to(robot.dtype)
-    else:
-        eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
-    start = base.clone()
-    start.values[base.free_index] = base.values[base.free_index] + step
-    # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
-    start.free[: ctx.n_geo] = current.info["candidates"]
-    params = ParamSet.concat(start, effect_params([eff]))
-    out.update(effect=eff, params=params, effects=base_effects + [eff], reason="",
-               info={"candidates": current.info["candidates"]})
-    return out

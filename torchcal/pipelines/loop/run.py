@@ -25,7 +25,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -34,21 +33,19 @@ from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
-from torchcal.params import ParamSet
 from torchcal.pipelines.loop.evidence import evidence_for
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_start, evaluate,
-                                         evaluate_prior, folds_of, geometric_start, noise_sigma,
-                                         observation_model, rescore, split_params)
-from torchcal.pipelines.loop.selection import (HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm,
-                                               row_scores)
-from torchcal.problems.identifiability import analyse_jacobian
-from torchcal.problems.unseen import unseen
-from torchcal.report.calibration import error_details, error_stats, stage_problems
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, evaluate, evaluate_prior, folds_of,
+                                         geometric_start, noise_sigma, observation_model, split_params)
+from torchcal.pipelines.loop.result import LoopResult
+from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
+from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_matrix, stage_details
+from torchcal.pipelines.loop.steps import (clipped, compare_at, elm_cv, parameter_table, progress_bar, refit,
+                                           refresh, test_gain, try_candidate)
+from torchcal.report.calibration import stage_problems
 
-__all__ = ["run_loop", "LoopResult", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "stage_stats",
-           "derive_directions"]
+__all__ = ["run_loop", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "derive_directions"]
 
-logger = logging.getLogger("torchcal.pipelines.loop.run")
+logger = logging.getLogger("torchcal.loop")
 
 # Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
 # default free set: every origin / DH error). Markers' positions are always free.
@@ -57,146 +54,6 @@ GEOMETRIC_SETS = [
     ("+joint offsets", ["base.*", "*.offset", "*.dtheta"]),
     ("+joint origins", None),
 ]
-
-
-@dataclass
-class LoopResult:
-    """Outcome of :func:`run_loop`; :meth:`report` has the JSON shape of ``report.json``.
-
-    Attributes:
-        params: geometry + accepted effects, fitted on all training rows.
-        effects: accepted effect objects (fitted ``theta``); ``elm``: the residual ELM or None.
-        stages: per stage, error statistics (mm) on the training and held-out rows.
-        accepted / candidates: what was added, and every candidate examined, with the numbers
-            that decided (cross-validated) and the held-out gain measured afterwards.
-        geometric: the geometric sets and priors tried and the one chosen.
-        noise_sigma_mm: robust per-axis noise estimate of the final model (mm);
-            ``huber_mm``: the Huber threshold of the last round (mm).
-        suspects: training observations beyond ``OUTLIER_K σ̂``: row, marker, error (mm).
-        flags: warnings about candidates (a covariate outside its training range on the test rows).
-    """
-
-    robot: object
-    params: ParamSet
-    effects: list
-    elm: object | None
-    stages: list[dict]
-    accepted: list[dict]
-    candidates: list[dict]
-    geometric: dict
-    n_train: int
-    n_test: int
-    noise_floor_mm: float | None
-    timings: dict = field(default_factory=dict)
-    errors: dict = field(default_factory=dict)   # stage -> {"train": Tensor, "test": Tensor} (m)
-    evidence: dict = field(default_factory=dict)  # effect -> arrays for plots
-    elm_covariates: list = field(default_factory=list)
-    geometric_fits: dict = field(default_factory=dict)  # set name -> ParamSet fitted on all training rows
-    noise_sigma_mm: float | None = None
-    huber_mm: float | None = None
-    suspects: list = field(default_factory=list)
-    flags: list = field(default_factory=list)
-    prior_mm: float | None = None
-    parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
-    observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
-    setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
-
-    def __repr__(self) -> str:
-        last = self.stages[-1]
-        te = f", held-out mean {last['test']['mean_mm']:.4f} mm" if last.get("test") else ""
-        return (f"LoopResult({self.robot.name}: {' → '.join(s['name'] for s in self.stages)}; training mean "
-                f"{last['train']['mean_mm']:.4f} mm{te}; {len(self.suspects)} suspect observation(s))")
-
-    def problems(self) -> list[str]:
-        """Reasons not to trust this model, in words: a final model worse than the nominal one on
-        its own training rows, or held-out rows that do not belong to this robot. Empty when none."""
-        return stage_problems(self.stages)
-
-    def report(self) -> dict:
-        return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
-                "noise_floor_mm": self.noise_floor_mm, "noise_sigma_mm": self.noise_sigma_mm,
-                "huber_threshold_mm": self.huber_mm, "stages": self.stages, "effects": self.accepted,
-                "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
-                "suspect_rows": self.suspects, "flags": self.flags, "parameters": self.parameters,
-                "observability": self.observability, "problems": self.problems(),
-                "setup": None if self.setup is None else self.setup.describe(
-                    self.params.values[self.robot.n_params:self.robot.n_params + self.setup.n_params]),
-                "rule": f"accept when the paired t statistic of the cross-validated per-row Huber-score "
-                        f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
-                        f"parameters); a family's modes are added one by one under the same rule with the "
-                        f"threshold raised for the number of modes tried",
-                "residual_elm": self.elm is not None, "timings_s": self.timings}
-
-    def model(self, *, force: bool = False):
-        """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when
-        :meth:`problems` says the model cannot be trusted, unless ``force``."""
-        from torchcal.deploy.model import CalibratedModel
-
-        if self.problems() and not force:
-            raise ValueError("this calibration is not fit to deploy: " + "; ".join(self.problems()))
-        geo = self.robot.params(self.params.values[: self.robot.n_params])
-        geo.free = self.params.free[: self.robot.n_params].clone()
-        residual = self.elm
-        if residual is not None and residual.n_outputs_ != 3:
-            raise ValueError("the residual ELM predicts several markers at once; a deployable model holds a "
-                             "residual for one marker: run the loop with that marker only")
-        return CalibratedModel(self.robot, geo, effects=list(self.effects), residual=residual,
-                               covariates=self.elm_covariates if residual is not None else None,
-                               meta={"report": self.report()})
-
-
-# ----------------------------------------------------------------------------- statistics
-def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
-                setup: Setup | None = None) -> tuple[dict | None, Tensor]:
-    """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
-    model on ``data`` (``setup``: the planes and fixed points, ``LoopResult.setup``). An
-    observation's error is the Euclidean norm of what it measured: a plane contact's signed
-    distance, a partial position's measured axes."""
-    st, d = _stage(robot, params, effects, data, elm, setup)
-    return st, d["e"]
-
-
-def _stage(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
-           setup: Setup | None = None) -> tuple[dict | None, dict]:
-    """:func:`stage_stats` and the error details a figure needs (:func:`torchcal.report.calibration.error_details`)."""
-    if data is None or len(data) == 0:
-        z = torch.zeros(0)
-        return None, {"e": z, "xyz": z.reshape(0, 3), "dist": z}
-    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
-    e3 = prob.residual_vectors(params.values[None])[0]
-    if elm is not None:  # the ELM is only fitted on full positions, whose order is data.seen's
-        r = residual_matrix(robot, params, effects, data, setup)
-        left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
-        e3 = -left[data.seen]
-    d = error_details(robot, params.values[: robot.n_params], data, e3, prob.obs)
-    cols = prob.obs.data_marker
-    e = d["e"]
-    out = error_stats(e)
-    out["per_marker"] = {m: error_stats(e[cols == k]) for k, m in enumerate(data.marker_names) if bool((cols == k).any())}
-    kinds = torch.unique(prob.obs.kind).tolist()
-    if len(kinds) > 1 or kinds != [0] or not bool(prob.obs.mask.all()):
-        out["per_kind"] = {KIND_NAMES[k]: error_stats(e[prob.obs.kind == k]) for k in kinds}
-    return out, d
-
-
-def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements, setup: Setup | None = None) -> Tensor:
-    """``(N, 3M)`` measured − model position per row (NaN where a marker's full position was not
-    measured)."""
-    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
-    e3 = prob.residual_vectors(params.values[None])[0]
-    full = prob.obs.full_positions
-    out = torch.full((len(data), len(data.marker_names), 3), float("nan"), dtype=e3.dtype, device=e3.device)
-    out[prob.obs.rows[full], prob.obs.data_marker[full]] = -e3[full]
-    return out.reshape(len(data), -1)
-
-
-def elm_covariates(data: Measurements) -> list[str]:
-    """Covariates the residual ELM reads after the commands: temperatures and directions."""
-    return [k for k in sorted(data.covariates) if k.startswith(("temp", "dir."))]
-
-
-def elm_inputs(data: Measurements) -> Tensor:
-    return torch.cat([data.q] + [data.covariates[k][:, None] for k in elm_covariates(data)], 1)
 
 
 # ----------------------------------------------------------------------------- covariates
@@ -224,7 +81,7 @@ def derive_directions(data: Measurements) -> str | None:
     return key
 
 
-def _extrapolation(eff, test: Measurements | None) -> list[dict]:
+def extrapolation(eff, test: Measurements | None) -> list[dict]:
     """Covariates an effect reads whose held-out values leave the training range."""
     out = []
     if test is None:
@@ -246,13 +103,13 @@ def _extrapolation(eff, test: Measurements | None) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- the loop
-def _duplicate_groups(data: Measurements) -> Tensor:
+def duplicate_groups(data: Measurements) -> Tensor:
     """A group id per row: rows with identical commands share one (they must share a fold)."""
     _, inv = torch.unique(data.q, dim=0, return_inverse=True)
     return inv
 
 
-def _say(log):
+def say_fn(log):
     def out(msg: str) -> None:
         logger.info(msg)
         if log is not None:
@@ -292,7 +149,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     if folds < 2:
         raise ValueError(f"folds must be at least 2, got {folds}")
     t0 = time.perf_counter()
-    say = _say(log)
+    say = say_fn(log)
     derived = derive_directions(train)
     if derived is not None:
         if test is not None:
@@ -300,7 +157,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     timings: dict[str, float] = {}
     n_obs = train.n_values / 3
-    fl = folds_of(len(train), min(folds, len(train)), seed, _duplicate_groups(train))
+    fl = folds_of(len(train), min(folds, len(train)), seed, duplicate_groups(train))
 
     # 1. nominal: base registration only; the planes and fixed points located from it
     if test is not None:
@@ -316,8 +173,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     stages, errors = [], {}
 
     def add_stage(name: str, k: float, params, effects, elm_model=None, cv=None, extra=None):
-        st_tr, e_tr = _stage(robot, params, effects, train, elm_model, setup)
-        st_te, e_te = _stage(robot, params, effects, test, elm_model, setup)
+        st_tr, e_tr = stage_details(robot, params, effects, train, elm_model, setup)
+        st_te, e_te = stage_details(robot, params, effects, test, elm_model, setup)
         s = {"name": name, "n_params": int(round(k)), "train": st_tr}
         if st_te is not None:
             s["test"] = st_te
@@ -353,7 +210,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             entry["accepted"] = True
             best = m
         else:
-            t, _, ok = _compare_at(ctx, best, m, n_obs)
+            t, _, ok = compare_at(ctx, best, m, n_obs)
             entry.update({"t": t, "accepted": ok})
             if ok:
                 best = m
@@ -370,7 +227,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             geo_choice.append({"name": name, "n_params": int(mt.params.free.sum()), "k_eff": mt.k,
                                "prior_mm": mt.prior_mm, "cv_rmse_mm": mt.cv_rmse_mm(n_obs),
                                "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
-        t, _, ok = _compare_at(ctx, best, m, n_obs)
+        t, _, ok = compare_at(ctx, best, m, n_obs)
         m.label = f"prior {m.prior_mm:g} mm/mrad"
         next(g for g in geo_choice if g["name"] == m.label).update({"t": t, "accepted": ok})
         say(f"geometric {m.label:<26} (scale chosen by CV among {sorted(x.prior_mm for x in tried)})  k_eff "
@@ -393,7 +250,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             continue
         pool.append(n)
     accepted_steps: list[tuple[str, Model, dict]] = []
-    bar = _bar(progress)
+    bar = progress_bar(progress)
     rnd = 0
     while pool:
         rnd += 1
@@ -402,14 +259,14 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             # the model explains more: tighten the threshold and refit it under it, so that no
             # candidate is credited with what the tighter threshold alone gains
             ctx = ctx.at(HUBER_K * sigma)
-            current = _refit(ctx, current)
+            current = refit(ctx, current)
             if accepted_steps:
                 accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
         results = []
         for n in list(pool):
             if bar is not None:
                 bar.set_description(f"round {rnd}: {n}")
-            res = _try(ctx, current, n, robot, train, test, n_obs, say, rnd)
+            res = try_candidate(ctx, current, n, robot, train, test, n_obs, say, rnd)
             if bar is not None:
                 bar.update(1)
             if res.get("covered"):
@@ -426,12 +283,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for r in results:
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
-                entry["test_gain_mm"] = _test_gain(robot, current, r["model"], test, setup)
-                flags += _extrapolation(r["model"].effects[-1], test)
+                entry["test_gain_mm"] = test_gain(robot, current, r["model"], test, setup)
+                flags += extrapolation(r["model"].effects[-1], test)
             cand_report.append(entry)
         if winner is None:
             break
-        current = _refresh(ctx, winner["model"], n_obs)
+        current = refresh(ctx, winner["model"], n_obs)
         accepted_steps.append((winner["name"], current, winner["entry"]))
         if not current.effects[-1].selectable:  # a family stays a candidate: it may gain modes later
             pool.remove(winner["name"])
@@ -446,7 +303,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         if abs(HUBER_K * sigma - ctx.c) <= 0.1 * ctx.c:
             break
         ctx = ctx.at(HUBER_K * sigma)
-        current = _refit(ctx, current)
+        current = refit(ctx, current)
     timings["diagnosis"] = time.perf_counter() - t2
     if accepted_steps:
         accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
@@ -488,7 +345,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             "contacts or distances")
     elif elm and len(train) >= 20:
         H = elm_hidden or max(8, min(64, len(train) // 4))
-        sc_elm, sq_elm = _elm_cv(ctx, current, H, seed)
+        sc_elm, sq_elm = elm_cv(ctx, current, H, seed)
         k_elm = H * 3 * len(train.marker_names)
         t, pen_ok, ok = compare(current.scores, sc_elm, current.k, current.k + k_elm, n_obs)
         gain = current.cv_rmse_mm(n_obs) - rmse_mm(sq_elm, n_obs)
@@ -497,7 +354,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"residual ELM ({H} hidden): CV {rmse_mm(sq_elm, n_obs):.4f} mm  gain {gain:+.4f} mm  t = {t:.1f}"
             f"  {'kept' if ok else 'not kept'}")
         if ok:
-            r = _clipped(residual_matrix(robot, current.params, current.effects, train, setup), ctx.c)
+            r = clipped(residual_matrix(robot, current.params, current.effects, train, setup), ctx.c)
             elm_model = ELM(n_hidden=H, ridge=1e-3, seed=seed).fit(elm_inputs(train), r)
             add_stage("+residual_elm", current.k + k_elm, current.params, current.effects, elm_model)
     timings["residual_elm"] = time.perf_counter() - t3
@@ -522,7 +379,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         noise_mm = float(train.covariates["marker_std_mm"].median())
     for p in stage_problems(stages):
         say("warning: " + p)
-    parameters, observability = _parameter_table(ctx, current)
+    parameters, observability = parameter_table(ctx, current)
     return LoopResult(robot=robot, params=current.params, effects=current.effects, elm=elm_model, stages=stages,
                       accepted=accepted, candidates=cand_report,
                       geometric={"chosen": best.label, "sets": geo_choice, "prior_mm": best.prior_mm},
@@ -533,130 +390,3 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       observability=observability, setup=setup)
 
 
-def _parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
-    """The final model's identified parameters (value, unit, standard error) and the condition
-    number and observability indices (O1-O4) of their Jacobian."""
-    p = m.params
-    se = m.info.get("se", {})
-    table = [{"name": n, "value": float(v), "unit": u, "std_error": se.get(n)}
-             for n, v, u, f in zip(p.names, p.values.tolist(), p.units, p.free.tolist()) if f]
-    prob = observation_model(ctx, p, m.effects, ctx.data)
-    rep = analyse_jacobian(prob.data_jacobian(prob.x0), p.free_names, [p.units[i] for i in p.free_index.tolist()],
-                           markers=ctx.robot.marker_names)
-    fin = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
-    out = {"condition": fin(rep.condition), "O1": fin(rep.O1), "O2": fin(rep.O2), "O3": fin(rep.O3),
-           "O4": fin(rep.O4), "rank": rep.rank, "n_params": rep.n_params, "not_seen_by_data": list(rep.dropped)}
-    if not ctx.data.positions_only:
-        out["not_seen"] = unseen(ctx.robot, ctx.data, p, ctx.setup)
-    return table, out
-
-
-def _bar(progress: bool):
-    if not progress:
-        return None
-    from tqdm.auto import tqdm
-
-    return tqdm(desc="diagnosis", unit="candidate")
-
-
-def _try(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int, say, rnd: int) -> dict:
-    """One candidate effect against ``current``: its start (modes chosen), fit, CV and the rule;
-    under a geometric prior, the prior is re-chosen among its neighbours with the effect."""
-    covering = [e.name for e in current.effects if name in getattr(e, "supersedes", ()) and e.name != name]
-    if covering:
-        return {"name": name, "covered": True,
-                "entry": {"name": name, "reason": f"its modes are part of the accepted {covering[0]}"}}
-    eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params])
-    # a family replaces what it extends: an effect it supersedes, or itself accepted with fewer modes
-    superseded = [e for e in current.effects if e.name in eff.supersedes or (eff.selectable and e.name == name)]
-    start = effect_start(ctx, current, eff, superseded)
-    if start["effect"] is None:
-        say(f"round {rnd}: {name:<20} {start['reason']}")
-        return {"name": name, "entry": {"name": name, "reason": start["reason"], "selection": start["selection"]}}
-    if start["prior_mm"] is None:
-        best = evaluate(ctx, f"+{name}", start["params"], start["effects"], None, info=start["info"])
-    else:  # with the effect in, the geometry may want another prior: its CV chooses again
-        best = evaluate_prior(ctx, f"+{name}", start["params"], start["effects"], start["prior_mm"], info=start["info"])
-    t, pen_ok, ok = compare(current.scores, best.scores, current.k, best.k, n_obs)
-    gain = current.cv_rmse_mm(n_obs) - best.cv_rmse_mm(n_obs)
-    modes = [lab for lab, _ in best.effects[-1].modes()] if best.effects[-1].selectable else []
-    before = {lab for e in superseded for lab, _ in e.modes()}
-    added = [lab for lab in modes if lab not in before]
-    say(f"round {rnd}: {name:<20} {best.k:>5.1f} params  CV {best.cv_rmse_mm(n_obs):.4f} mm  gain {gain:+.4f} mm"
-        f"  t = {t:.1f}" + (f"  modes: {', '.join(modes)}" if modes else ""))
-    entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": best.cv_rmse_mm(n_obs),
-             "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "modes": modes, "added_modes": added,
-             "extends": [e.name for e in superseded], "selection": start["selection"]}
-    if best.prior_mm is not None:
-        entry["prior_mm"] = best.prior_mm
-    return {"name": name, "ok": ok, "model": best, "entry": entry}
-
-
-def _compare_at(ctx: Context, best: Model, m: Model, n_obs: int) -> tuple[float, bool, bool]:
-    """The rule between ``best`` and ``m``, scored with ``best``'s own Huber threshold: scores
-    are held constant beyond a multiple of the threshold, so a threshold set by a better model
-    would make every error of a coarse one look alike."""
-    c = HUBER_K * noise_sigma(ctx, best)
-    if c <= ctx.c:
-        return compare(best.scores, m.scores, best.k, m.k, n_obs)
-    at = ctx.at(c)
-    return compare(rescore(at, best), rescore(at, m), best.k, m.k, n_obs)
-
-
-def _refit(ctx: Context, m: Model) -> Model:
-    """``m`` fitted again under the context's threshold, every candidate parameter judged again:
-    with less noise left, parameters the rounds before could not see may be seen now."""
-    again = m.params.clone()
-    again.free[: ctx.n_geo] = m.info["candidates"]
-    again.free[ctx.n_geo:] = True
-    return evaluate(ctx, m.label, again, m.effects, m.prior_mm, info=m.info)
-
-
-def _refresh(ctx: Context, m: Model, n_obs: int) -> Model:
-    """The accepted model with its new effect's features recomputed at the geometry fitted with
-    it: the rigid fit it started from had absorbed part of the effect into the geometry (a mean
-    joint deflection into a zero offset), and the gravity torques depend on those angles."""
-    geo = m.params.values[: ctx.robot.n_params]
-    eff = m.effects[-1].at_geometry(geo)
-    eff.theta = m.effects[-1].theta.clone()
-    again = evaluate(ctx, m.label, m.params, m.effects[:-1] + [eff], m.prior_mm, info=m.info)
-    return again if penalised(again.scores, again.k, n_obs) <= penalised(m.scores, m.k, n_obs) else m
-
-
-def _test_gain(robot, current: Model, cand: Model, test, setup: Setup | None = None) -> float | None:
-    """Held-out mean gain of a candidate over the current model (measured after the decision)."""
-    if test is None:
-        return None
-    a, _ = stage_stats(robot, current.params, current.effects, test, setup=setup)
-    b, _ = stage_stats(robot, cand.params, cand.effects, test, setup=setup)
-    return a["mean_mm"] - b["mean_mm"]
-
-
-def _clipped(r: Tensor, c: float | None) -> Tensor:
-    """``(N, 3M)`` residuals with each observation shortened to at most ``c`` (Huber's
-    pseudo-observations: a least-squares learner fitted to them is as robust as the loss), NaN -> 0."""
-    r3 = torch.nan_to_num(r).reshape(r.shape[0], -1, 3)
-    if c is not None:
-        n = r3.norm(dim=-1, keepdim=True)
-        r3 = r3 * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
-    return r3.reshape(r.shape)
-
-
-def _elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> tuple[Tensor, Tensor]:
-    """Cross-validated per-row scores (Huber, and plain squared errors) of the current model plus
-    a residual ELM fitted per fold."""
-    robot, data = ctx.robot, ctx.data
-    out = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
-    plain = torch.zeros_like(out)
-    for f, p in zip(ctx.folds, current.fold_fits):
-        mask = torch.ones(len(data), dtype=torch.bool)
-        mask[f] = False
-        tr, va = data.subset(mask), data.subset(f)
-        r_tr = _clipped(residual_matrix(robot, p, current.effects, tr), ctx.c)
-        model = ELM(n_hidden=n_hidden, ridge=1e-3, seed=seed).fit(elm_inputs(tr), r_tr)
-        left = (residual_matrix(robot, p, current.effects, va) - model.predict(elm_inputs(va))).reshape(len(va), -1, 3)
-        seen = va.seen
-        rows = torch.nonzero(seen)[:, 0]
-        out[f] = row_scores(left[seen].norm(dim=-1), rows, len(va), ctx.c)
-        plain[f] = row_scores(left[seen].norm(dim=-1), rows, len(va), None)
-    return out, plain

@@ -1,0 +1,68 @@
+"""A model's stage in the loop measured on data: error statistics (mm) overall, per marker and per
+observation kind, the residual matrix (m), and the inputs the residual ELM reads."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcal.deploy.elm import ELM
+from torchcal.measure.data import Measurements
+from torchcal.measure.observations import KIND_NAMES, Setup
+from torchcal.measure.stats import error_stats, errors_by_marker
+from torchcal.params import ParamSet
+from torchcal.pipelines.loop.fit import Context, observation_model
+from torchcal.report.calibration import error_details
+
+__all__ = ["elm_covariates", "elm_inputs", "residual_matrix", "stage_details", "stage_stats"]
+
+
+# ----------------------------------------------------------------------------- statistics
+def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
+                setup: Setup | None = None) -> tuple[dict | None, Tensor]:
+    """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
+    model on ``data`` (``setup``: the planes and fixed points, ``LoopResult.setup``). An
+    observation's error is the Euclidean norm of what it measured: a plane contact's signed
+    distance, a partial position's measured axes."""
+    st, d = stage_details(robot, params, effects, data, elm, setup)
+    return st, d["e"]
+
+
+def stage_details(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
+           setup: Setup | None = None) -> tuple[dict | None, dict]:
+    """:func:`stage_stats` and the error details a figure needs (:func:`torchcal.report.calibration.error_details`)."""
+    if data is None or len(data) == 0:
+        z = torch.zeros(0)
+        return None, {"e": z, "xyz": z.reshape(0, 3), "dist": z}
+    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
+    e3 = prob.residual_vectors(params.values[None])[0]
+    if elm is not None:  # the ELM is only fitted on full positions, whose order is data.seen's
+        r = residual_matrix(robot, params, effects, data, setup)
+        left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
+        e3 = -left[data.seen]
+    d = error_details(robot, params.values[: robot.n_params], data, e3, prob.obs)
+    e = d["e"]
+    out = errors_by_marker(e, prob.obs.data_marker, data.marker_names)
+    kinds = torch.unique(prob.obs.kind).tolist()
+    if len(kinds) > 1 or kinds != [0] or not bool(prob.obs.mask.all()):
+        out["per_kind"] = {KIND_NAMES[k]: error_stats(e[prob.obs.kind == k]) for k in kinds}
+    return out, d
+
+
+def residual_matrix(robot, params: ParamSet, effects: list, data: Measurements, setup: Setup | None = None) -> Tensor:
+    """``(N, 3M)`` measured − model position per row (NaN where a marker's full position was not
+    measured)."""
+    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
+    e3 = prob.residual_vectors(params.values[None])[0]
+    full = prob.obs.full_positions
+    out = torch.full((len(data), len(data.marker_names), 3), float("nan"), dtype=e3.dtype, device=e3.device)
+    out[prob.obs.rows[full], prob.obs.data_marker[full]] = -e3[full]
+    return out.reshape(len(data), -1)
+
+
+def elm_covariates(data: Measurements) -> list[str]:
+    """Covariates the residual ELM reads after the commands: temperatures and directions."""
+    return [k for k in sorted(data.covariates) if k.startswith(("temp", "dir."))]
+
+
+def elm_inputs(data: Measurements) -> Tensor:
+    return torch.cat([data.q] + [data.covariates[k][:, None] for k in elm_covariates(data)], 1)

@@ -1,0 +1,146 @@
+"""An effect's start in the loop: its modes as linear (or bilinear) columns beside the geometric
+Jacobian, solved in closed form, so that the nonlinear fit starts near the answer."""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcal.effects import effect_params
+from torchcal.params import ParamSet
+from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
+                                         prior_weights, split_params)
+from torchcal.pipelines.loop.selection import LinearCV, penalised
+from torchcal.problems.calibration import EffectCalibrationProblem
+
+__all__ = ["effect_start"]
+
+
+# ----------------------------------------------------------------------------- an effect's start
+def _basis_columns(ctx: Context, prob: EffectCalibrationProblem, eff) -> tuple[Tensor, list[list[int]], int]:
+    """``(3 n_obs, L)`` the effect's linear coordinates' columns in the observations' residuals,
+    with the joint deflections carried through the current model (``prob``)."""
+    robot, params = ctx.robot, prob.params
+    geo = params.values[: robot.n_params]
+    basis = eff.linear_basis(eff.prepare(ctx.data.q, ctx.data.covariates))
+    L = sum(len(g) for g in basis.groups)
+    N, M = len(ctx.data), len(robot.marker_names)
+    D = torch.zeros(N, M, 3, L, dtype=robot.dtype, device=robot.device)  # every marker's displacement
+    Rb, _ = robot.base_transform(geo)
+    if basis.dq is not None:
+        q = prob.joint_values(params.values[None])[0]
+        Jq = robot.joint_jacobian(q, geo, check=False)[:, :, :3, :]  # instrument frame, (N, M, 3, dof)
+        D = D + Jq @ basis.dq[:, None]
+    if basis.dp is not None:
+        D = D + Rb @ basis.dp
+    p = prob.marker_positions(params.values[None])[0]
+    out = prob.obs.project(p, D, params.values[prob.K:prob.K + prob.S])
+    return out.reshape(-1, L), basis.groups, basis.shared
+
+
+def _bilinear_starts(lin: Tensor) -> list[Tensor]:
+    """Starts for the shared parameters ``s`` of a bilinear effect from its linear solution,
+    rows ``[a_k, b_k]`` with ``b_k ≈ c_k s`` and ``a_k ≈ c_k``: the a²-weighted ratio, the
+    leading singular direction of ``B`` scaled to ``a``, and zero."""
+    a, B = lin[:, 0], lin[:, 1:]
+    out = [torch.zeros(B.shape[1], dtype=lin.dtype)]
+    den = float((a * a).sum())
+    if den > 0:
+        out.append((a[:, None] * B).sum(0) / den)
+    if B.abs().sum() > 0:
+        U, S, Vh = torch.linalg.svd(B, full_matrices=False)
+        u, v = U[:, 0], Vh[0] * S[0]
+        lam = float(a @ u) / float(u @ u)
+        if abs(lam) > 1e-300:
+            out.append(v / lam)
+    return out
+
+
+def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
+    """Where a candidate effect starts: modes chosen (for a family) and start values from the
+    linear step around ``current`` without the ``superseded`` effects.
+
+    Returns a dict: ``effect`` (restricted to the chosen modes), ``params`` (start values, free
+    flags of the current model plus the effect's), ``effects`` (the trial's effect list),
+    ``selection`` (per step: each mode's t and the threshold) and ``reason`` (why nothing is
+    proposed; then ``effect`` is None)."""
+    robot = ctx.robot
+    geo, parts = split_params(current.params, robot, current.effects)
+    keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
+    base_effects = [e for e, _ in keep]
+    base = assemble(geo, [p for _, p in keep])
+    prior = prior_weights(robot, base, current.prior_mm, ctx.sigma)
+    prob = effect_problem(ctx, base, base_effects, ctx.data, prior)
+    x = prob.x0
+    r = prob.residual_vectors(base.values[None])[0]
+    Jb = prob.data_jacobian(x)
+    w = prob.observation_weights(x)
+    pb = None if prior is None else prior[base.free_index]
+    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
+    labels = [lab for lab, _ in eff.modes()]
+    gcols = [cols_all[:, g] for g in groups]
+    lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
+    out = {"selection": [], "prior_mm": current.prior_mm}
+    if eff.selectable:
+        forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
+        forced = [labels.index(lab) for lab in forced_labels if lab in labels]
+
+        # what to beat: the model as it is, at the prior its own CV chose (so a prior that moves
+        # with the effect lends it nothing the current model could have had alone)
+        baseline = (lcv.scores(forced), lcv.k_eff(forced))
+
+        def select(s_mm):
+            w_ = prior_weights(robot, base, s_mm, ctx.sigma)
+            lcv.set_prior(None if w_ is None else w_[base.free_index])
+            chosen, hist, sc, k = lcv.forward(forced, ctx.n_obs, baseline)
+            return {"chosen": chosen, "hist": hist, "pen": penalised(sc, k, ctx.n_obs), "prior_mm": s_mm,
+                    "new": [g for g in chosen if g not in forced]}
+
+        best = select(current.prior_mm)
+        if current.prior_mm is not None:
+            # the effect may want another prior on the geometry: climb the grid while the effect
+            # is still selected and the penalised score falls
+            i0 = PRIOR_SCALES_MM.index(current.prior_mm)
+            for step in (1, -1):
+                i = i0 + step
+                while 0 <= i < len(PRIOR_SCALES_MM):
+                    cand = select(PRIOR_SCALES_MM[i])
+                    if not cand["new"] or (best["new"] and cand["pen"] >= best["pen"]):
+                        break
+                    best, i = cand, i + step
+                if best["prior_mm"] != current.prior_mm:
+                    break
+        w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma)
+        lcv.set_prior(None if w_ is None else w_[base.free_index])
+        chosen, hist = best["chosen"], best["hist"]
+        out["prior_mm"] = best["prior_mm"]
+        name = lambda g: "all modes at once" if g == -1 else labels[g]  # noqa: E731
+        out["selection"] = [{"threshold": h["threshold"],
+                             "added": None if h["added"] is None else [labels[g] for g in h["added"]],
+                             "t": {name(g): t for g, t in h["tried"].items()}} for h in hist]
+        if not best["new"]:
+            out.update(effect=None, reason="no mode passed the selection")
+            return out
+        ok, why = eff.proposes([labels[g] for g in chosen])
+        if not ok:
+            out.update(effect=None, reason=why)
+            return out
+        chosen = sorted(chosen)  # the restricted effect keeps the catalogue's order
+        eff = eff.with_modes([labels[g] for g in chosen])
+    else:
+        chosen = list(range(len(groups)))
+    coef = lcv.coefficients(chosen)
+    kb = Jb.shape[1]
+    step = coef[:kb]
+    if shared:
+        step, own, sv = lcv.bilinear(chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
+        eff.theta = eff.from_bilinear(own, sv).to(robot.dtype)
+    else:
+        eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
+    start = base.clone()
+    start.values[base.free_index] = base.values[base.free_index] + step
+    # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
+    start.free[: ctx.n_geo] = current.info["candidates"]
+    params = ParamSet.concat(start, effect_params([eff]))
+    out.update(effect=eff, params=params, effects=base_effects + [eff], reason="",
+               info={"candidates": current.info["candidates"]})
+    return out
