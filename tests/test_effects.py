@@ -12,7 +12,8 @@ import torch
 from torchcal import CalibratedModel, Robot, load, save
 from torchcal.effects import GravityDeformation, JointCompliance, ThermalDrift
 from torchcal.effects.gravity import gravity_wrenches
-from torchcal.sim.physsim import PhysicalRobot, humanoid_urdf
+from torchcal.sim.physsim import PhysicalRobot
+from torchcal.sim.humanoid import humanoid_urdf
 from torchcal.kinematics.robots import urdf_path
 
 UR5E = urdf_path("ur5e").read_text()

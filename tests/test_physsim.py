@@ -19,7 +19,9 @@ import yourdfpy
 from scipy.spatial.transform import Rotation
 
 from torchcal.measure.io import save_measurements
-from torchcal.sim.physsim import PhysicalRobot, Sample, humanoid_urdf, warmup_temperature
+from torchcal.sim.physsim import PhysicalRobot, warmup_temperature
+from torchcal.sim.sample import Sample
+from torchcal.sim.humanoid import humanoid_urdf
 
 UR5E = Path(__file__).resolve().parents[1] / "urdf" / "ur5e.urdf"
 G = np.array([0.0, 0.0, -9.81])

@@ -15,7 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from torchcal.sim.physsim import PhysicalRobot, Sample, humanoid_urdf, warmup_temperature
+from torchcal.sim.humanoid import humanoid_urdf
+from torchcal.sim.physsim import PhysicalRobot, warmup_temperature
+from torchcal.sim.sample import Sample
 
 __all__ = ["CASES", "Case", "make_case", "TORSION"]
 

@@ -13,150 +13,19 @@ order.  Gravity is not re-tilted with the base for the same reason.
 from __future__ import annotations
 
 import math
-import os
 import re
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["PhysicalRobot", "Sample", "humanoid_urdf", "warmup_temperature"]
+from torchcal.sim.base import Simulated
+from torchcal.sim.physsim_urdf import (MOVING_TYPES, UrdfJoint, homogeneous, parse_floats, parse_urdf,
+                                       rotation_exp, rpy_matrix)
+from torchcal.sim.sample import Sample
+
+__all__ = ["PhysicalRobot", "warmup_temperature"]
 
 _MARKER_RE = re.compile(r"^\s*([^@=\s]+)\s*(?:@\s*([^=\s]+))?\s*(?:=\s*(.+?))?\s*$")
-_MOVING = ("revolute", "continuous", "prismatic")
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``(..., 3) -> (..., 3, 3)`` cross-product matrices."""
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
-
-
-def _exp(v) -> np.ndarray:
-    """Rodrigues: rotation vectors ``(..., 3)`` rad -> rotation matrices ``(..., 3, 3)``."""
-    v = np.asarray(v, dtype=float)
-    th = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = _skew(v)
-    small = th < 1e-4  # Taylor below 1e-4 rad: (1 - cos)/th^2 loses digits there
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 1 - th ** 2 / 6, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - th ** 2 / 24, (1 - np.cos(ts)) / ts ** 2)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def _rpy(r: float, p: float, y: float) -> np.ndarray:
-    """URDF fixed-axis roll-pitch-yaw (rad): ``Rz(y) Ry(p) Rx(r)``, (3, 3)."""
-    return _exp([0, 0, y]) @ _exp([0, p, 0]) @ _exp([r, 0, 0])
-
-
-def _pose(R: np.ndarray, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
-    return T
-
-
-def _floats(s: str | None, default, sep: str | None = None) -> np.ndarray:
-    return np.array([float(v) for v in s.split(sep)] if s else default, dtype=float)
-
-
-@dataclass
-class _Joint:
-    name: str
-    type: str
-    parent: str
-    child: str
-    origin: np.ndarray  # (4, 4) nominal pose of the joint frame in the parent link frame
-    axis: np.ndarray  # (3,) unit, joint frame
-    lower: float
-    upper: float
-    mimic: tuple[str, float, float] | None  # (source, multiplier, offset)
-
-
-def _parse_urdf(text: str) -> tuple[str, list[_Joint], dict[str, list[tuple[float, np.ndarray]]]]:
-    """-> (robot name, joints in file order, link -> [(mass kg, COM (3,) m in the link frame)])."""
-    root = ET.fromstring(text)
-    bodies: dict[str, list] = {}
-    for ln in root.findall("link"):
-        bodies[ln.get("name")] = []
-        inert = ln.find("inertial")
-        if inert is not None and inert.find("mass") is not None:
-            o = inert.find("origin")
-            com = _floats(None if o is None else o.get("xyz"), [0, 0, 0])
-            bodies[ln.get("name")].append((float(inert.find("mass").get("value")), com))
-    joints = []
-    for j in root.findall("joint"):
-        typ = j.get("type")
-        if typ not in _MOVING + ("fixed",):
-            raise ValueError(f"joint {j.get('name')!r}: type {typ!r} is not supported")
-        o, ax, lim, mim = j.find("origin"), j.find("axis"), j.find("limit"), j.find("mimic")
-        xyz = _floats(None if o is None else o.get("xyz"), [0, 0, 0])
-        rpy = _floats(None if o is None else o.get("rpy"), [0, 0, 0])
-        axis = _floats(None if ax is None else ax.get("xyz"), [1, 0, 0])
-        lo, hi = -math.inf, math.inf
-        if typ != "continuous" and lim is not None and lim.get("lower") is not None:
-            lo, hi = float(lim.get("lower")), float(lim.get("upper", 0.0))
-        mimic = None
-        if mim is not None:
-            mimic = (mim.get("joint"), float(mim.get("multiplier", 1.0)), float(mim.get("offset", 0.0)))
-        joints.append(_Joint(j.get("name"), typ, j.find("parent").get("link"), j.find("child").get("link"),
-                             _pose(_rpy(*rpy), xyz), axis / np.linalg.norm(axis), lo, hi, mimic))
-    return root.get("name", "robot"), joints, bodies
-
-
-@dataclass
-class Sample:
-    """One simulated measurement campaign.
-
-    ``q (N, dof)`` commanded joint values, ``positions (N, M, 3)`` m measured (noise and outliers
-    included), ``covariates`` name -> ``(N,)``.  Truth only, never written to the data:
-    ``true_positions (N, M, 3)`` noise- and outlier-free, ``outlier_rows (K,)``,
-    ``outlier_shift_m (K, M, 3)`` and ``outlier_per_marker (K,)`` (False: the whole row moved
-    by one vector, as when the instrument is bumped; True: each marker by its own vector, as
-    with a wrong marker identification).
-    """
-
-    q: np.ndarray
-    positions: np.ndarray
-    joint_names: list[str]
-    marker_names: list[str]
-    covariates: dict[str, np.ndarray] = field(default_factory=dict)
-    true_positions: np.ndarray | None = None
-    outlier_rows: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    outlier_shift_m: np.ndarray | None = None
-    outlier_per_marker: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.q)
-
-    def to_measurements(self, dtype=None):
-        """torchcal's ``Measurements`` (float64 unless ``dtype``); carries no truth."""
-        import torch
-
-        from torchcal.measure.data import Measurements
-        t = lambda a: torch.as_tensor(np.array(a, dtype=float), dtype=dtype or torch.float64)  # noqa: E731
-        return Measurements(t(self.q), t(self.positions), list(self.marker_names), list(self.joint_names),
-                            None, {k: t(v) for k, v in self.covariates.items()})
-
-    def save_csv(self, path: str | os.PathLike) -> None:
-        """Write the measurement CSV (``torchcal.measure.io`` format); truth stays out."""
-        from torchcal.measure.io import save_measurements
-        save_measurements(path, self.to_measurements())
-
-    def subset(self, idx) -> "Sample":
-        """Rows ``idx`` (indices or bool mask), outlier truth re-indexed."""
-        idx = np.asarray(idx)
-        idx = np.flatnonzero(idx) if idx.dtype == bool else idx.astype(int)
-        where = {int(r): k for k, r in enumerate(self.outlier_rows)}
-        rows = np.array([i for i, r in enumerate(idx) if int(r) in where], dtype=int)
-        pick = lambda a: None if a is None else a[[where[int(idx[i])] for i in rows]]  # noqa: E731
-        return Sample(self.q[idx], self.positions[idx], list(self.joint_names), list(self.marker_names),
-                      {k: v[idx] for k, v in self.covariates.items()},
-                      None if self.true_positions is None else self.true_positions[idx], rows,
-                      pick(self.outlier_shift_m), pick(self.outlier_per_marker))
-
-
 def warmup_temperature(n: int, span_k: float = 8.0, seed: int = 0, *, start_c: float = 20.0,
                        noise_k: float = 0.1) -> np.ndarray:
     """``(n,)`` degC, rows in visiting order: ``start_c + span_k (1 - exp(-i / (n/4)))`` plus
@@ -199,14 +68,14 @@ class PhysicalRobot:
                  t_ref_c: float = 20.0, backlash=None, cyclic=None, noise_m: float = 0.02e-3,
                  gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True):
         text = str(urdf) if str(urdf).lstrip().startswith("<") else Path(urdf).read_text()
-        self.name, joints, self._bodies = _parse_urdf(text)
+        self.name, joints, self._bodies = parse_urdf(text)
         self._j = {j.name: j for j in joints}
         by_child = {j.child: j for j in joints}
         roots = sorted({j.parent for j in joints} - set(by_child))
         if len(roots) != 1:
             raise ValueError(f"the URDF needs exactly one root link, found {roots}")
         self.root = roots[0]
-        kids: dict[str, list[_Joint]] = {}
+        kids: dict[str, list[UrdfJoint]] = {}
         for j in joints:
             kids.setdefault(j.parent, []).append(j)
         self._order, stack = [], [self.root]  # parent before child
@@ -225,7 +94,7 @@ class PhysicalRobot:
             m = _MARKER_RE.match(spec)
             if not m or (m.group(2) or m.group(1)) not in self._below:
                 raise ValueError(f"marker {spec!r}: write 'link' or 'name@link=x,y,z' with a link of the URDF")
-            self.markers.append((m.group(1), m.group(2) or m.group(1), _floats(m.group(3), [0, 0, 0], ",")))
+            self.markers.append((m.group(1), m.group(2) or m.group(1), parse_floats(m.group(3), [0, 0, 0], ",")))
         self.marker_names = [m[0] for m in self.markers]
         needed: set[str] = set()
 
@@ -239,12 +108,12 @@ class PhysicalRobot:
 
         for m in self.markers:
             climb(m[1])
-        self.joint_names = [j.name for j in joints if j.name in needed and j.type in _MOVING and not j.mimic]
+        self.joint_names = [j.name for j in joints if j.name in needed and j.type in MOVING_TYPES and not j.mimic]
         self.dof = len(self.joint_names)
         act = [self._j[n] for n in self.joint_names]
         self.joint_limits = (np.array([j.lower for j in act]), np.array([j.upper for j in act]))
         self._parked = {j.name: float(np.clip(0.0, j.lower, j.upper)) for j in joints
-                        if j.type in _MOVING and not j.mimic and j.name not in needed}
+                        if j.type in MOVING_TYPES and not j.mimic and j.name not in needed}
 
         self.torsion = dict(torsion or {})
         self.lateral = {k: np.asarray(v, dtype=float) for k, v in (lateral or {}).items()}
@@ -256,8 +125,8 @@ class PhysicalRobot:
         self.backlash = dict(backlash or {})
         self.cyclic = {k: [tuple(map(float, h)) for h in v] for k, v in (cyclic or {}).items()}
         for what, d, ok in (("torsion", self.torsion, ("revolute", "continuous")),
-                            ("lateral", self.lateral, _MOVING + ("fixed",)),
-                            ("thermal", self.thermal, _MOVING + ("fixed",)), ("cyclic", self.cyclic, _MOVING),
+                            ("lateral", self.lateral, MOVING_TYPES + ("fixed",)),
+                            ("thermal", self.thermal, MOVING_TYPES + ("fixed",)), ("cyclic", self.cyclic, MOVING_TYPES),
                             ("backlash", self.backlash, self.joint_names)):
             bad = [k for k in d if k not in self._j or (self._j[k].type not in ok and k not in ok)]
             if bad:
@@ -277,12 +146,12 @@ class PhysicalRobot:
         for j in joints:
             e = np.concatenate([rng.normal(0, length_error_m, 3), rng.normal(0, angle_error_rad, 3)]) * ge
             self._err[j.name] = e
-            self._origin[j.name] = j.origin @ _pose(_rpy(e[5], e[4], e[3]), e[:3])  # Rz(dyaw) Ry(dpitch) Rx(droll)
+            self._origin[j.name] = j.origin @ homogeneous(rpy_matrix(e[5], e[4], e[3]), e[:3])  # Rz(dyaw) Ry(dpitch) Rx(droll)
         self._offset = {j.name: ge * rng.normal(0, length_error_m if j.type == "prismatic" else angle_error_rad)
                         for j in act}
         self._marker_true = [m[2] + ge * rng.normal(0, marker_error_m, 3) for m in self.markers]
         ax, d = rng.normal(size=3), rng.normal(size=3)
-        T_bi = _pose(_exp(ax / np.linalg.norm(ax) * rng.uniform(0, 0.9 * math.pi)),
+        T_bi = homogeneous(rotation_exp(ax / np.linalg.norm(ax) * rng.uniform(0, 0.9 * math.pi)),
                      d / np.linalg.norm(d) * base_distance_m)
         self.instrument_in_base = T_bi if instrument_frame is None else np.asarray(instrument_frame, dtype=float)
         self._first_dir = np.where(rng.random(self.dof) < 0.5, -1.0, 1.0)
@@ -320,7 +189,7 @@ class PhysicalRobot:
             return true[n]
 
         out = {}
-        for j in (j for j in self._order if j.type in _MOVING):
+        for j in (j for j in self._order if j.type in MOVING_TYPES):
             th = value(j.name)
             for h, a, ph in self.cyclic.get(j.name, []):  # a function of the motor (commanded) angle
                 th = th + a * np.sin(h * cmd.get(j.name, th) + ph)
@@ -345,7 +214,7 @@ class PhysicalRobot:
             if j.type == "prismatic":
                 A[:, :3, 3] += A[:, :3, :3] @ j.axis * th[j.name][:, None]
             elif j.type != "fixed":
-                A[:, :3, :3] = A[:, :3, :3] @ _exp(j.axis * th[j.name][:, None])
+                A[:, :3, :3] = A[:, :3, :3] @ rotation_exp(j.axis * th[j.name][:, None])
             if bend is not None and j.name in bend and not seat:
                 A[:, :3, :3] = A[:, :3, :3] @ bend[j.name]
             T[j.child] = A
@@ -405,16 +274,16 @@ class PhysicalRobot:
                 R = T[self._j[n].child][:, :3, :3]
                 jt = self._j[n]
                 if self.lateral_frame == "parent" and jt.type in ("revolute", "continuous"):
-                    R = R @ _exp(-jt.axis * th[n][:, None])
+                    R = R @ rotation_exp(-jt.axis * th[n][:, None])
                 return R
-            bend = {n: _exp(c * np.einsum("nji,nj->ni", frame(n), W["joints"][n]["M_Nm"]))
+            bend = {n: rotation_exp(c * np.einsum("nji,nj->ni", frame(n), W["joints"][n]["M_Nm"]))
                     for n, c in self.lateral.items()}  # the moment in that frame's axes
             for n, k in self.torsion.items():
                 th[n] = th[n] + k * W["joints"][n]["tau_Nm"]
             T = self._fk(th, temp, bend)
             if self.base_tilt is not None:
                 M = W["base"]["M_Nm"]
-                tilt = _exp(np.stack([self.base_tilt[0] * M[:, 0], self.base_tilt[1] * M[:, 1], 0 * M[:, 0]], -1))
+                tilt = rotation_exp(np.stack([self.base_tilt[0] * M[:, 0], self.base_tilt[1] * M[:, 1], 0 * M[:, 0]], -1))
         p = np.stack([T[ln][:, :3, :3] @ x + T[ln][:, :3, 3] for (_, ln, _), x in zip(self.markers, self._marker_true)],
                      1)
         if tilt is not None:
@@ -455,6 +324,18 @@ class PhysicalRobot:
         w = hi - lo
         return self._rng.uniform(lo + margin * w, hi - margin * w, size=(n, self.dof))
 
+    def simulate(self, n: int, *, seed: int = 0, margin: float = 0.1) -> Simulated:
+        """The :class:`~torchcal.sim.base.Simulator` interface: ``n`` poses drawn inside the joint
+        limits and measured. ``seed`` seeds this data set alone; the robot's errors stay what
+        they are. ``noise_floor``: the mean Euclidean norm of the noise actually added (m)."""
+        saved, self._rng = self._rng, np.random.default_rng(seed)
+        try:
+            s = self.measure(self.sample_q(n, margin))
+        finally:
+            self._rng = saved
+        noise = np.linalg.norm(s.positions - s.true_positions, axis=-1)
+        return Simulated(s.to_measurements(), {"robot": self.truth(), "sample": s}, noise_floor=float(noise.mean()))
+
     def truth(self) -> dict:
         """Every drawn value and effect setting, JSON-able, units in the key names."""
         f = lambda a: np.asarray(a, dtype=float).tolist()  # noqa: E731
@@ -485,53 +366,3 @@ class PhysicalRobot:
         }
 
 
-# Chains of (joint, child link, origin xyz m, axis, limits rad, child mass kg, COM m, inertia box m); each
-# joint's parent is the previous child.  The arm is the left one (y > 0); the right one mirrors it in x-z.
-_TORSO = [("torso_yaw", "torso_yaw_link", (0, 0, .12), "z", (-1, 1), 2.0, (0, 0, .03), (.15, .15, .06)),
-          ("torso_pitch", "torso_pitch_link", (0, 0, .06), "y", (-.3, .8), 2.0, (0, 0, .02), (.15, .15, .05)),
-          ("torso_roll", "chest_link", (0, 0, .05), "x", (-.4, .4), 15.0, (.02, 0, .22), (.25, .38, .45))]
-_HEAD = [("head_yaw", "neck_link", (0, 0, .45), "z", (-1.3, 1.3), 0.5, (0, 0, .03), (.06, .06, .08)),
-         ("head_pitch", "head_link", (0, 0, .08), "y", (-.5, .8), 3.0, (.02, 0, .1), (.2, .16, .24))]
-_ARM = [("shoulder_pitch", "shoulder_pitch_link", (0, .2, .38), "y", (-2.8, 1.2), 1.0, (0, .03, 0), (.1, .08, .1)),
-        ("shoulder_roll", "shoulder_roll_link", (0, .06, 0), "x", (-.3, 2.6), .8, (0, 0, -.02), (.08, .08, .08)),
-        ("shoulder_yaw", "upper_arm_link", (0, 0, -.05), "z", (-2, 2), 2.5, (0, 0, -.14), (.09, .09, .28)),
-        ("elbow", "forearm_link", (.02, 0, -.28), "y", (-2.4, .05), 1.5, (.01, 0, -.12), (.07, .07, .25)),
-        ("wrist_yaw", "wrist_yaw_link", (0, 0, -.25), "z", (-2, 2), .4, (0, 0, -.015), (.06, .06, .04)),
-        ("wrist_pitch", "wrist_pitch_link", (0, 0, -.03), "y", (-1.2, 1.2), .3, (0, 0, -.015), (.05, .05, .04)),
-        ("wrist_roll", "wrist_roll_link", (0, 0, -.03), "x", (-1.2, 1.2), .8, (0, 0, -.06), (.04, .09, .15))]
-
-
-def humanoid_urdf() -> str:
-    """A synthetic humanoid upper body; a test robot, not a real one.  Fixed ``base_link``
-    (pelvis, 8 kg), torso yaw/pitch/roll, two 7-joint arms (shoulder pitch/roll/yaw, elbow,
-    wrist yaw/pitch/roll) on ``chest_link`` (15 kg), head yaw/pitch: 19 revolute joints.  Tool
-    links ``l_hand``/``r_hand`` 0.1 m beyond the wrists, and ``head_link`` (3 kg).  Adult-size
-    lengths (upper arm 0.28 m, forearm 0.25 m) and masses (upper arm 2.5, forearm 1.5, hand 0.8
-    kg); box inertias about the COM; shoulders mounted with a 0.15 rad outward roll."""
-    v = lambda t: " ".join(f"{x:g}" for x in t)  # noqa: E731
-    out = ['<?xml version="1.0"?>', '<robot name="humanoid_upper_body">', '<link name="base_link"><inertial><origin '
-           'xyz="0 0 0.05"/><mass value="8"/><inertia ixx="0.1" ixy="0" ixz="0" iyy="0.075" iyz="0" izz="0.14"/>'
-           '</inertial></link>']
-
-    def chain(parent: str, rows, side: str = "", y: int = 1, rpy=(0, 0, 0)) -> None:
-        for joint, child, xyz, axis, lim, mass, com, box in rows:
-            child = side + child
-            a, b, c = (x * x for x in box)
-            lim = lim if y > 0 or axis == "y" else (-lim[1], -lim[0])  # mirroring flips x and z rotations
-            out.append(f'<link name="{child}"><inertial><origin xyz="{v((com[0], y * com[1], com[2]))}"/><mass '
-                       f'value="{mass}"/><inertia ixx="{mass * (b + c) / 12:.6g}" ixy="0" ixz="0" '
-                       f'iyy="{mass * (a + c) / 12:.6g}" iyz="0" izz="{mass * (a + b) / 12:.6g}"/></inertial></link>')
-            out.append(f'<joint name="{side}{joint}_joint" type="revolute"><parent link="{parent}"/><child '
-                       f'link="{child}"/><origin xyz="{v((xyz[0], y * xyz[1], xyz[2]))}" rpy="{v(rpy)}"/><axis '
-                       f'xyz="{v([float(axis == k) for k in "xyz"])}"/><limit lower="{lim[0]}" upper="{lim[1]}" '
-                       'effort="100" velocity="2"/></joint>')
-            parent, rpy = child, (0, 0, 0)
-
-    chain("base_link", _TORSO)
-    for side, y in (("l_", 1), ("r_", -1)):
-        chain("chest_link", _ARM, side, y, (y * 0.15, 0, 0))
-        out.append(f'<link name="{side}hand"/><joint name="{side}hand_joint" type="fixed"><parent link="{side}'
-                   f'wrist_roll_link"/><child link="{side}hand"/><origin xyz="0 0 -0.1" rpy="0 {math.pi / 2} 0"/>'
-                   '</joint>')
-    chain("chest_link", _HEAD)
-    return "\n".join(out + ["</robot>"]) + "\n"

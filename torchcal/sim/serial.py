@@ -15,6 +15,7 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.io import save_measurements
 from torchcal.outputs import atomic_write_text
 from torchcal.params import ParamSet
+from torchcal.sim.base import Simulated
 
 __all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
            "simulate_fleet", "SimulatedRobot", "simulated_robot", "hide_axes"]
@@ -266,6 +267,21 @@ class SimulatedRobot:
         p = self.reach(q, directions=d, temperature=temp)
         p = p + torch.randn(p.shape, generator=self.g, dtype=torch.float64).to(p) * self.noise
         return Measurements(q.clone(), p, list(self.robot.marker_names), list(self.robot.joint_names), covariates=cov)
+
+
+    def simulate(self, n: int, *, seed: int = 0, margin: float = 0.1) -> Simulated:
+        """The :class:`~torchcal.sim.base.Simulator` interface: ``n`` poses drawn inside the joint
+        limits (``margin`` of each range kept clear) and measured. ``seed`` seeds this data set
+        alone (poses, noise, covariates); the robot's errors stay what they are. ``noise_floor``: the
+        expected Euclidean norm of the isotropic per-axis noise (m)."""
+        g = torch.Generator(device=self.robot.device).manual_seed(int(seed))
+        saved, self.g = self.g, g
+        try:
+            data = self.measure(random_configs(self.robot, n, g, margin))
+        finally:
+            self.g = saved
+        return Simulated(data, {"params": self.truth, "effects": self.effects, "noise_m": self.noise},
+                         noise_floor=self.noise * math.sqrt(2.0) * math.gamma(2.0) / math.gamma(1.5))
 
 
     # ------------------------------------------------------------------ partial measurements
