@@ -49,7 +49,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal.optim import get_solver  # noqa: E402
-from torchcal.kinematics.rrru import PARAM_NAMES, PARAM_UNITS, RRRU  # noqa: E402
+from torchcal.kinematics.rrru import RRRU  # noqa: E402
+from torchcal.kinematics.rrru_params import PARAM_NAMES, PARAM_UNITS  # noqa: E402
 from torchcal.problems.rrru import (DecorrelatedProblem, RRRUCalibration,  # noqa: E402
                                            compensation, covariance, identifiability, line_trajectories,
                                            observability_indices, prediction_std, simulate_tracker,

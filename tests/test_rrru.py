@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from torchcal.optim import get_solver
-from torchcal.kinematics.rrru import PARAM_NAMES, RRRU, WorkspaceError
+from torchcal.kinematics.rrru import RRRU
+from torchcal.kinematics.rrru_params import PARAM_NAMES
+from torchcal.kinematics.rrru_workspace import WorkspaceError
 from torchcal.problems.rrru import (DecorrelatedProblem, RRRUCalibration, identifiability,
                                            line_trajectories, simulate_tracker, spiral_trajectory)
 

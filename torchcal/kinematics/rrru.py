@@ -54,17 +54,7 @@ Working mode (stated once, used everywhere):
   workspace centre ``(0, 0, 0.7)`` m, or a caller's warm start such as the commanded target)
   and the solution is checked against this mode, so ``ik(fk(θ)) = θ``.
 
-Error parameters (14, as the seed counts them; nominal value 0, order of its Tables 5-6)::
-
-    dtheta_11, dtheta_21, dtheta_31         drive offsets (rad): actual θ_i1 = commanded + Δθ_i1
-    dL_i1, dL_i2, dL_i3  for i = 1, 2, 3    link-length errors per branch (m)
-    dR, dr                                  static / moving platform radius errors (m)
-
-``R`` and ``r`` enter only as ``r - R`` (the platform translates, so every branch sees the same
-difference); ``dR`` and ``dr`` are therefore never separately identifiable from positions.
-See :mod:`torchcal.problems.rrru` for the identifiability analysis.
-
-Batching: ``params`` is ``None`` (nominal), ``(14,)`` or a population ``(P, 14)``; poses
+Error parameters: the 14 of :mod:`torchcal.kinematics.rrru_params`. Batching: ``params`` is ``None`` (nominal), ``(14,)`` or a population ``(P, 14)``; poses
 (positions or drive angles) are ``(..., 3)``. A ``(P, 14)`` population with ``(N, 3)`` poses gives
 ``(P, N, 3)`` (every vector at every pose); ``(P, N, 3)`` poses are paired with the population
 (vector ``k`` at poses ``k``), as :meth:`torchcal.Robot.positions` does.
@@ -77,24 +67,16 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["RRRU", "WorkspaceError", "PARAM_NAMES", "PARAM_UNITS", "N_PARAMS"]
+from torchcal.kinematics.rrru_params import N_PARAMS, PARAM_NAMES, PARAM_UNITS
+from torchcal.kinematics.rrru_workspace import WorkspaceError, check_reach, raise_fk_failure
 
-PARAM_NAMES: tuple[str, ...] = (
-    "dtheta_11", "dtheta_21", "dtheta_31",
-    "dL_11", "dL_12", "dL_13", "dL_21", "dL_22", "dL_23", "dL_31", "dL_32", "dL_33",
-    "dR", "dr")
-PARAM_UNITS: tuple[str, ...] = ("rad",) * 3 + ("m",) * 11
-N_PARAMS = len(PARAM_NAMES)
+__all__ = ["RRRU"]
 
 # Relative margin kept from the boundary |y_i| = L_i3 while Newton iterates: sqrt(L3² - y²)
 # has an infinite slope there, and an iterate that overshoots it must not produce NaN.
 _Y_MARGIN = 1e-9
 # Step lengths tried per Newton iteration: 1, 1/2, ..., 1/2^7 (the last is taken even if |h| grows).
 _BACKTRACK = 8
-
-
-class WorkspaceError(ValueError):
-    """A position (IK) or a set of drive angles (FK) outside the robot's working mode."""
 
 
 def _wrap(a: Tensor) -> Tensor:
@@ -276,7 +258,7 @@ class RRRU:
         a = p @ self.E.mT + g["d"]                         # B_i relative to A_i1, radial
         b = p[..., 2:3].expand_as(a)                       # ... and vertical
         a, b, y = torch.broadcast_tensors(a, b, y)
-        self._check_reach(p, a, b, y, L1, L2, L3)
+        check_reach(p, a, b, y, L1, L2, L3)
         c = L2 + torch.sqrt(L3 * L3 - y * y)               # in-plane length A_i2 -> B_i
         rho2 = a * a + b * b
         K = (rho2 + L1 * L1 - c * c) / (2 * L1)            # a cos θ + b sin θ = K (seed's eq. 6)
@@ -288,38 +270,6 @@ class RRRU:
         th3 = torch.asin(y / L3)
         th12 = torch.atan2(b - L1 * th_act.sin(), a - L1 * th_act.cos())
         return theta, (_wrap(th12 - th_act), th3)
-
-    def _check_reach(self, p, a, b, y, L1, L2, L3) -> None:
-        z_bad = p[..., 2] <= 0
-        y_bad = y.abs() >= L3
-        c = L2 + torch.sqrt(torch.clamp(L3 * L3 - y * y, min=0.0))
-        rho = torch.sqrt(a * a + b * b)
-        far = (rho > L1 + c) | (rho < (L1 - c).abs())
-        bad = z_bad[..., None].expand_as(y_bad) | y_bad | far
-        if not bool(bad.any()):
-            return
-        k = torch.nonzero(bad)[0].tolist()
-        idx, br = tuple(k[:-1]), k[-1]
-        at = f" {list(idx)}" if idx else ""
-        where = f"point{at} p = {[round(v, 6) for v in self._pick(p, idx, p.ndim - 1).tolist()]} m"
-        n_bad = int(bad.any(-1).sum())
-        if bool(self._pick(z_bad, idx, z_bad.ndim)):
-            why = "is not below the static platform (p_z <= 0; the moving platform hangs below, z > 0)"
-        elif bool(y_bad[idx + (br,)]):
-            why = (f"has a tangential offset |t_{br + 1}·p| = {float(y[idx + (br,)].abs()):.4f} m >= "
-                   f"L_{br + 1}3 = {float(L3.expand_as(y)[idx + (br,)]):.4f} m for branch {br + 1}")
-        else:
-            why = (f"is out of reach of branch {br + 1}: distance {float(rho[idx + (br,)]):.4f} m from "
-                   f"A_{br + 1}1 outside [{float((L1 - c).abs()[idx + (br,)]):.4f}, "
-                   f"{float((L1 + c)[idx + (br,)]):.4f}] m")
-        raise WorkspaceError(f"outside the workspace: {where} {why} ({n_bad} point(s) in all)")
-
-    @staticmethod
-    def _pick(x: Tensor, idx: tuple, n_batch: int) -> Tensor:
-        """``x[idx]`` where ``x`` has only the trailing ``n_batch`` of ``idx``'s batch axes (a
-        pose tensor indexed with a (population, pose) index)."""
-        idx = idx[len(idx) - n_batch:] if n_batch else ()
-        return x[idx] if idx else x
 
     # ---------------------------------------------------------------- forward kinematics
     def fk(self, theta, params=None, *, p0=None, tol: float = 1e-13, max_iter: int = 50,
@@ -431,7 +381,7 @@ class _ImplicitFK(torch.autograd.Function):
             p, ok, h, Ht = model._newton(theta.detach(), params.detach(), p0, tol, max_iter)
         if not bool(ok.all()):
             if on_failure == "raise":
-                _raise_fk(model, theta, p, ok, h, Ht)
+                raise_fk_failure(theta, p, ok, h, Ht)
             p = torch.where(ok[..., None], p, torch.full_like(p, float("nan")))
         ctx.model = model
         ctx.save_for_backward(theta, params, p)
@@ -447,23 +397,3 @@ class _ImplicitFK(torch.autograd.Function):
         g_theta = -lam * Ht if ctx.needs_input_grad[1] else None
         g_params = -(lam.unsqueeze(-1) * Hq).sum(-2) if ctx.needs_input_grad[2] else None
         return None, g_theta, g_params, None, None, None, None
-
-
-def _raise_fk(model: RRRU, theta: Tensor, p: Tensor, ok: Tensor, h: Tensor, Ht: Tensor) -> None:
-    bad = ~ok
-    idx = tuple(torch.nonzero(bad)[0].tolist())
-    th = [round(v, 6) for v in theta[idx].tolist()]
-    if not bool(torch.isfinite(p[idx]).all()) or float(h[idx].abs().max()) > 1e-6:
-        why = ("the loop-closure equations have no solution near the start (Newton did not converge:"
-               f" max |h| = {float(h[idx].abs().max()):.3g} m); the angles are outside the workspace")
-    elif float(p[idx][2]) <= 0:
-        why = "the solution found has the platform above the static platform (another assembly mode)"
-    elif bool((Ht[idx] >= 0).any()):
-        br = int(torch.nonzero(Ht[idx] >= 0)[0]) + 1
-        why = (f"at the solution found branch {br} is not elbow-out (the IK's working mode), or the "
-               "pose is singular; pass p0 near the expected position")
-    else:
-        why = "a branch reaches |t_i·p| = L_i3 (θ_i3 = ±90°, the workspace boundary)"
-    at = f"[{list(idx)}]" if idx else ""
-    raise WorkspaceError(f"FK: no solution in the working mode for θ{at} = {th} rad: {why} "
-                         f"({int(bad.sum())} of {bad.numel()} in all)")

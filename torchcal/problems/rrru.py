@@ -31,7 +31,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from torchcal.kinematics.rrru import N_PARAMS, PARAM_NAMES, PARAM_UNITS, RRRU
+from torchcal.kinematics.rrru import RRRU
+from torchcal.kinematics.rrru_params import N_PARAMS, PARAM_NAMES, PARAM_UNITS
 from torchcal.problems.base import Problem
 from torchcal.problems.identifiability import analyse_jacobian, observability_indices
 from torchcal.problems.identifiability_report import IdentifiabilityReport
