@@ -272,7 +272,7 @@ def test_cli_fleet_refuses_bad_input(tmp_path, capsys):
 def test_ray_missing_says_how_to_install(monkeypatch):
     import sys
 
-    from torchcal.pipelines.fleet.distributed import import_ray
+    from torchcal.pipelines.fleet.run import import_ray
 
     monkeypatch.setitem(sys.modules, "ray", None)  # as if it were not installed
     with pytest.raises(ImportError, match=r"pip install torchcal\[ray\]"):

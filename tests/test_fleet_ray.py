@@ -16,7 +16,7 @@ pytestmark = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
 
 
 def test_ray_fleet_equals_in_process():
-    from torchcal.pipelines.fleet.distributed import calibrate_fleet_ray
+    from torchcal.pipelines.fleet.run import calibrate_fleet_ray
 
     robot = shipped("kuka_kr5_arc")
     train, test, _ = simulate_fleet(robot, 6, SimConfig(n=30, seed=11), spread=0.2, n_test=10,

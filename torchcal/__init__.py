@@ -16,7 +16,8 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.io import load_measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate import CalibrationResult, calibrate
-from torchcal.pipelines.fleet.run import FleetResult, calibrate_fleet
+from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.pipelines.plan.run import Plan, plan_poses
 from torchcal.version import __version__

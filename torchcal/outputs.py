@@ -24,6 +24,8 @@ from typing import Iterator
 
 import torch
 
+from torchcal.version import __version__
+
 __all__ = ["check_out_dir", "check_out_file", "staged_dir", "atomic_write_text", "atomic_write_bytes",
            "sha256_file", "provenance"]
 
@@ -117,7 +119,6 @@ def sha256_file(path) -> str:
 def provenance(files: dict | None = None, argv: list[str] | None = None) -> dict:
     """Where a result came from: UTC date, torchcal / torch / Python versions, the command line,
     and ``role -> {path, sha256}`` of the input ``files`` (``role -> path``; None entries skipped)."""
-    from torchcal.version import __version__
 
     return {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "torchcal": __version__, "torch": torch.__version__, "python": platform.python_version(),

@@ -17,21 +17,22 @@ from pathlib import Path
 
 import torch
 
-from torchcal.version import __version__
-from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
-from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, nonnegative_float, robot_and_data,
-                         run_record, setup_logging)
+from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, nonnegative_float,
+                                 robot_and_data, run_record, setup_logging)
 from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
+from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
+from torchcal.kinematics.robot import Robot
 from torchcal.measure.io import UnitsError
+from torchcal.outputs import check_out_dir, check_out_file
+from torchcal.outputs import staged_dir
+from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
-from torchcal.outputs import check_out_dir, check_out_file
-from torchcal.deploy.persist import save
-from torchcal.kinematics.robot import Robot
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
+from torchcal.version import __version__
 
 __all__ = ["main", "build_parser"]
 
@@ -92,7 +93,6 @@ def _loop(a, argv) -> int:
         logger.info(f"stage {k}: {v:.1f} s")
     if res.problems():
         return _refuse("loop", res.problems())
-    from torchcal.outputs import staged_dir
 
     cmd = "torchcal " + " ".join(shlex.quote(x) for x in argv) if a.command is None else a.command
     with staged_dir(a.out, a.force) as d:

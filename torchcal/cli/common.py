@@ -4,6 +4,7 @@ robot and data an integrator points the commands at."""
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import sys
@@ -11,11 +12,11 @@ from pathlib import Path
 
 import yaml
 
-from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, read_csv
-from torchcal.outputs import atomic_write_text, provenance
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker, parse_marker
 from torchcal.kinematics.urdf import urdf_links
+from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, read_csv
+from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "add_common", "expand_config",
            "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
@@ -173,7 +174,6 @@ def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -
     prov = provenance(files, ["torchcal", *argv])
     atomic_write_text(out / "run.yaml", "# torchcal " + a.cmd + ": the exact options of this run; "
                       "`torchcal " + a.cmd + " --config run.yaml` repeats it\n" + yaml.safe_dump(opts, sort_keys=True))
-    import json
 
     atomic_write_text(out / "provenance.json", json.dumps(prov, indent=2) + "\n")
     return prov

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.kinematics.ik import _targets, solve_ik
 from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
+from torchcal.kinematics.ik import _targets, solve_ik
 
 __all__ = ["Corrector", "CorrectionResult"]
 

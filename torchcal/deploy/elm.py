@@ -24,7 +24,7 @@ position errors and mrad-sized angle errors alike. Predictions are returned in t
 from __future__ import annotations
 
 import math
-from typing import Callable
+import time
 
 import torch
 from torch import Tensor
@@ -209,8 +209,6 @@ class ELM:
 def _random_search(problem: ELMProblem, n_evals: int, seed: int, batch: int = 64) -> Result:
     """Uniform random search in the bounds: the baseline every tuner must beat at equal
     evaluations (``W, b`` drawn in the search bounds, best validation RMSE kept)."""
-    import time
-
     t0 = time.perf_counter()
     g = torch.Generator(device=problem.device).manual_seed(int(seed))
     best_x, best_f, hist, done = None, math.inf, [], 0

@@ -36,23 +36,22 @@ and optionally
   as they are;
 * ``covariates: list[str]``: the covariates it needs (they become required inputs of the model).
 
-A class is made loadable by :func:`register_effect` (the saved model names the registered type,
-so loading never imports code named by a file); the effect classes of :mod:`torchcal.effects`
-are found there by class name without registration.
+A class is made loadable by :func:`torchcal.effects.register_effect` (the one registry,
+:mod:`torchcal.effects.registry`; the saved model names the registered type, so loading never
+imports code named by a file).
 """
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from torchcal.deploy.elm import ELM
-from torchcal.params import ParamSet
 from torchcal.kinematics.transforms import homogeneous, so3_exp, so3_log
+from torchcal.params import ParamSet
 
-__all__ = ["CalibratedModel", "EffectHook", "register_effect", "effect_class", "effect_type", "EFFECT_TYPES",
-           "pose_error", "apply_pose_error", "ERROR_NAMES"]
+__all__ = ["CalibratedModel", "EffectHook", "pose_error", "apply_pose_error", "ERROR_NAMES"]
 
 ERROR_NAMES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 """Column names of a 6-D pose error (m, m, m, rad, rad, rad); see the module docstring."""
@@ -71,42 +70,6 @@ class EffectHook(Protocol):
 
     @classmethod
     def from_state_dict(cls, state: dict, robot) -> "EffectHook": ...
-
-
-EFFECT_TYPES: dict[str, type] = {}
-"""Effect classes :func:`torchcal.deploy.persist.load` may rebuild, by type key (see :func:`effect_type`)."""
-
-
-def effect_type(cls: type) -> str:
-    """The key a saved model records for an effect class: ``cls.effect_type`` when set, else the
-    class name."""
-    return getattr(cls, "effect_type", None) or cls.__name__
-
-
-def register_effect(cls: type) -> type:
-    """Class decorator: make an effect class loadable by :func:`torchcal.deploy.persist.load`."""
-    for need in ("joint_correction", "state_dict", "from_state_dict"):
-        if not hasattr(cls, need):
-            raise TypeError(f"effect class {cls.__name__} lacks {need}(); see torchcal.deploy.model.EffectHook")
-    EFFECT_TYPES[effect_type(cls)] = cls
-    return cls
-
-
-def effect_class(key: str) -> type:
-    """The effect class registered under ``key``; falls back to the classes of
-    :mod:`torchcal.effects` (by class name)."""
-    if key in EFFECT_TYPES:
-        return EFFECT_TYPES[key]
-    try:  # the package's own effect models, without a registration step
-        from torchcal import effects as _fx
-
-        for c in getattr(_fx, "EFFECTS", {}).values():
-            if effect_type(c) == key and hasattr(c, "from_state_dict"):
-                return c
-    except ImportError:
-        pass
-    raise ValueError(f"unknown effect type {key!r}; registered: {sorted(EFFECT_TYPES)}. Import the module that "
-                     "defines it (it registers itself with @torchcal.deploy.model.register_effect) before loading")
 
 
 def pose_error(T_ref: Tensor, T_meas: Tensor) -> Tensor:
@@ -285,10 +248,3 @@ class CalibratedModel:
         m = self.marker_index
         T[:, m] = apply_pose_error(T[:, m], self.predict_error(q, covariates))
         return T
-
-    # -- persistence helpers -----------------------------------------------------------------
-    def save(self, directory, *, force: bool = False) -> Any:
-        """Same as :func:`torchcal.deploy.persist.save`."""
-        from torchcal.deploy.persist import save
-
-        return save(self, directory, force=force)

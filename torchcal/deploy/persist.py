@@ -27,15 +27,18 @@ import os
 from pathlib import Path
 
 import torch
-from torch import Tensor
-
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
+from torch import Tensor
 
 from torchcal.deploy.elm import ELM
-from torchcal.deploy.model import ERROR_NAMES, CalibratedModel, effect_class, effect_type
+from torchcal.deploy.model import ERROR_NAMES, CalibratedModel
+from torchcal.effects.registry import effect_class, effect_type
+from torchcal.kinematics.robot import Robot
+from torchcal.kinematics.tree import Marker
 from torchcal.outputs import sha256_file, staged_dir
 from torchcal.params import ParamSet
+from torchcal.version import __version__
 
 __all__ = ["save", "load", "FORMAT", "FORMAT_VERSION"]
 
@@ -117,7 +120,6 @@ def _write(model: CalibratedModel, robot, text: str, out: Path) -> None:
         effect_class(key)  # refuse to save what could not be loaded again
         effects.append({"name": e.name, "type": key, "state": _json_safe(plain, f"effect {e.name!r} state")})
     n_out = 0 if model.residual is None else model.residual.n_outputs_
-    from torchcal.version import __version__
 
     meta = {
         "format": FORMAT, "format_version": FORMAT_VERSION, "torchcal_version": __version__,
@@ -194,8 +196,6 @@ def load(directory: str | os.PathLike, robot=None, *, device: torch.device | str
         the :class:`~torchcal.deploy.model.CalibratedModel`; predictions equal the saved model's bit for
         bit on the same device.
     """
-    from torchcal.kinematics.robot import Robot
-    from torchcal.kinematics.tree import Marker
 
     d = Path(directory)
     meta = _read_meta(d)

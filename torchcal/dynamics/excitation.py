@@ -29,8 +29,9 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchcal.problems.base import Problem
 from torchcal.dynamics import scara
+from torchcal.kinematics.robots import dh_table
+from torchcal.problems.base import Problem
 
 __all__ = ["FourierExcitation", "ExcitationProblem", "condition_number", "stack_regressor"]
 
@@ -70,7 +71,6 @@ class FourierExcitation:
         shrunk by ``margin`` on each side, ``velocity_fraction`` of the rated joint speed, and
         ``qdd_max`` (rad/s²; not published for the Cobra s600 — the default is an assumption
         for a gentle identification run). ``kw`` goes to the constructor."""
-        from torchcal.kinematics.robots import dh_table
 
         rows = [dh_table(name)[j] for j in joints]
         return cls([r["lower"] + margin for r in rows], [r["upper"] - margin for r in rows],

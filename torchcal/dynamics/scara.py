@@ -43,6 +43,7 @@ from torch import Tensor
 from torch.func import jvp
 
 from torchcal.dynamics.lagrangian import euler_lagrange
+from torchcal.kinematics.robot_data import get_robot
 
 __all__ = ["PlanarParams", "SEED_NAMES", "BASE_NAMES", "FRICTION_NAMES", "BASE_TO_SEED",
            "regressor", "base_regressor", "lumped", "base_params", "torque",
@@ -85,7 +86,6 @@ class PlanarParams:
         """The ``planar_dynamics`` entry of :mod:`torchcal.kinematics.robot_data` (for ``"scara"``, the
         Adept Cobra s600: ``a1``, ``a2`` published, masses / COMs / inertias ILLUSTRATIVE).
         ``friction``: optional ``fv=(.,.)``, ``fc=(.,.)``."""
-        from torchcal.kinematics.robot_data import get_robot
 
         d = get_robot(name)["planar_dynamics"]
         keys = [f.name for f in fields(cls) if f.name not in ("fv", "fc")]

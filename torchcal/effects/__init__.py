@@ -1,6 +1,7 @@
 """Physical effects the geometric model lacks, as small models fitted jointly with it.
 
-Adding an effect is one small class (see :class:`Effect`) registered in :data:`EFFECTS`.
+Adding an effect is one small class (see :class:`Effect`) registered with :func:`register_effect`
+(:mod:`torchcal.effects.registry`).
 """
 from __future__ import annotations
 
@@ -10,16 +11,16 @@ from torchcal.effects.base import TIME_COVARIATES, Effect, LinearBasis, Prepared
 from torchcal.effects.compliance import JointCompliance
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
+from torchcal.effects.registry import EFFECTS, effect_class, effect_type, register_effect
 from torchcal.effects.thermal import ThermalDrift, thermal_covariate
 from torchcal.params import ParamSet
 
-EFFECTS: dict[str, type[Effect]] = {c.name: c for c in
-                                    (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift,
-                                     GravityDeformation)}
+for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation):
+    register_effect(_cls)
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "GravityDeformation", "Backlash",
            "CyclicJointError", "JointScale", "ThermalDrift", "thermal_covariate", "effect_params", "build_effect",
-           "TIME_COVARIATES"]
+           "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]
 
 
 def build_effect(name: str, robot, data=None, geometry=None, **kw) -> Effect:

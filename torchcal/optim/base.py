@@ -1,12 +1,14 @@
 """The solver interface and the registry that finds solvers by name."""
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 import torch
+from tqdm.auto import tqdm
 
-from torchcal.problems.base import Problem
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
 __all__ = ["Solver", "register", "get_solver", "available", "minimize", "progress_bar"]
 
@@ -14,12 +16,10 @@ _REGISTRY: dict[str, type["Solver"]] = {}
 
 
 def progress_bar(enabled: bool, total: int, desc: str):
-    """A tqdm bar of ``total`` iterations when ``enabled``, else ``None`` (imported lazily: most
-    runs inside a calibration loop want no bar)."""
+    """A tqdm bar of ``total`` iterations when ``enabled``, else ``None`` (most runs inside a
+    calibration loop want no bar)."""
     if not enabled:
         return None
-    from tqdm.auto import tqdm
-
     return tqdm(total=total, desc=desc, leave=False)
 
 
@@ -44,7 +44,6 @@ class Solver:
         return g
 
     def minimize(self, problem: Problem) -> Result:
-        import time
 
         t0 = time.perf_counter()
         res = self._run(problem)

@@ -45,6 +45,7 @@ import warnings
 from typing import Mapping, Sequence
 
 import numpy as np
+import scipy.linalg
 import torch
 from torch import Tensor
 
@@ -185,7 +186,6 @@ def _tiered_qr(An: np.ndarray, tiers: list[list[int]], rtol: float) -> tuple[lis
     """Greedy base-column selection: pivoted QR tier by tier, each tier against the span of the
     columns already kept. Returns kept column positions in pivot order and their R diagonals
     (residual norms when chosen; 1 for the first, since columns have unit norm)."""
-    import scipy.linalg
 
     n = An.shape[0]
     Q = np.zeros((n, 0))

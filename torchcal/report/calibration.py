@@ -5,6 +5,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -63,7 +64,6 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     if not data:
         plt.close(fig)
         return
-    import numpy as np
 
     hi = max(float(d.max()) for _, d in data)
     lo = min(float(np.percentile(d[d > 0], 1)) if (d > 0).any() else hi for _, d in data)
@@ -113,7 +113,6 @@ def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position er
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     data = [(lab, {k: v.detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
                    for k, v in d.items()}) for lab, d in stages if d["e"].numel()]

@@ -11,6 +11,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torchcal.effects.gravity import gravity_features
+from torchcal.kinematics.urdf import read_inertials
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import save_measurements
 from torchcal.outputs import atomic_write_text
@@ -157,7 +159,6 @@ def draw_effects(robot, names: list[str], generator: torch.Generator, options: d
 
     Written independently of the fitted effect classes where that is cheap (random phases,
     true masses plus a payload), so that the loop is not shown its own model."""
-    from torchcal.kinematics.urdf import read_inertials
 
     opts = {k: dict(v) for k, v in EFFECT_DEFAULTS.items()}
     for k, v in (options or {}).items():
@@ -196,7 +197,6 @@ def apply_effects(robot, q: Tensor, truth: dict, *, directions: Tensor | None = 
     """Joint deflections ``Δq (N, dof)`` and the row scale of robot-base positions (thermal, or
     None) of the effects in ``truth`` at commands ``q``. ``directions (N, dof)`` (+1/-1) and
     ``temperature (N,)`` °C are the states backlash and thermal drift need."""
-    from torchcal.effects.gravity import gravity_features
 
     dq = torch.zeros_like(q)
     scale = None

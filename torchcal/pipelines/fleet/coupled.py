@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from torchcal.effects import JointCompliance
+from torchcal.optim import Result
 from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
 from torchcal.pipelines.fitting import imprecise
 from torchcal.pipelines.fleet.data import check_rows
@@ -312,7 +313,6 @@ def _rel(a: Tensor, b: Tensor, floor: Tensor) -> float:
 
 
 def _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> CoupledSolution:
-    from torchcal.optim import Result
 
     res, fd, K = fit["res"], model.fd, model.K
     Z, s = fit["Z"], fit["s"]

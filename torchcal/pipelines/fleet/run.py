@@ -10,12 +10,19 @@ parameters, Jacobian, damping and stopping test are its own, and the result for 
 spreads over the fleet and flags robots far from their siblings (:mod:`torchcal.report.fleet`),
 and optionally couples the robots: a hierarchical prior around the fleet mean, joint compliance
 with a payload shared by the fleet (:mod:`torchcal.pipelines.fleet.coupled`).
+
+A fleet larger than one machine holds (:func:`calibrate_fleet_ray`, or ``calibrate_fleet(...,
+ray=address)``): without a prior or a shared payload the robots are independent problems, so the
+fleet splits into shards, each shard is one Ray task running the batched solve on its robots, and
+the driver gathers the results and computes the fleet's parameter spread. Ray schedules the tasks,
+moves the data and retries failed workers; nothing here queues jobs by hand. Ray is an optional
+dependency (``pip install torchcal[ray]``), imported only when asked for.
 """
 from __future__ import annotations
 
 import numbers
+import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -30,66 +37,13 @@ from torchcal.pipelines.fleet.coupled import solve_coupled
 from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
                                            validate_fleet)
 from torchcal.pipelines.fleet.identify import check_rank, decide, explain
-from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
+from torchcal.pipelines.fleet.result import FleetResult
+from torchcal.report.fleet import parameter_spread
 
-__all__ = ["calibrate_fleet", "FleetResult", "FleetData", "fleet_template", "validate_fleet"]
+__all__ = ["calibrate_fleet", "FleetData", "fleet_template", "validate_fleet"]
 
 _LM_DEFAULTS = {"tau": 1e-6, "reuse": 0.9}
 _PRIOR_MIN_ROBOTS = 3  # a spread estimated from fewer robots is no estimate
-
-
-@dataclass
-class FleetResult:
-    """What :func:`calibrate_fleet` found.
-
-    Attributes:
-        names: robot ids, in order.
-        results: per robot, a :class:`~torchcal.pipelines.calibrate.CalibrationResult` (what
-            ``calibrate(robot, data, method="lm")`` returns: parameters, standard errors, reasons,
-            error statistics per stage); index the result by robot id or position.
-        values: ``(R, K)`` identified parameters; ``free``: ``(R, K)`` which were fitted.
-        spread: per parameter, its distribution over the fleet and the robots flagged as outliers
-            (:func:`~torchcal.report.fleet.parameter_spread`); ``flags``: those robots, worst first.
-        prior: the hierarchical prior (fleet mean, scales, noise) when one was used.
-        effects: per robot, the fitted effect parameters (name -> value), and the shared ones.
-        wall_time_s: the whole fleet solve (every robot's result is part of it).
-    """
-
-    robot: Robot
-    names: list[str]
-    results: list[CalibrationResult]
-    values: Tensor
-    free: Tensor
-    spread: dict
-    flags: list[dict]
-    identify: str
-    z_threshold: float
-    prior: dict | None = None
-    effects: dict | None = None
-    wall_time_s: float = 0.0
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def __getitem__(self, key: int | str) -> CalibrationResult:
-        if isinstance(key, str):
-            if key not in self.names:
-                raise KeyError(f"no robot {key!r} in this fleet; robots: {self.names[:5]}…")
-            key = self.names.index(key)
-        return self.results[key]
-
-    def report(self) -> dict:
-        """The fleet report (``fleet.json``): parameter spread, flags, prior, timings."""
-        return fleet_report(self)
-
-    def markdown(self) -> str:
-        """The fleet report as Markdown (``fleet.md``)."""
-        return fleet_markdown(self)
-
-    def save(self, out_dir, figures: bool = True) -> Path:
-        """Write ``<robot>/calibrated.urdf``, ``report.md``, ``report.json`` (and error histograms
-        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``."""
-        return save_fleet(self, out_dir, figures)
 
 
 def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_c: list[str], prefer=None):
@@ -294,8 +248,6 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         if coupled:
             raise ValueError("on Ray the robots are solved independently; a prior or a shared payload couples them. "
                              "Run those in-process (leave out ray=)")
-        from torchcal.pipelines.fleet.distributed import calibrate_fleet_ray
-
         return calibrate_fleet_ray(robot, dict(zip(names, datasets)), test=None if tests is None else
                                    {n: t for n, t in zip(names, tests) if t is not None}, address=ray,
                                    shards=ray_shards, params=params, free=free, identify=identify, register=register,
@@ -330,3 +282,74 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
     return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
                        identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,
                        wall_time_s=time.perf_counter() - t0)
+
+
+# ------------------------------------------------------------------------- beyond one machine (Ray)
+def import_ray():
+    """The ``ray`` module, or an ImportError saying how to install it."""
+    try:
+        import ray
+    except ImportError as e:
+        raise ImportError("running a fleet on Ray needs the optional dependency ray: pip install torchcal[ray] "
+                          f"(import failed: {e})") from None
+    return ray
+
+
+def _solve_shard(robot, data: dict, test: dict | None, kwargs: dict, threads: int):
+    """One shard, solved in-process on a worker (one torch thread per CPU Ray gave the task)."""
+    torch.set_num_threads(threads)
+    return calibrate_fleet(robot, data, test=test or None, **kwargs)
+
+
+def calibrate_fleet_ray(robot, data: dict, *, test: dict | None = None, address: str | None = "local",
+                        shards: int | None = None, workers: int | None = None, **kwargs):
+    """:func:`~torchcal.pipelines.fleet.run.calibrate_fleet` with the robots spread over a Ray cluster.
+
+    Args:
+        data, test: robot id -> Measurements.
+        address: ``"local"`` (or None) starts a Ray instance in this process with ``workers`` CPUs
+            (default: all) and stops it afterwards; anything else is passed to ``ray.init`` (e.g.
+            ``"auto"`` or ``"ray://head:10001"``) and the cluster is left running.
+        shards: how many tasks the fleet is cut into (default: the cluster's CPU count, capped by
+            the number of robots); each task solves its robots as one batch.
+        kwargs: the options of :func:`~torchcal.pipelines.fleet.run.calibrate_fleet` (no ``prior`` or
+            ``effects``: those couple the robots).
+    Returns:
+        a :class:`~torchcal.pipelines.fleet.run.FleetResult` over all robots, in the order of ``data``.
+    """
+
+    ray = import_ray()
+    t0 = time.perf_counter()
+    started = False
+    if not ray.is_initialized():
+        if address in (None, "local"):
+            ray.init(num_cpus=workers or os.cpu_count(), include_dashboard=False, log_to_driver=False,
+                     runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(_paths())}})
+            started = True
+        else:
+            ray.init(address=address, runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join(_paths())}})
+    try:
+        names = list(data)
+        n = max(1, min(len(names), shards or int(ray.cluster_resources().get("CPU", 1))))
+        bounds = [round(i * len(names) / n) for i in range(n + 1)]
+        chunks = [names[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        task = ray.remote(num_cpus=1)(_solve_shard)
+        z = kwargs.pop("z_threshold", 5.0)
+        refs = [task.remote(robot, {k: data[k] for k in c}, {k: test[k] for k in c if test and k in test}, kwargs, 1)
+                for c in chunks]
+        parts = ray.get(refs)
+    finally:
+        if started:
+            ray.shutdown()
+    results = [r for p in parts for r in p.results]
+    spread, flags = parameter_spread(names, results, z)
+    return FleetResult(robot=robot, names=names, results=results, values=torch.cat([p.values for p in parts]),
+                       free=torch.cat([p.free for p in parts]), spread=spread, flags=flags, identify=parts[0].identify,
+                       z_threshold=z, wall_time_s=time.perf_counter() - t0)
+
+
+def _paths() -> list[str]:
+    """Where this torchcal (and its dependencies) are found, for the workers' import path."""
+    here = str(Path(__file__).resolve().parents[3])  # the directory holding the torchcal package
+    extra = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return [here] + [p for p in extra if p != here]

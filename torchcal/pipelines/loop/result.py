@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from torchcal.deploy.elm import ELM
+from torchcal.deploy.model import CalibratedModel
 from torchcal.measure.observations import Setup
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.selection import OUTLIER_K, T_ACCEPT
@@ -84,7 +85,6 @@ class LoopResult:
     def model(self, *, force: bool = False):
         """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when
         :meth:`problems` says the model cannot be trusted, unless ``force``."""
-        from torchcal.deploy.model import CalibratedModel
 
         if self.problems() and not force:
             raise ValueError("this calibration is not fit to deploy: " + "; ".join(self.problems()))

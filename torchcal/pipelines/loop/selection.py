@@ -25,7 +25,9 @@ from __future__ import annotations
 import math
 from statistics import NormalDist
 
+import numpy as np
 import torch
+from scipy.optimize import least_squares
 from torch import Tensor
 
 __all__ = ["T_ACCEPT", "HUBER_K", "OUTLIER_K", "robust_sigma", "row_scores", "compare", "rmse_mm",
@@ -201,8 +203,6 @@ class LinearCV:
         the mode's column ``u + Σ s_i v_i``), by variable projection: for shared parameters ``s``
         the rest is linear and solved exactly, and only ``s`` is searched, from each of ``starts``.
         Returns (base step ``(kb,)``, each mode's coefficient ``(K,)``, ``s`` ``(S,)``)."""
-        import numpy as np
-        from scipy.optimize import least_squares
 
         Au = self.A * self.scale
         base = Au[:, : self.kb]

@@ -6,6 +6,7 @@ import math
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from torchcal.deploy.elm import ELM
 from torchcal.effects import build_effect
@@ -43,7 +44,6 @@ def parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
 def progress_bar(progress: bool):
     if not progress:
         return None
-    from tqdm.auto import tqdm
 
     return tqdm(desc="diagnosis", unit="candidate")
 

@@ -1,0 +1,68 @@
+"""What a fleet calibration returns: every robot's result, the fleet's values and free flags, the
+spread of each parameter across the fleet and the robots flagged, in m and rad."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from torch import Tensor
+
+from torchcal.kinematics.robot import Robot
+from torchcal.pipelines.calibrate import CalibrationResult
+from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
+
+__all__ = ["FleetResult"]
+
+
+@dataclass
+class FleetResult:
+    """What :func:`calibrate_fleet` found.
+
+    Attributes:
+        names: robot ids, in order.
+        results: per robot, a :class:`~torchcal.pipelines.calibrate.CalibrationResult` (what
+            ``calibrate(robot, data, method="lm")`` returns: parameters, standard errors, reasons,
+            error statistics per stage); index the result by robot id or position.
+        values: ``(R, K)`` identified parameters; ``free``: ``(R, K)`` which were fitted.
+        spread: per parameter, its distribution over the fleet and the robots flagged as outliers
+            (:func:`~torchcal.report.fleet.parameter_spread`); ``flags``: those robots, worst first.
+        prior: the hierarchical prior (fleet mean, scales, noise) when one was used.
+        effects: per robot, the fitted effect parameters (name -> value), and the shared ones.
+        wall_time_s: the whole fleet solve (every robot's result is part of it).
+    """
+
+    robot: Robot
+    names: list[str]
+    results: list[CalibrationResult]
+    values: Tensor
+    free: Tensor
+    spread: dict
+    flags: list[dict]
+    identify: str
+    z_threshold: float
+    prior: dict | None = None
+    effects: dict | None = None
+    wall_time_s: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __getitem__(self, key: int | str) -> CalibrationResult:
+        if isinstance(key, str):
+            if key not in self.names:
+                raise KeyError(f"no robot {key!r} in this fleet; robots: {self.names[:5]}…")
+            key = self.names.index(key)
+        return self.results[key]
+
+    def report(self) -> dict:
+        """The fleet report (``fleet.json``): parameter spread, flags, prior, timings."""
+        return fleet_report(self)
+
+    def markdown(self) -> str:
+        """The fleet report as Markdown (``fleet.md``)."""
+        return fleet_markdown(self)
+
+    def save(self, out_dir, figures: bool = True) -> Path:
+        """Write ``<robot>/calibrated.urdf``, ``report.md``, ``report.json`` (and error histograms
+        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``."""
+        return save_fleet(self, out_dir, figures)
