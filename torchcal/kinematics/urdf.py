@@ -1,11 +1,16 @@
 """Read and write URDF files (kinematics only: meshes are never loaded)."""
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
 import numpy as np
+import torch
+import yourdfpy
+from lxml import etree
 
+from torchcal.kinematics.transforms import matrix_to_rpy
 from torchcal.kinematics.tree import JointSpec
 
 __all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions"]
@@ -14,7 +19,6 @@ __all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_co
 def _strict_parse(text: str, where: str) -> None:
     """yourdfpy parses in lxml's recover mode, which silently drops whatever follows an XML
     error (a truncated file loses its last joints): parse strictly first to say where it broke."""
-    from lxml import etree
 
     try:
         etree.fromstring(text.encode())
@@ -24,7 +28,6 @@ def _strict_parse(text: str, where: str) -> None:
 
 
 def _load(path_or_xml):
-    import yourdfpy
 
     kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
               load_collision_meshes=False)
@@ -39,7 +42,6 @@ def _load(path_or_xml):
             if not p.is_file():
                 raise FileNotFoundError(f"URDF file not found: {p} (give the path to a .urdf file)")
             return yourdfpy.URDF.load(str(p), **kw)
-        import io
 
         return yourdfpy.URDF.load(io.BytesIO(str(path_or_xml).encode()), **kw)
     except FileNotFoundError:
@@ -87,9 +89,6 @@ def write_urdf(name: str, joints: list[JointSpec], path: str | os.PathLike | Non
     ``inertials`` maps link name -> dict(mass kg, com (3,) m, inertia (ixx, ixy, ixz, iyy, iyz, izz)
     kg m^2 about the COM). Returns the XML text and writes it to ``path`` when given.
     """
-    import torch
-
-    from torchcal.kinematics.transforms import matrix_to_rpy
 
     links = []
     for j in joints:

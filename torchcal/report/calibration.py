@@ -1,4 +1,4 @@
-"""Error statistics, report files (JSON, Markdown) and plots for calibration results."""
+"""Report files (JSON, Markdown) and plots for calibration results (statistics: :mod:`torchcal.measure.stats`)."""
 from __future__ import annotations
 
 import json
@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
+
+from torchcal.report.plotting import pyplot
 
 __all__ = ["write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
            "FOREIGN_RATIO"]
@@ -54,10 +56,7 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
                      split: str = "train") -> None:
     """One figure with overlaid error histograms (mm) for several stages, as calibration papers
     show them. ``stages``: (label, errors in m)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
     data = [(lab, e.detach().double().flatten().cpu().numpy() * 1e3) for lab, e in stages if e.numel()]
@@ -109,10 +108,7 @@ def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position er
     details from :func:`error_details`): the error histogram; the per-axis errors of the last
     stage; the cumulative distribution with each stage's 95th percentile and the noise floor
     marked; the error against the marker's distance from the robot base."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     data = [(lab, {k: v.detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
                    for k, v in d.items()}) for lab, d in stages if d["e"].numel()]

@@ -3,20 +3,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchcal.pipelines.loop.result import LoopResult
 from torchcal.params import display_unit
+from torchcal.pipelines.loop.result import LoopResult
 from torchcal.report.calibration import error_figure, write_json
+from torchcal.report.plotting import pyplot
 
 __all__ = ["write_loop_report"]
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _histograms(res: LoopResult, path: Path, split: str) -> bool:
@@ -47,7 +39,7 @@ def _evidence_plot(name: str, ev: dict, path: Path) -> bool:
     physical signature, with the fitted mode overlaid."""
     if not ev:
         return False
-    plt = _plt()
+    plt = pyplot()
     keys = list(ev)
     cols = min(3, len(keys))
     rows = (len(keys) + cols - 1) // cols

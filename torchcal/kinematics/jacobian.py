@@ -1,0 +1,187 @@
+"""Analytic Jacobians of a :class:`~torchcal.kinematics.robot.Robot`: by the error parameters
+(every parameter moves the chain like a virtual revolute or prismatic joint at a known frame, so
+its column is ``axis × (p − point)`` or ``axis``) and by the joints; m per unit of the parameter.
+"""
+from __future__ import annotations
+
+
+import torch
+from torch import Tensor
+
+from torchcal.kinematics.transforms import rot_y, rot_z, skew, so3_left_jacobian
+
+__all__ = ["Jacobians"]
+
+
+class Jacobians:
+    """The Jacobian half of :class:`~torchcal.kinematics.robot.Robot` (a mixin over its forward
+    kinematics and layout)."""
+
+    def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True,
+                       return_positions: bool = False):
+        """Analytic derivative of the marker poses w.r.t. all K parameters.
+
+        Args:
+            kind: ``"position"``: rows are d(p_x, p_y, p_z) (m per unit); ``"pose"``: three more rows,
+                the angular velocity ω (rad per unit, instrument frame) with ``dR = skew(ω) R`` —
+                the Jacobian of a rotation-vector residual ``log(R R_meas^T)`` at zero.
+            return_positions: also return the marker positions ``(…, M, 3)`` (m) computed on the
+                way, which saves a second kinematics pass in least-squares solvers.
+        Returns:
+            ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population, or for ``q (P, N, dof)``
+            paired with ``params (P, K)`` as in :meth:`positions`).
+        """
+        if kind not in ("position", "pose"):
+            raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
+        paired = isinstance(q, Tensor) and q.ndim == 3
+        q, slots, pop, q1 = (self._prepare_paired if paired else self._prepare)(q, params, check)
+        if slots is None:
+            slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
+        Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
+        # a parameter's column is the sum over the slots it moves
+        K = self.n_params
+        out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
+        out.index_add_(-1, self._slot_gather, Jac)
+        J = self._unbatch(out[..., :K], pop, q1, 3)
+        return (J, self._unbatch(pw, pop, q1, 2)) if return_positions else J
+
+    def joint_jacobian(self, q, params=None, *, check: bool = True) -> Tensor:
+        """Geometric Jacobian of every marker w.r.t. the commands ``q``: ``(N, M, 6, dof)``
+        (rows: linear velocity m/unit, then angular velocity rad/unit, instrument frame)."""
+        q, slots, pop, q1 = self._prepare(q, params, check)
+        if pop:
+            raise ValueError("joint_jacobian takes one parameter vector (K,), not a population")
+        if slots is None:
+            slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
+        Jac = self._slot_jacobian(q, slots, "pose")[0][..., self._slices["offset"]]
+        return self._unbatch(Jac, False, q1, 3)
+
+    @staticmethod
+    def _rpy_directions(e: Tensor, R0: Tensor) -> Tensor:
+        """``(P, n, 3, 6)``: ``R0 @ [x, y, z, Rz Ry x, Rz y, z]`` for rpy errors ``e (P, n, 6)`` about
+        frames ``R0 (n, 3, 3)``: the directions of the three translations and of the roll, pitch and
+        yaw rotation axes of an error ``T(xyz) Rz Ry Rx`` (the last three at the error's value)."""
+        eye = torch.eye(3, dtype=e.dtype, device=e.device)
+        Rz, Ry = rot_z(e[..., 5]), rot_y(e[..., 4])
+        roll = Rz @ (Ry @ eye[:, 0])[..., None]
+        pitch = Rz @ eye[:, 1:2]
+        I3 = eye.expand(*e.shape[:-1], 3, 3)
+        return R0 @ torch.cat([I3, roll, pitch, I3[..., 2:3]], -1)
+
+    def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
+        Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
+        mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
+        P, N = mt.shape[0], mt.shape[1]
+        dt = dict(dtype=self.dtype, device=self.device)
+        eye = torch.eye(3, **dt)
+        Jn = len(self.joints)
+        # frames as the URDF defines them (undo the internal axis alignment); root = identity
+        RF = torch.stack([eye.expand(P, N, 3, 3) if R is None else R.expand(P, N, 3, 3) for R in Rs], 2)
+        if not self._aligned:
+            RF = RF @ self._CfT
+        RP = RF[:, :, self.parent_frame]  # (P, N, J, 3, 3)
+        tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
+                          for f in self.parent_frame], 2)
+        RJ = torch.stack([x.expand(P, N, 3, 3) for x in JR], 2)  # internal (aligned) joint frames
+        CJ = None if self._aligned else self._CfT[1:]
+        if self._dh_idx and CJ is not None:
+            RJ_urdf = RJ @ CJ
+        else:
+            RJ_urdf = RJ
+        tJ = torch.stack([x.expand(P, N, 3) for x in Jt], 2)
+        axes, points, is_rot, masks = [], [], [], []
+        anc = self._anc  # (J, M)
+        if self._urdf_idx:
+            U = self._urdf_idx
+            e = slots[:, self._slices["urdf"]].reshape(P, -1, 6)
+            # x, y, z, roll, pitch, yaw directions of each origin frame F0 = RP·U_R: F0 times
+            # small per-parameter-vector matrices, so one batched product per pose
+            B = self._rpy_directions(e, self._U_R)  # (P, U, 3, 6)
+            ax = (RP[:, :, U] @ B[:, None]).transpose(-1, -2)  # (P, N, U, 6, 3)
+            axes.append(ax.reshape(P, N, -1, 3))
+            points.append(tJ[:, :, U, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
+            is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(len(U)))
+            masks.append(anc[U].repeat_interleave(6, 0))
+        if self._dh_idx:
+            D = self._dh_idx
+            Rp, tp, Rj, tj = RP[:, :, D], tP[:, :, D], RJ_urdf[:, :, D], tJ[:, :, D]
+            cls = self._dh_classic[:, None]
+            x_p, z_p, z_j = Rp[..., 0], Rp[..., 2], Rj[..., 2]
+            # classic Tz(d)Tx(a)Rx(α)Rz(φ): a along x_p, d along z_p, α about x_p at t_J
+            # modified Rx(α)Tx(a)Tz(d)Rz(φ): α about x_p at t_p, a along x_p, d along z_J
+            a_d = torch.where(cls, z_p, z_j)
+            pt_al = torch.where(cls, tj, tp)
+            ax = torch.stack([x_p, a_d, x_p, z_j], -2)
+            pt = torch.stack([tj, tj, pt_al, tj], -2)
+            axes.append(ax.reshape(P, N, -1, 3))
+            points.append(pt.reshape(P, N, -1, 3))
+            is_rot.append(torch.tensor([False, False, True, True], device=self.device).repeat(len(D)))
+            masks.append(anc[D].repeat_interleave(4, 0))
+        # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
+        mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
+        mov_ax = (RJ @ mov_dir)[..., 0]  # (P, N, J, 3)
+        axes.append(mov_ax)
+        points.append(tJ)
+        is_rot.append(self._is_rev.clone())
+        masks.append(anc)
+        # marker offsets: like a fixed joint on the marker's link
+        M = len(self.markers)
+        e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
+        ax = (RF[:, :, self._mk_frame] @ self._rpy_directions(e, self._mk_R)[:, None]).transpose(-1, -2)
+        axes.append(ax.reshape(P, N, -1, 3))
+        points.append(mt[:, :, :, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
+        is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(M))
+        masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
+
+        # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
+        # every elementwise pass runs over long rows (with the 3 components innermost, as the
+        # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
+        # batched 3 x 3 product per parameter vector.
+        V = sum(x.shape[2] for x in axes)
+        rot = torch.cat(is_rot)  # (V,)
+        mask = torch.cat(masks, 0).to(self.dtype).T  # (M, V)
+        Rb, tb = self._base(slots)
+
+        def to_base(vecs: list[Tensor], shift: bool) -> Tensor:
+            """(P, N, v, 3) pieces, robot-base frame -> (P, 3, N, V), instrument frame."""
+            x = torch.cat([v.permute(0, 3, 1, 2) for v in vecs], -1).reshape(P, 3, N * V)
+            x = (Rb @ x).reshape(P, 3, N, V)
+            return x + tb[:, :, None, None] if shift else x
+
+        a = to_base(axes, False)
+        pt = to_base(points, True)
+        mw = (Rb @ mt.permute(0, 3, 1, 2).reshape(P, 3, N * M)).reshape(P, 3, N, M)  # Rb·mt, (P, 3, N, M)
+        m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
+        ri = torch.nonzero(rot).flatten()
+        ar, lev = a[..., ri][:, :, :, None, :], m_inst[..., None] - pt[..., ri][:, :, :, None, :]
+        ax_, ay_, az_ = ar.unbind(1)
+        lx, ly, lz = lev.unbind(1)
+        lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
+        lin[..., ri] = torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1)
+        lin *= mask
+        rows = [lin]
+        if kind == "pose":
+            rows.append(a[:, :, :, None, :] * (mask * rot.to(self.dtype)))
+        Jv = torch.cat(rows, 1) if len(rows) > 1 else lin  # (P, r, N, M, V)
+        r_rows = Jv.shape[1]
+        # split back into slot groups; offsets per movable joint -> per actuated joint
+        nu, nd = 6 * len(self._urdf_idx), 4 * len(self._dh_idx)
+        J_orig = Jv[..., : nu + nd]
+        J_mov = Jv[..., nu + nd: nu + nd + Jn] @ self._Mmap  # (P, r, N, M, dof)
+        J_mk = Jv[..., nu + nd + Jn:]
+        # base columns: translations along the instrument axes, rotations about J_l e_k
+        Jl = so3_left_jacobian(slots[:, self._slices["base"]][:, 3:])  # (P, 3, 3), column k: J_l e_k
+        base = Jv.new_zeros(P, r_rows, N, M, 6)
+        base[:, 0, ..., 0] = 1.0
+        base[:, 1, ..., 1] = 1.0
+        base[:, 2, ..., 2] = 1.0
+        kx, ky, kz = (Jl[:, c, :][:, None, None, :] for c in range(3))  # (P, 1, 1, 3): component c of each axis k
+        wx, wy, wz = (mw[:, c][..., None] for c in range(3))  # (P, N, M, 1)
+        base[:, 0, ..., 3:] = ky * wz - kz * wy
+        base[:, 1, ..., 3:] = kz * wx - kx * wz
+        base[:, 2, ..., 3:] = kx * wy - ky * wx
+        if kind == "pose":
+            base[:, 3:, ..., 3:] = Jl[:, :, None, None, :]
+        Jac = torch.cat([base, J_orig, J_mov, J_mk], -1)  # (P, r, N, M, S)
+        return Jac.permute(0, 2, 3, 1, 4), m_inst.permute(0, 2, 3, 1)  # (P, N, M, r, S), (P, N, M, 3)
+
