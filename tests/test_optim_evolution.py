@@ -8,7 +8,8 @@ import torch
 
 from torchcal.optim import FunctionProblem, get_solver, minimize
 from torchcal.optim.ga import GeneticAlgorithm
-from torchcal.optim.mayfly import Mayfly, ModifiedMayfly, improved_tent_map
+from torchcal.optim.mayfly import Mayfly
+from torchcal.optim.mma import ModifiedMayfly, improved_tent_map
 
 D = torch.float64
 SHIFT = torch.tensor([1.5, -2.0, 0.7, 3.1, -0.4], dtype=D)

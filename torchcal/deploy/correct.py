@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
-from torchcal.kinematics.ik import _targets, solve_ik
+from torchcal.kinematics.ik import solve_ik, target_frames
 
 __all__ = ["Corrector", "CorrectionResult"]
 
@@ -122,7 +122,7 @@ class Corrector:
             :class:`CorrectionResult`.
         """
         model, robot = self.model, self.model.robot
-        R_t, p_t = _targets(robot, targets)
+        R_t, p_t = target_frames(robot, targets)
         if self.frame == "base":  # into the instrument frame the model predicts in
             Rb, tb = robot.base_transform(model.params.values)
             p_t = p_t @ Rb.T + tb

@@ -22,7 +22,7 @@ from torch import Tensor
 from torchcal.params import ParamSet
 from torchcal.kinematics.transforms import so3_log
 
-__all__ = ["IKResult", "solve_ik", "REASONS"]
+__all__ = ["IKResult", "solve_ik", "target_frames", "REASONS"]
 
 REASONS = ("ok", "joint_limits", "unreachable", "singular", "not_converged")
 """Why a target ended as it did:
@@ -65,7 +65,9 @@ class IKResult:
         return {r: self.reason.count(r) for r in REASONS if r in self.reason}
 
 
-def _targets(robot, target) -> tuple[Tensor | None, Tensor]:
+def target_frames(robot, target) -> tuple[Tensor | None, Tensor]:
+    """Targets as ``(R (N, 3, 3) or None, p (N, 3) m)`` from ``(N, 4, 4)`` poses or ``(N, 3)``
+    positions (m) in the robot's frame, checked: orthonormal rotations, finite values."""
     t = torch.as_tensor(target, dtype=robot.dtype, device=robot.device)
     if t.ndim in (1, 2) and t.shape[-1] == 3 and not (t.ndim == 2 and t.shape == (4, 4)):
         t = t.reshape(-1, 3)
@@ -120,7 +122,7 @@ def solve_ik(robot, params, target, q0=None, *, marker: str | None = None,
     Returns:
         :class:`IKResult`.
     """
-    R_t, p_t = _targets(robot, target)
+    R_t, p_t = target_frames(robot, target)
     N = p_t.shape[0]
     m = _marker_index(robot, marker)
     if isinstance(params, ParamSet):
@@ -178,6 +180,10 @@ def _errors(robot, params, q, R_t, p_t, m):
 
 def _lm(robot, params, R_t, p_t, q, m, lo, hi, tol_p, tol_r, max_iter, w, sing_tol,
         far_m=1e-3, far_rad=1e-2) -> IKResult:
+    # Damped least squares per target, all N targets in one batch, each with its own damping,
+    # joint-limit clamp, singularity test and stop. This is not the parameter LM of
+    # torchcal.optim (one problem, one damping, bound projection) run N times: the solvers there
+    # minimise one problem at a time, and IK at the shop floor needs thousands of small ones at once.
     N, dof = q.shape
     dt = dict(dtype=q.dtype, device=q.device)
     pose = R_t is not None

@@ -1,14 +1,16 @@
 """One optimiser interface for everything torchcal minimises.
 
-A :class:`Problem` holds bounds and batched residuals / fitness; a :class:`Solver` minimises
-any problem and returns a :class:`Result`. Nothing here knows about robots.
+Any :class:`~torchcal.problems.base.Problem` (bounds and batched residuals / fitness) goes to any
+registered :class:`Solver`, which returns a :class:`Result`. The engine
+(:mod:`torchcal.optim.engine`) owns the iteration loop, stopping, history and progress of every
+iterative solver; each solver module supplies its start and its step. Nothing here knows about
+robots.
 """
+from torchcal.optim import cpso, ga, gradient, hybrid, lm, mayfly, mma, pso  # noqa: F401  (registers solvers)
 from torchcal.optim.base import Solver, available, get_solver, minimize, register
-from torchcal.problems.base import FunctionProblem, LeastSquaresProblem, Problem
+from torchcal.optim.engine import IterativeSolver
 from torchcal.optim.result import Result
+from torchcal.problems.base import FunctionProblem, LeastSquaresProblem, Problem
 
-__all__ = ["Problem", "LeastSquaresProblem", "FunctionProblem", "Result", "Solver",
+__all__ = ["Problem", "LeastSquaresProblem", "FunctionProblem", "Result", "Solver", "IterativeSolver",
            "register", "get_solver", "available", "minimize"]
-from torchcal.optim import cpso, hybrid, pso  # noqa: F401  (registers solvers)
-from torchcal.optim import gradient, lm  # noqa: F401  (registers solvers)
-from torchcal.optim import ga, mayfly  # noqa: F401  (registers solvers)

@@ -5,22 +5,13 @@ import time
 from typing import Callable
 
 import torch
-from tqdm.auto import tqdm
 
 from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
 
-__all__ = ["Solver", "register", "get_solver", "available", "minimize", "progress_bar"]
+__all__ = ["Solver", "register", "get_solver", "available", "minimize"]
 
 _REGISTRY: dict[str, type["Solver"]] = {}
-
-
-def progress_bar(enabled: bool, total: int, desc: str):
-    """A tqdm bar of ``total`` iterations when ``enabled``, else ``None`` (most runs inside a
-    calibration loop want no bar)."""
-    if not enabled:
-        return None
-    return tqdm(total=total, desc=desc, leave=False)
 
 
 class Solver:

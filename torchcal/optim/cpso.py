@@ -18,8 +18,8 @@ import torch
 from torch import Tensor
 
 from torchcal.optim.base import register
-from torchcal.problems.base import Problem
 from torchcal.optim.pso import PSO, SwarmState
+from torchcal.problems.base import Problem
 
 __all__ = ["ChaoticPSO", "logistic_sequence", "avoid_fixed_points"]
 

@@ -13,60 +13,22 @@ scaling, island migration) and the usual real-coded GA operators where they do n
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import Callable
 
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, progress_bar, register
-from torchcal.problems.base import Problem
+from torchcal.optim.base import register
+from torchcal.optim.engine import IterativeSolver, evaluate
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
 __all__ = ["GeneticAlgorithm"]
 
 
-# -- helpers shared with mayfly.py ----------------------------------------------------------------
-def _evaluate(problem: Problem, X: Tensor) -> Tensor:
-    """Batched fitness ``(N, k) -> (N,)`` in the problem's dtype.
-
-    NaN is mapped to ``+inf`` so a failed evaluation can never be selected as a best (``argmin``
-    and ``sort`` would otherwise treat NaN inconsistently).
-    """
-    f = problem.fitness(X).to(dtype=problem.dtype).reshape(X.shape[0])
-    return torch.where(torch.isnan(f), torch.full_like(f, float("inf")), f)
-
-
-class _Reporter:
-    """History, progress bar and callback of one run.
-
-    The history is a device tensor converted once at the end: a per-generation ``.item()``
-    would force a host synchronisation every generation on a GPU. ``float(best)`` is only taken
-    when a bar or a callback needs it.
-    """
-
-    def __init__(self, solver: Solver, n_gen: int, problem: Problem):
-        self.hist = torch.empty(n_gen + 1, dtype=problem.dtype, device=problem.device)
-        self.bar = progress_bar(solver.progress, n_gen, solver.name)
-        self.callback = solver.callback
-
-    def __call__(self, it: int, best: Tensor) -> None:
-        self.hist[it] = best
-        if self.bar is not None or self.callback is not None:
-            b = float(best)
-            if self.bar is not None and it > 0:
-                self.bar.update(1)
-                self.bar.set_postfix(best=f"{b:.4g}", refresh=False)
-            if self.callback is not None:
-                self.callback(it, b)
-
-    def close(self) -> list[float]:
-        if self.bar is not None:
-            self.bar.close()
-        return self.hist.tolist()
-
-
 @register
-class GeneticAlgorithm(Solver):
+class GeneticAlgorithm(IterativeSolver):
     """Real-coded genetic algorithm with elitism and island migration.
 
     One generation, on every island at once (shapes ``(I, S, k)``; ``I = n_islands``,
@@ -261,54 +223,53 @@ class GeneticAlgorithm(Solver):
         return Xn, Fn
 
     # -- the run --------------------------------------------------------------------------------
-    def _run(self, problem: Problem) -> Result:
+    def init(self, problem: Problem, g: torch.Generator) -> SimpleNamespace:
         problem.require_finite_bounds(self.name)
-        g = self.generator(problem)
         dt, dev = problem.dtype, problem.device
         lo, hi = problem.lower, problem.upper
-        span = hi - lo
         I, S, k, E = self.n_islands, self.island_size, problem.dim, self.n_elite
         n_child = S - E
-        n_par = n_child + (n_child % 2)  # pairs need an even number; the spare child is dropped
-
-        X = lo + torch.rand((I * S, k), generator=g, dtype=dt, device=dev) * span
+        s = SimpleNamespace(span=hi - lo, k=k, n_child=n_child,
+                            n_par=n_child + (n_child % 2),  # pairs need an even number; the spare child is dropped
+                            n_migrations=0)
+        X = lo + torch.rand((I * S, k), generator=g, dtype=dt, device=dev) * s.span
         if problem.x0 is not None:
             # Seed the population with the user's start; elitism keeps it until beaten.
             X[0] = problem.clip(problem.x0)
         X = problem.clip(X)  # lo + u*span can overshoot hi by one rounding step
-        F = _evaluate(problem, X).reshape(I, S)
-        X = X.reshape(I, S, k)
-        n_evals = I * S
-        i = int(torch.argmin(F.reshape(-1)))
-        best_x, best_f = X.reshape(-1, k)[i].clone(), F.reshape(-1)[i].clone()
+        s.F = evaluate(problem, X).reshape(I, S)
+        s.X = X.reshape(I, S, k)
+        s.n_evals = I * S
+        i = int(torch.argmin(s.F.reshape(-1)))
+        s.best_x, s.best = s.X.reshape(-1, k)[i].clone(), s.F.reshape(-1)[i].clone()
+        return s
 
-        rep = _Reporter(self, self.max_iter, problem)
-        rep(0, best_f)
-        n_migrations = 0
-        for t in range(1, self.max_iter + 1):
-            order = torch.argsort(F, dim=1, stable=True)
-            elite = order[:, :E]
-            par = self._select(F, n_par, g)
-            parents = torch.gather(X, 1, par[..., None].expand(I, n_par, k))
-            C = self._crossover(parents, g)[:, :n_child]
-            C = problem.clip(self._mutate(C, t, span, g))
-            Fc = _evaluate(problem, C.reshape(-1, k)).reshape(I, n_child)
-            n_evals += I * n_child
-            X = torch.cat((torch.gather(X, 1, elite[..., None].expand(I, E, k)), C), 1)
-            F = torch.cat((torch.gather(F, 1, elite), Fc), 1)
-            if self.n_migrants > 0 and t % self.migration_interval == 0:
-                X, F = self._migrate(X, F)
-                n_migrations += 1
-            # Best ever: children are the only new points (elites and migrants were seen).
-            j = torch.argmin(Fc.reshape(-1))
-            cf = Fc.reshape(-1)[j]
-            better = cf < best_f
-            best_x = torch.where(better, C.reshape(-1, k)[j], best_x)
-            best_f = torch.where(better, cf, best_f)
-            rep(t, best_f)
-        hist = rep.close()
-        return Result(x=best_x, fun=float(best_f), history=hist, n_evals=n_evals,
-                      n_iter=self.max_iter, converged=False,
-                      message=f"reached max_iter={self.max_iter}",
-                      extra={"n_islands": I, "island_size": S, "n_elite": E,
-                             "n_migrants": self.n_migrants, "n_migrations": n_migrations})
+    def step(self, problem: Problem, s: SimpleNamespace, t: int, g: torch.Generator) -> None:
+        I, k, E, n_child = self.n_islands, s.k, self.n_elite, s.n_child
+        X, F = s.X, s.F
+        order = torch.argsort(F, dim=1, stable=True)
+        elite = order[:, :E]
+        par = self._select(F, s.n_par, g)
+        parents = torch.gather(X, 1, par[..., None].expand(I, s.n_par, k))
+        C = self._crossover(parents, g)[:, :n_child]
+        C = problem.clip(self._mutate(C, t, s.span, g))
+        Fc = evaluate(problem, C.reshape(-1, k)).reshape(I, n_child)
+        s.n_evals += I * n_child
+        X = torch.cat((torch.gather(X, 1, elite[..., None].expand(I, E, k)), C), 1)
+        F = torch.cat((torch.gather(F, 1, elite), Fc), 1)
+        if self.n_migrants > 0 and t % self.migration_interval == 0:
+            X, F = self._migrate(X, F)
+            s.n_migrations += 1
+        s.X, s.F = X, F
+        # Best ever: children are the only new points (elites and migrants were seen).
+        j = torch.argmin(Fc.reshape(-1))
+        cf = Fc.reshape(-1)[j]
+        better = cf < s.best
+        s.best_x = torch.where(better, C.reshape(-1, k)[j], s.best_x)
+        s.best = torch.where(better, cf, s.best)
+        return None
+
+    def finish(self, problem: Problem, s: SimpleNamespace) -> tuple[Tensor, float, dict]:
+        return s.best_x, float(s.best), {"n_islands": self.n_islands, "island_size": self.island_size,
+                                         "n_elite": self.n_elite, "n_migrants": self.n_migrants,
+                                         "n_migrations": s.n_migrations}

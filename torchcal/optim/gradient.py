@@ -11,14 +11,16 @@ All work in float64 on the problem's device and start from ``problem.start()``.
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, register
-from torchcal.optim.lm import _JAC_MODES, LsqEvaluator, Reporter, bounds64, fitness_is_sum_of_squares, require_residuals
-from torchcal.problems.base import Problem
+from torchcal.optim.base import register
+from torchcal.optim.engine import IterativeSolver
+from torchcal.optim.lm import JAC_MODES, LsqEvaluator, bounds64, fitness_is_sum_of_squares, require_residuals
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
 __all__ = ["GaussNewton", "LBFGS", "Adam"]
 
@@ -32,7 +34,7 @@ def _held(x: Tensor, grad: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
 
 # -- Gauss-Newton ----------------------------------------------------------------------------
 @register
-class GaussNewton(Solver):
+class GaussNewton(IterativeSolver):
     """Gauss-Newton with minimum-norm steps and a backtracking line search.
 
     Each iteration solves ``min ||J h + r||`` for the minimum-norm ``h`` (``torch.linalg.lstsq``
@@ -67,6 +69,9 @@ class GaussNewton(Solver):
         the Jacobian columns of the moving parameters at the solution) and ``"n_jac"``.
     """
 
+    callback_at_start = False
+    history_dtype = torch.float64
+
     name = "gn"
     aliases = ("gauss-newton",)
 
@@ -74,8 +79,8 @@ class GaussNewton(Solver):
                  rcond: float | None = None, n_backtrack: int = 30, gtol: float = 1e-10,
                  xtol: float = 1e-10, ftol: float = 1e-12, jac: str = "problem", **common):
         super().__init__(**common)
-        if jac not in _JAC_MODES:
-            raise ValueError(f"jac must be one of {', '.join(_JAC_MODES)}, got {jac!r}")
+        if jac not in JAC_MODES:
+            raise ValueError(f"jac must be one of {', '.join(JAC_MODES)}, got {jac!r}")
         self.jac = jac
         self.max_iter = int(max_iter)
         self.free = None if free is None else [int(i) for i in free]
@@ -89,11 +94,10 @@ class GaussNewton(Solver):
             return torch.linalg.lstsq(Jf, -r[:, None], rcond=self.rcond, driver="gelsd").solution[:, 0]
         return -(torch.linalg.pinv(Jf, rtol=self.rcond) @ r)
 
-    def _run(self, problem: Problem) -> Result:
+    def init(self, problem: Problem, g: torch.Generator) -> SimpleNamespace:
         require_residuals(problem, "Gauss-Newton")
         lower, upper, bounded = bounds64(problem)
         ev = LsqEvaluator(problem, self.jac, *((lower, upper) if bounded else (None, None)))
-        sos = fitness_is_sum_of_squares(problem)
         k = problem.dim
         if self.free is not None:
             bad = [i for i in self.free if not -k <= i < k]
@@ -102,87 +106,76 @@ class GaussNewton(Solver):
             free_idx = torch.tensor(sorted({i % k for i in self.free}), device=problem.device)
         else:
             free_idx = torch.arange(k, device=problem.device)
-
         x = problem.start().to(_F64)
         if bounded:
             x = torch.clamp(x, lower, upper)
         r = ev.residuals(x)
-        S = float(r @ r)
+        st = SimpleNamespace(problem=problem, lower=lower, upper=upper, bounded=bounded, ev=ev, free_idx=free_idx,
+                             sos=fitness_is_sum_of_squares(problem), x=x, r=r, S=float(r @ r), n_evals=0,
+                             halvings=0.5 ** torch.arange(1, self.n_backtrack + 1, dtype=_F64, device=x.device))
+        st.best = self._fit_at(st)
+        st.J = ev.jacobian(x, r)
+        return st
 
-        def fit_at(x_: Tensor, S_: float) -> float:
-            return S_ if sos else float(problem.fitness(x_[None].to(problem.dtype))[0])
+    @staticmethod
+    def _fit_at(st: SimpleNamespace) -> float:
+        return st.S if st.sos else float(st.problem.fitness(st.x[None].to(st.problem.dtype))[0])
 
-        halvings = 0.5 ** torch.arange(1, self.n_backtrack + 1, dtype=_F64, device=x.device)
-        fit = fit_at(x, S)
-        history = [fit]
-        report = Reporter(self, self.max_iter, "gn")
-        converged, message, it = False, "", 0
-        J = ev.jacobian(x, r)
-        try:
-            while it < self.max_iter:
-                g = J.mT @ r
-                Jf = J[:, free_idx]
-                gf = g[free_idx]
-                if bounded:
-                    # a zero column gives a zero minimum-norm step for that parameter
-                    held = _held(x[free_idx], gf, lower[free_idx], upper[free_idx])
-                    Jf = Jf * (~held).to(_F64)
-                    gf = gf * (~held).to(_F64)
-                gnorm = float(torch.linalg.vector_norm(gf, math.inf))
-                if gnorm < self.gtol:
-                    converged, message = True, "projected gradient below gtol"
-                    break
-                h = torch.zeros_like(x)
-                h[free_idx] = self._step(Jf, r)
-                slope = 2.0 * float(g @ h)  # dS/dt at t = 0
-                # for a least-squares step the model decrease of S is -slope / 2
-                if -0.5 * slope <= self.ftol * S:
-                    converged, message = True, "predicted relative decrease below ftol"
-                    break
-                it += 1
-                x_new = x + h
-                if bounded:
-                    x_new = torch.clamp(x_new, lower, upper)
-                r_new = ev.residuals(x_new)
-                S_new = float(r_new @ r_new)
-                if not S_new <= S + 1e-4 * slope:
-                    X = x + halvings[:, None] * h
-                    if bounded:
-                        X = torch.clamp(X, lower, upper)
-                    R = ev.batch(X)
-                    Sb = (R * R).sum(-1)
-                    ok = Sb <= S + 1e-4 * halvings * slope
-                    ok = ok if bool(ok.any()) else (Sb < S)
-                    if not bool(ok.any()):
-                        message = "line search found no decrease"
-                        history.append(fit)
-                        report(it, fit)
-                        break
-                    j = int(torch.nonzero(ok)[0])
-                    x_new, r_new, S_new = X[j].clone(), R[j].clone(), float(Sb[j])
-                step = float(torch.linalg.vector_norm(x_new - x))
-                xnorm = float(torch.linalg.vector_norm(x))
-                dec = S - S_new
-                x, r, S = x_new, r_new, S_new
-                J = ev.jacobian(x, r)
-                fit = fit_at(x, S)
-                history.append(fit)
-                report(it, fit)
-                if step <= self.xtol * (xnorm + self.xtol):
-                    converged, message = True, "step below xtol"
-                    break
-                if dec <= self.ftol * (S + dec):
-                    converged, message = True, "relative decrease of the sum of squares below ftol"
-                    break
-        finally:
-            report.close()
-        if not message:
-            message = f"reached max_iter={self.max_iter}"
-        rank = int(torch.linalg.matrix_rank(J[:, free_idx], rtol=self.rcond))
-        return Result(x=x, fun=fit, history=history, n_evals=ev.n_res, n_iter=it,
-                      converged=converged, message=message,
-                      extra={"jacobian": J, "residuals": r, "cost": 0.5 * S, "rank": rank,
-                             "n_jac": ev.n_jac})
+    def check(self, problem: Problem, st: SimpleNamespace) -> tuple[bool, str] | None:
+        g = st.J.mT @ st.r
+        Jf = st.J[:, st.free_idx]
+        gf = g[st.free_idx]
+        if st.bounded:
+            # a zero column gives a zero minimum-norm step for that parameter
+            held = _held(st.x[st.free_idx], gf, st.lower[st.free_idx], st.upper[st.free_idx])
+            Jf = Jf * (~held).to(_F64)
+            gf = gf * (~held).to(_F64)
+        if float(torch.linalg.vector_norm(gf, math.inf)) < self.gtol:
+            return True, "projected gradient below gtol"
+        h = torch.zeros_like(st.x)
+        h[st.free_idx] = self._step(Jf, st.r)
+        st.h, st.slope = h, 2.0 * float(g @ h)  # dS/dt at t = 0
+        # for a least-squares step the model decrease of S is -slope / 2
+        if -0.5 * st.slope <= self.ftol * st.S:
+            return True, "predicted relative decrease below ftol"
+        return None
+
+    def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> tuple[bool, str] | None:
+        x, h, S, slope = st.x, st.h, st.S, st.slope
+        x_new = x + h
+        if st.bounded:
+            x_new = torch.clamp(x_new, st.lower, st.upper)
+        r_new = st.ev.residuals(x_new)
+        S_new = float(r_new @ r_new)
+        if not S_new <= S + 1e-4 * slope:
+            X = x + st.halvings[:, None] * h
+            if st.bounded:
+                X = torch.clamp(X, st.lower, st.upper)
+            R = st.ev.batch(X)
+            Sb = (R * R).sum(-1)
+            ok = Sb <= S + 1e-4 * st.halvings * slope
+            ok = ok if bool(ok.any()) else (Sb < S)
+            if not bool(ok.any()):
+                return False, "line search found no decrease"
+            j = int(torch.nonzero(ok)[0])
+            x_new, r_new, S_new = X[j].clone(), R[j].clone(), float(Sb[j])
+        step = float(torch.linalg.vector_norm(x_new - x))
+        xnorm = float(torch.linalg.vector_norm(x))
+        dec = S - S_new
+        st.x, st.r, st.S = x_new, r_new, S_new
+        st.J = st.ev.jacobian(x_new, r_new)
+        st.best = self._fit_at(st)
+        if step <= self.xtol * (xnorm + self.xtol):
+            return True, "step below xtol"
+        if dec <= self.ftol * (S_new + dec):
+            return True, "relative decrease of the sum of squares below ftol"
+        return None
+
+    def finish(self, problem: Problem, st: SimpleNamespace) -> tuple[Tensor, float, dict]:
+        st.n_evals = st.ev.n_res
+        rank = int(torch.linalg.matrix_rank(st.J[:, st.free_idx], rtol=self.rcond))
+        return st.x, st.best, {"jacobian": st.J, "residuals": st.r, "cost": 0.5 * st.S, "rank": rank,
+                               "n_jac": st.ev.n_jac}
 
 
 # -- autograd solvers ------------------------------------------------------------------------
@@ -243,7 +236,7 @@ def _autograd_setup(problem: Problem, who: str):
 
 
 @register
-class LBFGS(Solver):
+class LBFGS(IterativeSolver):
     """L-BFGS (``torch.optim.LBFGS``) with a strong-Wolfe line search on ``problem.fitness``.
 
     Gradients come from autograd through ``problem.fitness`` on a ``(1, k)`` batch; the problem
@@ -273,6 +266,9 @@ class LBFGS(Solver):
         ``n_evals`` counts fitness(+gradient) evaluations.
     """
 
+    callback_at_start = False
+    history_dtype = torch.float64
+
     name = "lbfgs"
 
     def __init__(self, *, max_iter: int = 500, history_size: int = 20, lr: float = 1.0,
@@ -284,7 +280,7 @@ class LBFGS(Solver):
         self.max_ls = int(max_ls)
         self.gtol, self.ftol = float(gtol), float(ftol)
 
-    def _run(self, problem: Problem) -> Result:
+    def init(self, problem: Problem, g: torch.Generator) -> SimpleNamespace:
         x0, fg = _autograd_setup(problem, "L-BFGS")
         x = x0.clone().requires_grad_(True)
         # one iteration per step() so history, callback and clipping happen per iteration;
@@ -292,54 +288,47 @@ class LBFGS(Solver):
         opt = torch.optim.LBFGS([x], lr=self.lr, max_iter=1, max_eval=1 + self.max_ls,
                                 tolerance_grad=self.gtol, tolerance_change=1e-300,
                                 history_size=self.history_size, line_search_fn="strong_wolfe")
+        f, grad = fg(x)
+        return SimpleNamespace(x=x, fg=fg, opt=opt, f=f, grad=grad, best=fg.best_f, n_evals=fg.n_evals)
+
+    def check(self, problem: Problem, st: SimpleNamespace) -> tuple[bool, str] | None:
+        return (True, "projected gradient below gtol") if float(st.grad.abs().max()) < self.gtol else None
+
+    def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> tuple[bool, str] | None:
+        x, fg = st.x, st.fg
 
         def closure() -> Tensor:
             f, grad = fg(x)
             x.grad = grad
             return f
 
-        f, grad = fg(x)
-        history = [fg.best_f]
-        report = Reporter(self, self.max_iter, "lbfgs")
-        converged, message, it = False, "", 0
-        try:
-            while it < self.max_iter:
-                if float(grad.abs().max()) < self.gtol:
-                    converged, message = True, "projected gradient below gtol"
-                    break
-                it += 1
-                f_prev = float(f)
-                x_prev = x.detach().clone()
-                fg.cache = [c for c in fg.cache if torch.equal(c[0], x_prev)]
-                opt.step(closure)
-                if fg.bounded:
-                    with torch.no_grad():
-                        xc = torch.clamp(x, fg.lower, fg.upper)
-                        if not torch.equal(xc, x):
-                            x.copy_(xc)
-                            opt.state.clear()
-                f, grad = fg(x)
-                history.append(fg.best_f)
-                report(it, fg.best_f)
-                if torch.equal(x.detach(), x_prev):
-                    # the line search stalls at rounding level near a minimum; count that as
-                    # converged only when the gradient is small, though above gtol
-                    converged = float(grad.abs().max()) < math.sqrt(self.gtol)
-                    message = "no progress along the L-BFGS direction"
-                    break
-                if abs(f_prev - float(f)) <= self.ftol * max(abs(f_prev), 1e-300):
-                    converged, message = True, "relative change of the fitness below ftol"
-                    break
-        finally:
-            report.close()
-        if not message:
-            message = f"reached max_iter={self.max_iter}"
-        return Result(x=fg.best_x, fun=fg.best_f, history=history, n_evals=fg.n_evals,
-                      n_iter=it, converged=converged, message=message)
+        f_prev = float(st.f)
+        x_prev = x.detach().clone()
+        fg.cache = [c for c in fg.cache if torch.equal(c[0], x_prev)]
+        st.opt.step(closure)
+        if fg.bounded:
+            with torch.no_grad():
+                xc = torch.clamp(x, fg.lower, fg.upper)
+                if not torch.equal(xc, x):
+                    x.copy_(xc)
+                    st.opt.state.clear()
+        st.f, st.grad = fg(x)
+        st.best, st.n_evals = fg.best_f, fg.n_evals
+        if torch.equal(x.detach(), x_prev):
+            # the line search stalls at rounding level near a minimum; count that as
+            # converged only when the gradient is small, though above gtol
+            return float(st.grad.abs().max()) < math.sqrt(self.gtol), "no progress along the L-BFGS direction"
+        if abs(f_prev - float(st.f)) <= self.ftol * max(abs(f_prev), 1e-300):
+            return True, "relative change of the fitness below ftol"
+        return None
+
+    def finish(self, problem: Problem, st: SimpleNamespace) -> tuple[Tensor, float, dict]:
+        st.n_evals = st.fg.n_evals
+        return st.fg.best_x, st.fg.best_f, {}
 
 
 @register
-class Adam(Solver):
+class Adam(IterativeSolver):
     """Adam (``torch.optim.Adam``) on ``problem.fitness`` with autograd gradients.
 
     A first-order method with a fixed learning rate: it gets near a minimum, not to machine
@@ -357,6 +346,9 @@ class Adam(Solver):
         ``n_evals`` counts fitness(+gradient) evaluations.
     """
 
+    callback_at_start = False
+    history_dtype = torch.float64
+
     name = "adam"
 
     def __init__(self, *, max_iter: int = 2000, lr: float = 1e-2,
@@ -367,32 +359,26 @@ class Adam(Solver):
         self.betas = (float(betas[0]), float(betas[1]))
         self.gtol = float(gtol)
 
-    def _run(self, problem: Problem) -> Result:
+    def init(self, problem: Problem, g: torch.Generator) -> SimpleNamespace:
         x0, fg = _autograd_setup(problem, "Adam")
         x = x0.clone().requires_grad_(True)
-        opt = torch.optim.Adam([x], lr=self.lr, betas=self.betas)
         f, grad = fg(x)
-        history = [fg.best_f]
-        report = Reporter(self, self.max_iter, "adam")
-        converged, message, it = False, "", 0
-        try:
-            while it < self.max_iter:
-                if float(grad.abs().max()) < self.gtol:
-                    converged, message = True, "projected gradient below gtol"
-                    break
-                it += 1
-                fg.cache.clear()  # Adam never revisits a point; keep the cache from growing
-                x.grad = grad
-                opt.step()
-                if fg.bounded:
-                    with torch.no_grad():
-                        x.clamp_(fg.lower, fg.upper)
-                f, grad = fg(x)
-                history.append(fg.best_f)
-                report(it, fg.best_f)
-        finally:
-            report.close()
-        if not message:
-            message = f"reached max_iter={self.max_iter}"
-        return Result(x=fg.best_x, fun=fg.best_f, history=history, n_evals=fg.n_evals,
-                      n_iter=it, converged=converged, message=message)
+        return SimpleNamespace(x=x, fg=fg, opt=torch.optim.Adam([x], lr=self.lr, betas=self.betas), grad=grad,
+                               best=fg.best_f, n_evals=fg.n_evals)
+
+    def check(self, problem: Problem, st: SimpleNamespace) -> tuple[bool, str] | None:
+        return (True, "projected gradient below gtol") if float(st.grad.abs().max()) < self.gtol else None
+
+    def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> None:
+        st.fg.cache.clear()  # Adam never revisits a point; keep the cache from growing
+        st.x.grad = st.grad
+        st.opt.step()
+        if st.fg.bounded:
+            with torch.no_grad():
+                st.x.clamp_(st.fg.lower, st.fg.upper)
+        _, st.grad = st.fg(st.x)
+        st.best, st.n_evals = st.fg.best_f, st.fg.n_evals
+        return None
+
+    def finish(self, problem: Problem, st: SimpleNamespace) -> tuple[Tensor, float, dict]:
+        return st.fg.best_x, st.fg.best_f, {}

@@ -13,8 +13,8 @@ from typing import Any, Callable
 import torch
 
 from torchcal.optim.base import Solver, get_solver, register
-from torchcal.problems.base import Problem
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
 __all__ = ["Hybrid"]
 

@@ -9,14 +9,15 @@ Also holds small helpers shared with :mod:`torchcal.optim.gradient`.
 from __future__ import annotations
 
 import math
-from typing import Callable
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, progress_bar, register
-from torchcal.problems.base import LeastSquaresProblem, Problem
+from torchcal.optim.base import Solver, register
+from torchcal.optim.engine import IterativeSolver
 from torchcal.optim.result import Result
+from torchcal.problems.base import LeastSquaresProblem, Problem
 
 __all__ = ["LevenbergMarquardt"]
 
@@ -49,26 +50,7 @@ def bounds64(problem: Problem) -> tuple[Tensor, Tensor, bool]:
     return lower, upper, bounded
 
 
-class Reporter:
-    """Per-iteration progress bar (tqdm, imported only when asked for) and user callback."""
-
-    def __init__(self, solver: Solver, total: int, desc: str):
-        self.callback: Callable[[int, float], None] | None = solver.callback
-        self.bar = progress_bar(solver.progress, total, desc)
-
-    def __call__(self, iteration: int, best: float) -> None:
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix(best=f"{best:.4e}", refresh=False)
-        if self.callback is not None:
-            self.callback(iteration, best)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
-_JAC_MODES = ("problem", "2-point", "3-point")
+JAC_MODES = ("problem", "2-point", "3-point")
 
 
 class LsqEvaluator:
@@ -87,8 +69,8 @@ class LsqEvaluator:
 
     def __init__(self, problem: Problem, jac: str = "problem", lower: Tensor | None = None,
                  upper: Tensor | None = None):
-        if jac not in _JAC_MODES:
-            raise ValueError(f"jac must be one of {', '.join(_JAC_MODES)}, got {jac!r}")
+        if jac not in JAC_MODES:
+            raise ValueError(f"jac must be one of {', '.join(JAC_MODES)}, got {jac!r}")
         self.problem = problem
         self.jac = jac
         self.lower, self.upper = lower, upper
@@ -150,7 +132,7 @@ class LsqEvaluator:
 
 # -- Levenberg-Marquardt ---------------------------------------------------------------------
 @register
-class LevenbergMarquardt(Solver):
+class LevenbergMarquardt(IterativeSolver):
     """Levenberg-Marquardt with Nielsen's gain-ratio damping update.
 
     Each iteration solves ``(JᵀJ + mu D) h = -Jᵀr`` by Cholesky and tries ``x + h``. With
@@ -197,6 +179,9 @@ class LevenbergMarquardt(Solver):
         (Jacobian evaluations) and ``"n_rejected"``.
     """
 
+    callback_at_start = False  # the callback hears every trial step, not the start
+    history_dtype = torch.float64
+
     name = "lm"
     aliases = ("levenberg-marquardt",)
 
@@ -204,8 +189,8 @@ class LevenbergMarquardt(Solver):
                  scaling: str = "marquardt", gtol: float = 1e-10, xtol: float = 1e-10,
                  ftol: float = 1e-12, jac: str = "problem", **common):
         super().__init__(**common)
-        if jac not in _JAC_MODES:
-            raise ValueError(f"jac must be one of {', '.join(_JAC_MODES)}, got {jac!r}")
+        if jac not in JAC_MODES:
+            raise ValueError(f"jac must be one of {', '.join(JAC_MODES)}, got {jac!r}")
         self.jac = jac
         if scaling not in ("identity", "marquardt"):
             raise ValueError(f"scaling must be 'identity' or 'marquardt', got {scaling!r}")
@@ -219,135 +204,131 @@ class LevenbergMarquardt(Solver):
         self.scaling = scaling
         self.gtol, self.xtol, self.ftol = float(gtol), float(xtol), float(ftol)
 
-    def _run(self, problem: Problem) -> Result:
+    # -- steps of the engine -------------------------------------------------------------------
+    def init(self, problem: Problem, g: torch.Generator) -> SimpleNamespace:
         require_residuals(problem, "Levenberg-Marquardt")
         lower, upper, bounded = bounds64(problem)
         ev = LsqEvaluator(problem, self.jac, *((lower, upper) if bounded else (None, None)))
-        sos = fitness_is_sum_of_squares(problem)
-        marquardt = self.scaling == "marquardt"
-        gtol, xtol, ftol = self.gtol, self.xtol, self.ftol
-        # the loop calls torch functions rather than operators (x + h, a @ b): on small CPU
-        # tensors the operator dispatch costs about as much as the arithmetic
-        add, dot, mv, mm = torch.add, torch.dot, torch.mv, torch.mm
-        chol, chol_solve = torch.linalg.cholesky_ex, torch.cholesky_solve
-
+        st = SimpleNamespace(problem=problem, lower=lower, upper=upper, bounded=bounded, ev=ev,
+                             sos=fitness_is_sum_of_squares(problem), marquardt=self.scaling == "marquardt",
+                             mu_history=[], n_rejected=0)
         x = problem.start().to(_F64)
         if bounded:
             x = torch.clamp(x, lower, upper)
         r = ev.residuals(x)
         J = ev.jacobian(x, r)
         k = x.numel()
-
-        def fit_at(x_: Tensor, S_: float) -> float:
-            return S_ if sos else float(problem.fitness(x_[None].to(problem.dtype))[0])
-
-        def linearise(x_: Tensor, r_: Tensor, J_: Tensor):
-            """``JᵀJ``, ``Jᵀr`` at ``x_``, the same with parameters held on an active bound
-            removed, and the right-hand side ``-Jᵀr`` as a ``(k, 1)`` column."""
-            Jt = J_.t()
-            A_ = mm(Jt, J_)
-            g_ = mv(Jt, r_)
-            if bounded:
-                held = ((x_ <= lower) & (g_ > 0)) | ((x_ >= upper) & (g_ < 0))
-                free = (~held).to(_F64)
-                # zeroing rows/columns and putting 1 on the diagonal gives h = 0 for held ones
-                Ae = A_ * free[:, None] * free[None, :] + torch.diag_embed(1.0 - free)
-                ge = g_ * free
-            else:
-                Ae, ge = A_, g_
-            return A_, g_, Ae, ge, torch.neg(ge).unsqueeze(1)
-
-        def gcos(ge_: Tensor, A_: Tensor, S_: Tensor) -> Tensor:
-            """Scale-free gradient test (MINPACK's): the largest cosine between r and a column of J."""
-            den = torch.sqrt(A_.diagonal().clamp(min=1e-300) * S_.clamp(min=1e-300))
-            return torch.where(S_ > 0, (ge_.abs() / den).max(), torch.zeros_like(S_))
-
-        A, g, Ae, ge, rhs = linearise(x, r, J)
-        S0 = dot(r, r)
+        A, gr, Ae, ge, rhs = self._linearise(st, x, r, J)
+        S0 = torch.dot(r, r)
         S, gnorm, xnorm, Amax = torch.stack([
-            S0, gcos(ge, A, S0), torch.linalg.vector_norm(x), A.diagonal().max()]).tolist()
-        if marquardt:
+            S0, _gcos(ge, A, S0), torch.linalg.vector_norm(x), A.diagonal().max()]).tolist()
+        if st.marquardt:
             # floor the scaling: a near-zero column would otherwise get no damping and its
             # parameter would run off in a direction the data cannot see
             dA = A.diagonal()
-            Dvec = dA.clamp(min=1e-6 * float(dA.max())) if float(dA.max()) > 0 else torch.ones_like(dA)
-            Dm = torch.diag_embed(Dvec)
-            mu = self.mu0 if self.mu0 is not None else self.tau
+            st.Dvec = dA.clamp(min=1e-6 * float(dA.max())) if float(dA.max()) > 0 else torch.ones_like(dA)
+            st.Dm = torch.diag_embed(st.Dvec)
+            st.mu = self.mu0 if self.mu0 is not None else self.tau
         else:
-            Dm = torch.eye(k, dtype=_F64, device=x.device)
-            mu = self.mu0 if self.mu0 is not None else self.tau * (Amax if Amax > 0 else 1.0)
-        nu = 2.0
+            st.Dm = torch.eye(k, dtype=_F64, device=x.device)
+            st.mu = self.mu0 if self.mu0 is not None else self.tau * (Amax if Amax > 0 else 1.0)
+        st.nu = 2.0
+        st.x, st.r, st.J, st.S, st.gnorm, st.xnorm = x, r, J, S, gnorm, xnorm
+        st.A, st.g, st.Ae, st.ge, st.rhs = A, gr, Ae, ge, rhs
+        st.best = self._fit_at(st, x, S)
+        st.n_evals = 0
+        if gnorm < self.gtol:
+            st.stop = (True, "projected gradient below gtol at the start")
+        return st
 
-        fit = fit_at(x, S)
-        history = [fit]
-        mu_history: list[float] = []
-        report = Reporter(self, self.max_iter, "lm")
-        n_rejected = 0
-        it = 0
-        converged = gnorm < gtol
-        message = "projected gradient below gtol at the start" if converged else ""
-        try:
-            while not converged and it < self.max_iter:
-                it += 1
-                L, info = chol(add(Ae, Dm, alpha=mu))
-                if info.item() != 0:
-                    # mu tiny against a singular JᵀJ lost positive definiteness: damp harder
-                    mu *= nu
-                    nu *= 2.0
-                    n_rejected += 1
-                else:
-                    h = chol_solve(rhs, L).view(-1)
-                    x_new = add(x, h)
-                    if bounded:
-                        x_new = torch.clamp(x_new, lower, upper)
-                        h = torch.sub(x_new, x)
-                    r_new = ev.residuals(x_new)
-                    S_new = dot(r_new, r_new).item()
-                    hh = dot(h, h).item()
-                    if bounded or marquardt:
-                        Jh = mv(J, h)
-                        pred = -2.0 * dot(h, g).item() - dot(Jh, Jh).item()
-                    else:
-                        # (A + mu I) h = -g  =>  S(0) - S_model(h) = mu h·h - h·g
-                        pred = mu * hh - dot(h, g).item()
-                    act = S - S_new
-                    rho = act / pred if (pred > 0 and math.isfinite(S_new)) else -1.0
-                    small_f = abs(act) <= ftol * S and pred <= ftol * S and rho <= 2.0
-                    small_x = math.sqrt(hh) <= xtol * (xnorm + xtol)
-                    if rho > 0:
-                        x, r, S = x_new, r_new, S_new
-                        J = ev.jacobian(x, r)
-                        A, g, Ae, ge, rhs = linearise(x, r, J)
-                        if marquardt:
-                            Dvec = torch.maximum(Dvec, A.diagonal())
-                            Dm = torch.diag_embed(Dvec)
-                        gnorm = gcos(ge, A, dot(r, r)).item()
-                        xnorm = torch.linalg.vector_norm(x).item()
-                        mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                        nu = 2.0
-                        fit = fit_at(x, S)
-                    else:
-                        mu *= nu
-                        nu *= 2.0
-                        n_rejected += 1
-                    if rho > 0 and gnorm < gtol:
-                        converged, message = True, "projected gradient below gtol"
-                    elif small_f:
-                        converged, message = True, "relative decrease of the sum of squares below ftol"
-                    elif small_x:
-                        converged, message = True, "step below xtol"
-                mu_history.append(mu)
-                history.append(fit)
-                report(it, fit)
-                if not converged and not math.isfinite(mu):
-                    message = "damping overflowed: no decrease found along any step"
-                    break
-        finally:
-            report.close()
-        if not message:
-            message = f"reached max_iter={self.max_iter}"
-        return Result(
-            x=x, fun=fit, history=history, n_evals=ev.n_res, n_iter=it, converged=converged,
-            message=message,
-            extra={"jacobian": J, "residuals": r, "cost": 0.5 * S, "mu_history": mu_history,
-                   "n_jac": ev.n_jac, "n_rejected": n_rejected})
+    @staticmethod
+    def _fit_at(st: SimpleNamespace, x: Tensor, S: float) -> float:
+        return S if st.sos else float(st.problem.fitness(x[None].to(st.problem.dtype))[0])
+
+    @staticmethod
+    def _linearise(st: SimpleNamespace, x: Tensor, r: Tensor, J: Tensor):
+        """``JᵀJ``, ``Jᵀr`` at ``x``, the same with parameters held on an active bound removed,
+        and the right-hand side ``-Jᵀr`` as a ``(k, 1)`` column."""
+        Jt = J.t()
+        A = torch.mm(Jt, J)
+        g = torch.mv(Jt, r)
+        if st.bounded:
+            held = ((x <= st.lower) & (g > 0)) | ((x >= st.upper) & (g < 0))
+            free = (~held).to(_F64)
+            # zeroing rows/columns and putting 1 on the diagonal gives h = 0 for held ones
+            Ae = A * free[:, None] * free[None, :] + torch.diag_embed(1.0 - free)
+            ge = g * free
+        else:
+            Ae, ge = A, g
+        return A, g, Ae, ge, torch.neg(ge).unsqueeze(1)
+
+    def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> tuple[bool, str] | None:
+        # torch functions rather than operators (x + h, a @ b): on small CPU tensors the
+        # operator dispatch costs about as much as the arithmetic
+        add, dot, mv = torch.add, torch.dot, torch.mv
+        x, g, S, mu, nu = st.x, st.g, st.S, st.mu, st.nu
+        stop = None
+        L, info = torch.linalg.cholesky_ex(add(st.Ae, st.Dm, alpha=mu))
+        if info.item() != 0:
+            # mu tiny against a singular JᵀJ lost positive definiteness: damp harder
+            mu *= nu
+            nu *= 2.0
+            st.n_rejected += 1
+        else:
+            h = torch.cholesky_solve(st.rhs, L).view(-1)
+            x_new = add(x, h)
+            if st.bounded:
+                x_new = torch.clamp(x_new, st.lower, st.upper)
+                h = torch.sub(x_new, x)
+            r_new = st.ev.residuals(x_new)
+            S_new = dot(r_new, r_new).item()
+            hh = dot(h, h).item()
+            if st.bounded or st.marquardt:
+                Jh = mv(st.J, h)
+                pred = -2.0 * dot(h, g).item() - dot(Jh, Jh).item()
+            else:
+                # (A + mu I) h = -g  =>  S(0) - S_model(h) = mu h·h - h·g
+                pred = mu * hh - dot(h, g).item()
+            act = S - S_new
+            rho = act / pred if (pred > 0 and math.isfinite(S_new)) else -1.0
+            small_f = abs(act) <= self.ftol * S and pred <= self.ftol * S and rho <= 2.0
+            small_x = math.sqrt(hh) <= self.xtol * (st.xnorm + self.xtol)
+            if rho > 0:
+                st.x, st.r, st.S = x_new, r_new, S_new
+                st.J = st.ev.jacobian(x_new, r_new)
+                st.A, st.g, st.Ae, st.ge, st.rhs = self._linearise(st, x_new, r_new, st.J)
+                if st.marquardt:
+                    st.Dvec = torch.maximum(st.Dvec, st.A.diagonal())
+                    st.Dm = torch.diag_embed(st.Dvec)
+                st.gnorm = _gcos(st.ge, st.A, dot(r_new, r_new)).item()
+                st.xnorm = torch.linalg.vector_norm(x_new).item()
+                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                st.best = self._fit_at(st, x_new, S_new)
+            else:
+                mu *= nu
+                nu *= 2.0
+                st.n_rejected += 1
+            if rho > 0 and st.gnorm < self.gtol:
+                stop = (True, "projected gradient below gtol")
+            elif small_f:
+                stop = (True, "relative decrease of the sum of squares below ftol")
+            elif small_x:
+                stop = (True, "step below xtol")
+        st.mu, st.nu = mu, nu
+        st.mu_history.append(mu)
+        st.n_evals = st.ev.n_res
+        if stop is None and not math.isfinite(mu):
+            stop = (False, "damping overflowed: no decrease found along any step")
+        return stop
+
+    def finish(self, problem: Problem, st: SimpleNamespace) -> tuple[Tensor, float, dict]:
+        st.n_evals = st.ev.n_res
+        return st.x, st.best, {"jacobian": st.J, "residuals": st.r, "cost": 0.5 * st.S,
+                               "mu_history": st.mu_history, "n_jac": st.ev.n_jac, "n_rejected": st.n_rejected}
+
+
+def _gcos(ge: Tensor, A: Tensor, S: Tensor) -> Tensor:
+    """Scale-free gradient test (MINPACK's): the largest cosine between r and a column of J."""
+    den = torch.sqrt(A.diagonal().clamp(min=1e-300) * S.clamp(min=1e-300))
+    return torch.where(S > 0, (ge.abs() / den).max(), torch.zeros_like(S))

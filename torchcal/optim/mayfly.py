@@ -12,19 +12,18 @@ Shapes: males ``Xm, Vm, Pm`` (positions, velocities, personal bests) ``(n, k)`` 
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable
 
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, register
-from torchcal.optim.ga import _evaluate, _Reporter
-from torchcal.problems.base import Problem
+from torchcal.optim.base import register
+from torchcal.optim.engine import IterativeSolver, evaluate
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
-__all__ = ["Mayfly", "ModifiedMayfly", "MayflyState", "improved_tent_map"]
+__all__ = ["Mayfly", "MayflyState", "best_rows", "sorted_rows"]
 
 
 @dataclass
@@ -51,6 +50,11 @@ class MayflyState:
     gf: Tensor
     n_evals: int = 0
 
+    @property
+    def best(self) -> Tensor:
+        """The best fitness so far (what the engine records)."""
+        return self.gf
+
     def offer(self, X: Tensor, f: Tensor) -> None:
         """Update the global best from candidates ``X (N, k)``, ``f (N,)`` (no host sync).
 
@@ -63,49 +67,21 @@ class MayflyState:
         self.gf = torch.where(better, f[j], self.gf)
 
 
-def _sorted(f: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
+def sorted_rows(f: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
     """Sort ``f`` ascending (stable, so ties keep their order: deterministic) and reorder the
     other ``(n, ...)`` tensors the same way."""
     order = torch.argsort(f, stable=True)
     return (f[order], *(t[order] for t in tensors))
 
 
-def _best(n: int, f: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
+def best_rows(n: int, f: Tensor, *tensors: Tensor) -> tuple[Tensor, ...]:
     """The ``n`` fittest rows, sorted best first."""
-    out = _sorted(f, *tensors)
+    out = sorted_rows(f, *tensors)
     return tuple(t[:n] for t in out)
 
 
-def improved_tent_map(z0: Tensor, noise: Tensor, a: float = 0.5) -> Tensor:
-    """Iterate the improved tent map from ``z0``: ``(k,)``, ``noise (n, k)`` -> ``(n, k)``.
-
-    ::
-
-        z_{i+1} = ( z_i / a            + noise_i )  mod 1    if z_i <  a
-        z_{i+1} = ( (1 - z_i)/(1 - a)  + noise_i )  mod 1    if z_i >= a
-
-    Row ``i`` of the result is ``z_{i+1}``. Each of the ``k`` components is an independent chain.
-    ``noise`` is the small random term that breaks the plain tent map's short and unstable
-    cycles (with ``a = 0.5`` in binary floating point, ``2 z`` shifts one mantissa bit out per
-    step and every orbit collapses to 0 within ~53 steps); the usual choice, used by
-    :class:`ModifiedMayfly`, is ``noise ~ U(0, 1) / N`` with ``N`` the length of the sequence.
-
-    The recurrence is inherently sequential, so this loops over the ``n`` steps (vectorised over
-    the ``k`` chains); it runs once per optimisation, at initialisation.
-    """
-    if not 0.0 < a < 1.0:
-        raise ValueError(f"tent parameter a must be in (0, 1), got {a}")
-    out = torch.empty_like(noise)
-    z = z0
-    for i in range(noise.shape[0]):
-        z = torch.where(z < a, z / a, (1.0 - z) / (1.0 - a)) + noise[i]
-        z = torch.remainder(z, 1.0)
-        out[i] = z
-    return out
-
-
 @register
-class Mayfly(Solver):
+class Mayfly(IterativeSolver):
     """Mayfly algorithm (MA), Zervoudakis & Tsafarakis (2020), as described in seed 002.
 
     ``n = pop_size`` males and ``n`` females. Each generation (every mayfly of a sex at once):
@@ -208,13 +184,13 @@ class Mayfly(Solver):
         if problem.x0 is not None:
             X[0] = problem.x0
         X = problem.clip(X)  # also catches lo + u*span overshooting hi by a rounding step
-        f = _evaluate(problem, X)
+        f = evaluate(problem, X)
         return self._state(X[:n], f[:n], X[n:], f[n:], n_evals=2 * n)
 
     @staticmethod
     def _state(Xm: Tensor, fm: Tensor, Xf: Tensor, ff: Tensor, n_evals: int) -> MayflyState:
-        fm, Xm = _sorted(fm, Xm)
-        ff, Xf = _sorted(ff, Xf)
+        fm, Xm = sorted_rows(fm, Xm)
+        ff, Xf = sorted_rows(ff, Xf)
         s = MayflyState(Xm=Xm, Vm=torch.zeros_like(Xm), fm=fm, Pm=Xm.clone(), pf=fm.clone(),
                         Xf=Xf, Vf=torch.zeros_like(Xf), ff=ff, gx=Xm[0].clone(), gf=fm[0].clone(),
                         n_evals=n_evals)
@@ -234,195 +210,80 @@ class Mayfly(Solver):
         L = torch.rand(M.shape, generator=g, dtype=M.dtype, device=M.device)
         # Convex combinations stay in the box; clip only guards against rounding.
         X = problem.clip(torch.cat((L * M + (1.0 - L) * Fe, L * Fe + (1.0 - L) * M), 0))
-        f = _evaluate(problem, X)
+        f = evaluate(problem, X)
         s.n_evals += 2 * h
         is_male = torch.arange(2 * h, device=X.device) < h
         return X, f, is_male
 
-    # -- the run --------------------------------------------------------------------------------
-    def _run(self, problem: Problem) -> Result:
+    # -- the run (steps of the engine) --------------------------------------------------------
+    def init(self, problem: Problem, gen: torch.Generator) -> MayflyState:
         problem.require_finite_bounds(self.name)
-        gen = self.generator(problem)
-        dt, dev = problem.dtype, problem.device
-        lo, hi = problem.lower, problem.upper
-        span = hi - lo
+        s = self.initial_population(problem, gen)
+        span = problem.upper - problem.lower
         # Distances are measured in units of the range; a zero range (fixed parameter) gets
         # unit scale so nothing divides by zero (its distances are 0 anyway).
-        inv_span = 1.0 / torch.where(span > 0, span, torch.ones_like(span))
-        vlim = self.v_max * span
-        n = self.pop_size
-        g, d, fl = self.g, self.d, self.fl
+        s.span, s.inv_span = span, 1.0 / torch.where(span > 0, span, torch.ones_like(span))
+        s.vlim = self.v_max * span
+        s.g, s.d, s.fl = self.g, self.d, self.fl  # damped every generation
+        return s
 
-        s = self.initial_population(problem, gen)
-        rep = _Reporter(self, self.max_iter, problem)
-        rep(0, s.gf)
+    @staticmethod
+    def _move(problem: Problem, s: MayflyState, X: Tensor, V: Tensor) -> tuple[Tensor, Tensor]:
+        V = torch.maximum(torch.minimum(V, s.vlim), -s.vlim)
+        return problem.clip(X + V), V
 
-        def move(X: Tensor, V: Tensor) -> tuple[Tensor, Tensor]:
-            V = torch.maximum(torch.minimum(V, vlim), -vlim)
-            return problem.clip(X + V), V
+    def step(self, problem: Problem, s: MayflyState, t: int, gen: torch.Generator) -> None:
+        n, span, inv_span = self.pop_size, s.span, s.inv_span
+        r = torch.rand((2, n, problem.dim), generator=gen, dtype=problem.dtype, device=problem.device) * 2.0 - 1.0
 
-        for t in range(1, self.max_iter + 1):
-            r = torch.rand((2, n, problem.dim), generator=gen, dtype=dt, device=dev) * 2.0 - 1.0
+        # 1. Females: towards the same-rank male when he is fitter, else a random flight.
+        diff = s.Xm - s.Xf
+        attract = (s.ff > s.fm)[:, None]
+        Vf = s.g * s.Vf + torch.where(
+            attract, self.a3 * torch.exp(-self.beta * (diff * inv_span) ** 2) * diff,
+            s.fl * span * r[0])
+        s.Xf, s.Vf = self._move(problem, s, s.Xf, Vf)
+        s.ff = evaluate(problem, s.Xf)
+        s.offer(s.Xf, s.ff)
 
-            # 1. Females: towards the same-rank male when he is fitter, else a random flight.
-            diff = s.Xm - s.Xf
-            attract = (s.ff > s.fm)[:, None]
-            Vf = g * s.Vf + torch.where(
-                attract, self.a3 * torch.exp(-self.beta * (diff * inv_span) ** 2) * diff,
-                fl * span * r[0])
-            s.Xf, s.Vf = move(s.Xf, Vf)
-            s.ff = _evaluate(problem, s.Xf)
-            s.offer(s.Xf, s.ff)
+        # 2. Males: pbest/gbest attraction; the one at the global best dances.
+        dp, dg = s.Pm - s.Xm, s.gx - s.Xm
+        dance = (s.fm <= s.gf)[:, None]
+        Vm = s.g * s.Vm + torch.where(
+            dance, s.d * span * r[1],
+            self.a1 * torch.exp(-self.beta * (dp * inv_span) ** 2) * dp
+            + self.a2 * torch.exp(-self.beta * (dg * inv_span) ** 2) * dg)
+        s.Xm, s.Vm = self._move(problem, s, s.Xm, Vm)
+        s.fm = evaluate(problem, s.Xm)
+        s.n_evals += 2 * n
+        better = s.fm < s.pf
+        s.Pm = torch.where(better[:, None], s.Xm, s.Pm)
+        s.pf = torch.where(better, s.fm, s.pf)
+        s.offer(s.Xm, s.fm)
 
-            # 2. Males: pbest/gbest attraction; the one at the global best dances.
-            dp, dg = s.Pm - s.Xm, s.gx - s.Xm
-            dance = (s.fm <= s.gf)[:, None]
-            Vm = g * s.Vm + torch.where(
-                dance, d * span * r[1],
-                self.a1 * torch.exp(-self.beta * (dp * inv_span) ** 2) * dp
-                + self.a2 * torch.exp(-self.beta * (dg * inv_span) ** 2) * dg)
-            s.Xm, s.Vm = move(s.Xm, Vm)
-            s.fm = _evaluate(problem, s.Xm)
-            s.n_evals += 2 * n
-            better = s.fm < s.pf
-            s.Pm = torch.where(better[:, None], s.Xm, s.Pm)
-            s.pf = torch.where(better, s.fm, s.pf)
-            s.offer(s.Xm, s.fm)
+        # 3. Rank both sexes, then mate the best pairs.
+        s.fm, s.Xm, s.Vm, s.Pm, s.pf = sorted_rows(s.fm, s.Xm, s.Vm, s.Pm, s.pf)
+        s.ff, s.Xf, s.Vf = sorted_rows(s.ff, s.Xf, s.Vf)
+        Xo, fo, male = self.offspring(problem, s, gen)
+        s.offer(Xo, fo)
 
-            # 3. Rank both sexes, then mate the best pairs.
-            s.fm, s.Xm, s.Vm, s.Pm, s.pf = _sorted(s.fm, s.Xm, s.Vm, s.Pm, s.pf)
-            s.ff, s.Xf, s.Vf = _sorted(s.ff, s.Xf, s.Vf)
-            Xo, fo, male = self.offspring(problem, s, gen)
-            s.offer(Xo, fo)
+        # 4. Each sex pools with its offspring (velocity 0, pbest = position); best n stay.
+        Xom, fom = Xo[male], fo[male]
+        Xof, fof = Xo[~male], fo[~male]
+        s.fm, s.Xm, s.Vm, s.Pm, s.pf = best_rows(
+            n, torch.cat((s.fm, fom)), torch.cat((s.Xm, Xom)),
+            torch.cat((s.Vm, torch.zeros_like(Xom))), torch.cat((s.Pm, Xom)),
+            torch.cat((s.pf, fom)))
+        s.ff, s.Xf, s.Vf = best_rows(n, torch.cat((s.ff, fof)), torch.cat((s.Xf, Xof)),
+                                 torch.cat((s.Vf, torch.zeros_like(Xof))))
 
-            # 4. Each sex pools with its offspring (velocity 0, pbest = position); best n stay.
-            Xom, fom = Xo[male], fo[male]
-            Xof, fof = Xo[~male], fo[~male]
-            s.fm, s.Xm, s.Vm, s.Pm, s.pf = _best(
-                n, torch.cat((s.fm, fom)), torch.cat((s.Xm, Xom)),
-                torch.cat((s.Vm, torch.zeros_like(Xom))), torch.cat((s.Pm, Xom)),
-                torch.cat((s.pf, fom)))
-            s.ff, s.Xf, s.Vf = _best(n, torch.cat((s.ff, fof)), torch.cat((s.Xf, Xof)),
-                                     torch.cat((s.Vf, torch.zeros_like(Xof))))
+        # 5. Damping.
+        s.g *= self.g_damp
+        s.d *= self.d_damp
+        s.fl *= self.fl_damp
+        return None
 
-            # 5. Damping.
-            g *= self.g_damp
-            d *= self.d_damp
-            fl *= self.fl_damp
-            rep(t, s.gf)
-
-        hist = rep.close()
-        return Result(x=s.gx.clone(), fun=float(s.gf), history=hist, n_evals=s.n_evals,
-                      n_iter=self.max_iter, converged=False,
-                      message=f"reached max_iter={self.max_iter}",
-                      extra={"g": g, "d": d, "fl": fl})
+    def finish(self, problem: Problem, s: MayflyState) -> tuple[Tensor, float, dict]:
+        return s.gx.clone(), float(s.gf), {"g": s.g, "d": s.d, "fl": s.fl}
 
 
-@register
-class ModifiedMayfly(Mayfly):
-    """Modified mayfly algorithm (MMA) of seed 002: the :class:`Mayfly` loop with two changes.
-
-    1. **Initialisation by an improved tent map and opposition-based learning.** One chaotic
-       sequence of ``2 n`` points (:func:`improved_tent_map`, ``a = tent_a = 0.5`` as the patent
-       suggests, random term ``U(0, 1) / (2 n)``, each of the ``k`` components its own chain
-       started at ``U(0, 1)``) is mapped onto the bounds, ``x = x_min + (x_max - x_min) z``
-       (patent eq. 15): the first ``n`` points are male candidates, the next ``n`` female ones.
-       Each candidate's opposite ``x_min + x_max - x`` (eq. 16) is evaluated too, and each sex
-       keeps the fittest ``n`` of its ``2 n`` candidates and opposites. The exact form of the
-       patent's eq. 14 was lost in extraction; the random term ``rand(0,1)/N`` is the usual
-       "improved tent map" (Zhang et al.), and ``N`` = the sequence length.
-    2. **Cauchy mutation of the offspring.** After mating, ``n_mut = round(cauchy_share n_off)``
-       offspring chosen at random (without replacement) are copied and mutated,
-       ``x' = x + x * C``, ``C ~ Cauchy(0, 1)`` per component (patent eq. 18), clipped to the
-       bounds and evaluated; the mutants (of the parent's sex) join the offspring and the fittest
-       ``n_off`` of the ``n_off + n_mut`` go on to the replacement step. Note that the jump is
-       relative to ``x``: a component at 0 does not move. The patent gives no share; the default
-       0.2 mutates a few offspring per generation (4 of 20).
-
-    **Start point.** When the problem has ``x0`` it replaces the first male candidate (its
-    opposite is evaluated too) and stays in the initial male population even if it is not
-    among the fittest ``n`` (it then replaces the worst kept male).
-
-    Args: those of :class:`Mayfly`, plus
-        tent_a: the tent map's ``a4`` (patent: 0.5).
-        cauchy_share: share of the offspring that is Cauchy-mutated.
-
-    Result: as :class:`Mayfly`, with ``n_evals = 4 n + max_iter (2 n + n_off + n_mut)``.
-    """
-
-    name = "mma"
-    aliases = ("modified-mayfly",)
-
-    def __init__(self, *, tent_a: float = 0.5, cauchy_share: float = 0.2, **kwargs):
-        super().__init__(**kwargs)
-        if not 0.0 < float(tent_a) < 1.0:
-            raise ValueError(f"tent_a must be in (0, 1), got {tent_a}")
-        if not 0.0 <= float(cauchy_share) <= 1.0:
-            raise ValueError(f"cauchy_share must be in [0, 1], got {cauchy_share}")
-        self.tent_a = float(tent_a)
-        self.cauchy_share = float(cauchy_share)
-
-    @property
-    def n_mut(self) -> int:
-        """Offspring Cauchy-mutated per generation: ``round(cauchy_share n_off)`` (half up)."""
-        return int(math.floor(self.cauchy_share * self.n_off + 0.5))
-
-    def evals_per_generation(self) -> int:
-        return super().evals_per_generation() + self.n_mut
-
-    def initial_population(self, problem: Problem, g: torch.Generator | None = None
-                           ) -> MayflyState:
-        """Tent-map candidates plus their opposites; each sex keeps its fittest ``n``.
-
-        Evaluates ``4 n`` points in one batch: rows ``[male candidates, male opposites, female
-        candidates, female opposites]``, ``n`` each.
-        """
-        g = self.generator(problem) if g is None else g
-        n, k = self.pop_size, problem.dim
-        dt, dev = problem.dtype, problem.device
-        lo, hi = problem.lower, problem.upper
-        z0 = torch.rand(k, generator=g, dtype=dt, device=dev)
-        noise = torch.rand((2 * n, k), generator=g, dtype=dt, device=dev) / (2 * n)
-        Z = improved_tent_map(z0, noise, self.tent_a)
-        C = lo + (hi - lo) * Z
-        if problem.x0 is not None:
-            C[0] = problem.x0
-        C = problem.clip(C)
-        Cm, Cf = C[:n], C[n:]
-        # Opposites lo + hi - x are inside the box by symmetry; clip guards rounding.
-        X = problem.clip(torch.cat((Cm, lo + hi - Cm, Cf, lo + hi - Cf), 0))
-        f = _evaluate(problem, X)
-        fm, Xm = _best(n, f[: 2 * n], X[: 2 * n])
-        ff, Xf = _best(n, f[2 * n:], X[2 * n:])
-        if problem.x0 is not None:
-            # Keep the user's start: if it did not make the cut, it replaces the worst male.
-            kept = (Xm == X[0]).all(1).any()
-            Xm[-1] = torch.where(kept, Xm[-1], X[0])
-            fm[-1] = torch.where(kept, fm[-1], f[0])
-        return self._state(Xm, fm, Xf, ff, n_evals=4 * n)
-
-    def offspring(self, problem: Problem, s: MayflyState, g: torch.Generator
-                  ) -> tuple[Tensor, Tensor, Tensor]:
-        X, f, male = super().offspring(problem, s, g)
-        return self.cauchy_mutation(problem, s, X, f, male, g)
-
-    def cauchy_mutation(self, problem: Problem, s: MayflyState, X: Tensor, f: Tensor,
-                        male: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-        """Mutate ``n_mut`` random offspring by ``x + x C`` and keep the fittest ``n_off``.
-
-        ``X (n_off, k)``, ``f (n_off,)``, ``male (n_off,)`` -> the same shapes, sorted best
-        first. Adds ``n_mut`` to ``s.n_evals``.
-        """
-        m, n_off = self.n_mut, X.shape[0]
-        if m == 0 or n_off == 0:
-            return X, f, male
-        pick = torch.argsort(torch.rand(n_off, generator=g, dtype=X.dtype, device=X.device))[:m]
-        u = torch.rand((m, X.shape[1]), generator=g, dtype=X.dtype, device=X.device)
-        # Standard Cauchy by inversion; u = 0 would give tan(-pi/2) = -huge, clipped anyway.
-        cauchy = torch.tan(math.pi * (u - 0.5))
-        Y = problem.clip(X[pick] + X[pick] * cauchy)
-        fy = _evaluate(problem, Y)
-        s.n_evals += m
-        f2, X2, male2 = _best(n_off, torch.cat((f, fy)), torch.cat((X, Y)),
-                              torch.cat((male, male[pick])))
-        return X2, f2, male2

@@ -25,9 +25,10 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, progress_bar, register
-from torchcal.problems.base import Problem
+from torchcal.optim.base import register
+from torchcal.optim.engine import IterativeSolver
 from torchcal.optim.result import Result
+from torchcal.problems.base import Problem
 
 __all__ = ["PSO", "LDPSO_BT", "ldpso_pop_sizes", "SwarmState"]
 
@@ -62,6 +63,11 @@ class SwarmState:
     @property
     def size(self) -> int:
         return int(self.X.shape[0])
+
+    @property
+    def best(self) -> Tensor:
+        """The best fitness so far (what the engine records)."""
+        return self.gbest_f
 
     @classmethod
     def allocate(cls, X: Tensor, V: Tensor, f: Tensor) -> "SwarmState":
@@ -117,7 +123,7 @@ class SwarmState:
 
 
 @register
-class PSO(Solver):
+class PSO(IterativeSolver):
     """Standard global-best particle swarm optimisation.
 
     Per iteration ``t = 1..max_iter`` and particle (all particles at once)::
@@ -238,14 +244,11 @@ class PSO(Solver):
         torch.where(gb, cand_f, s.gbest_f, out=s.gbest_f)
 
     # -- the run -------------------------------------------------------------------------------
-    def _run(self, problem: Problem) -> Result:
+    def init(self, problem: Problem, g: torch.Generator) -> SwarmState:
         problem.require_finite_bounds(self.name)
-        g = self.generator(problem)
-        lo, hi = problem.lower, problem.upper
-        span = hi - lo
+        span = problem.upper - problem.lower
         # Velocity limit per component; without v_max the full range is the natural scale.
         vlim = span * (self.v_max if self.v_max is not None else 1.0)
-        nvlim = -vlim
         self._c12 = torch.tensor([self.c1, self.c2], dtype=problem.dtype, device=problem.device)[:, None, None]
 
         X, V = self._init_positions(problem, g, vlim)
@@ -253,45 +256,29 @@ class PSO(Solver):
             # Seed the swarm with the user's start so the result is never worse than it.
             X[0] = problem.clip(problem.x0)
         s = SwarmState.allocate(X, V, self._evaluate(problem, X))
+        s.vlim, s.nvlim = vlim, -vlim
         self._after_init(s, problem, g)
+        return s
 
-        # History kept as a device tensor and converted once at the end: a per-iteration
-        # .item() would force a host sync every iteration.
-        hist = torch.empty(self.max_iter + 1, dtype=problem.dtype, device=problem.device)
-        hist[0] = s.gbest_f
-        bar = progress_bar(self.progress, self.max_iter, self.name)
-        if self.callback is not None:
-            self.callback(0, float(s.gbest_f))
+    def step(self, problem: Problem, s: SwarmState, t: int, g: torch.Generator) -> None:
+        self._before_step(t, s, problem, g)
+        w = s.scratch()
+        torch.rand(w["r"].shape, generator=g, out=w["r"])  # r1 = r[0], r2 = r[1]: one draw
+        self._velocity(t, s, w)
+        if self.v_max is not None:
+            s.V.clamp_(s.nvlim, s.vlim)
+        torch.add(s.X, s.V, out=w["xn"])
+        torch.clamp(w["xn"], problem.lower, problem.upper, out=s.X)
+        # A particle that hit a wall stops in that component instead of pushing into it.
+        s.V.masked_fill_(torch.ne(s.X, w["xn"], out=w["wall"]), 0.0)
+        f = self._evaluate(problem, s.X, out=w["f"])
+        s.n_evals += s.size
+        self._update_bests(s, s.X, f, w)
+        self._after_step(t, s, problem, g)
+        return None
 
-        for t in range(1, self.max_iter + 1):
-            self._before_step(t, s, problem, g)
-            w = s.scratch()
-            torch.rand(w["r"].shape, generator=g, out=w["r"])  # r1 = r[0], r2 = r[1]: one draw
-            self._velocity(t, s, w)
-            if self.v_max is not None:
-                s.V.clamp_(nvlim, vlim)
-            torch.add(s.X, s.V, out=w["xn"])
-            torch.clamp(w["xn"], lo, hi, out=s.X)
-            # A particle that hit a wall stops in that component instead of pushing into it.
-            s.V.masked_fill_(torch.ne(s.X, w["xn"], out=w["wall"]), 0.0)
-            f = self._evaluate(problem, s.X, out=w["f"])
-            s.n_evals += s.size
-            self._update_bests(s, s.X, f, w)
-            self._after_step(t, s, problem, g)
-            hist[t] = s.gbest_f
-            if bar is not None or self.callback is not None:
-                best = float(s.gbest_f)
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix(best=f"{best:.4g}", refresh=False)
-                if self.callback is not None:
-                    self.callback(t, best)
-        if bar is not None:
-            bar.close()
-
-        return Result(x=s.gbest.clone(), fun=float(s.gbest_f), history=hist.tolist(),
-                      n_evals=s.n_evals, n_iter=self.max_iter, converged=False,
-                      message=f"reached max_iter={self.max_iter}", extra=self._extra(s))
+    def finish(self, problem: Problem, s: SwarmState) -> tuple[Tensor, float, dict]:
+        return s.gbest.clone(), float(s.gbest_f), self._extra(s)
 
     def _after_init(self, s: SwarmState, problem: Problem, g: torch.Generator) -> None:
         """Called once after the initial population is evaluated."""
