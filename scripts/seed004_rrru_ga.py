@@ -38,9 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -48,24 +46,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from torchcal.optim import get_solver  # noqa: E402
-from torchcal.kinematics.rrru import RRRU  # noqa: E402
 from torchcal.kinematics.rrru_params import PARAM_NAMES, PARAM_UNITS  # noqa: E402
-from torchcal.problems.rrru import (DecorrelatedProblem, RRRUCalibration,  # noqa: E402
-                                           compensation, covariance, identifiability, line_trajectories,
-                                           observability_indices, prediction_std, simulate_tracker,
-                                           spiral_trajectory)
-
-MM = 1e-3
-#: The simulated robot's errors (rad, m), seed-sized (Tables 5-6), different per branch.
-TRUE_ERRORS = {
-    "dtheta_11": 0.0009, "dtheta_21": -0.0006, "dtheta_31": 0.0010,
-    "dL_11": 0.25 * MM, "dL_12": 0.19 * MM, "dL_13": -0.14 * MM,
-    "dL_21": 0.20 * MM, "dL_22": 0.16 * MM, "dL_23": -0.12 * MM,
-    "dL_31": 0.29 * MM, "dL_32": 0.22 * MM, "dL_33": -0.18 * MM,
-    "dR": -0.97 * MM, "dr": 0.71 * MM,
-}
-FREE = [n for n in PARAM_NAMES if n != "dr"]      # identifiable subset (see identifiability)
+from torchcal.pipelines.rrru import FREE, MM, study  # noqa: E402
 
 
 def disp(name: str, v: float) -> float:
@@ -76,45 +58,6 @@ def disp(name: str, v: float) -> float:
 def unit(name: str) -> str:
     return "mrad" if PARAM_UNITS[PARAM_NAMES.index(name)] == "rad" else "mm"
 
-
-def calibrate(model: RRRU, theta, meas, targets, args, raw_ga: bool) -> dict:
-    """LM and GA on one data set; returns the fits, their parameters and LM's covariance."""
-    prob = RRRUCalibration(model, theta, meas, free=FREE, p0=targets)
-    t0 = time.perf_counter()
-    lm = get_solver("lm").minimize(prob)
-    t_lm = time.perf_counter() - t0
-    J, r = lm.extra["jacobian"], lm.extra["residuals"]
-    cov = covariance(J, r)
-    dec = DecorrelatedProblem(prob)
-    t0 = time.perf_counter()
-    ga = get_solver("ga", seed=args.seed, max_iter=args.ga_iter, mutation_scale=0.05).minimize(dec)
-    t_ga = time.perf_counter() - t0
-    x_ga = dec.to_x(ga.x)
-    out = dict(problem=prob, lm=lm, x_lm=lm.x, x_ga=x_ga, cov=cov, t_lm=t_lm, t_ga=t_ga,
-               rms_lm=float(r.pow(2).mean().sqrt()),
-               rms_ga=float(prob.residuals(x_ga[None]).pow(2).mean().sqrt()))
-    if raw_ga:
-        t0 = time.perf_counter()
-        gr = get_solver("ga", seed=args.seed, max_iter=args.ga_iter, mutation_scale=0.05).minimize(prob)
-        out.update(x_ga_raw=gr.x, t_ga_raw=time.perf_counter() - t0,
-                   rms_ga_raw=float(prob.residuals(gr.x[None]).pow(2).mean().sqrt()))
-    return out
-
-
-def evaluate(model, truth, params, trajs, noise, seed) -> dict:
-    """Compensation errors on every trajectory; the tracker noise of trajectory k is the same draw
-    for every calibration (common random numbers)."""
-    out = {}
-    for k, (name, T) in enumerate(trajs.items()):
-        g = torch.Generator().manual_seed(10_000 * seed + 100 + k)
-        out[name] = compensation(model, truth, params, T, noise, generator=g)
-    return out
-
-
-def stats(c: dict) -> dict:
-    d, t = c["distance"] / MM, c["true_distance"] / MM
-    return dict(max_mm=float(d.max()), min_mm=float(d.min()), true_max_mm=float(t.max()),
-                rms_mm=float(d.pow(2).mean().sqrt()))
 
 
 def main(argv=None) -> dict:
@@ -130,141 +73,18 @@ def main(argv=None) -> dict:
     if args.quick:
         args.ga_iter, args.mc, args.no_raw_ga = min(args.ga_iter, 200), 0, True
     torch.set_num_threads(1)
-    t_start = time.perf_counter()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sigma = args.noise_mm * MM
-
-    model = RRRU()
-    truth = torch.tensor([TRUE_ERRORS[n] for n in PARAM_NAMES], dtype=torch.float64)
-    # what the fitted parameters can converge to: dR absorbs -dr (only r - R is seen)
-    eff = truth[[PARAM_NAMES.index(n) for n in FREE]].clone()
-    eff[FREE.index("dR")] = truth[PARAM_NAMES.index("dR")] - truth[PARAM_NAMES.index("dr")]
-
-    lines = line_trajectories()                      # (7, 26, 3)
-    spiral = spiral_trajectory()                     # (40, 3)
-    trajs = {f"line {k + 1}": lines[k] for k in range(lines.shape[0])}
-    trajs["spiral"] = spiral
-    names = list(trajs)
-
-    # -- calibration measurements --------------------------------------------------------------
-    g = torch.Generator().manual_seed(args.seed)
-    data = {}
-    for key, T in (("lines", lines.reshape(-1, 3)), ("spiral", spiral)):
-        th, _, meas = simulate_tracker(model, T, truth, sigma, generator=g)
-        data[key] = (th, meas, T)
-
-    # -- identifiability and observability of each data set ------------------------------------
-    ident = {k: identifiability(model, th, truth, p0=T) for k, (th, _, T) in data.items()}
-    Jfree = {k: model.param_jacobian(th, truth, p0=T)[..., [PARAM_NAMES.index(n) for n in FREE]]
-             for k, (th, _, T) in data.items()}
-    allJ = torch.cat([J.reshape(-1, len(FREE)) for J in Jfree.values()])
-    common = torch.linalg.vector_norm(allJ, dim=0) / math.sqrt(allJ.shape[0])
-    obs = {k: observability_indices(J.reshape(-1, len(FREE)), common) for k, J in Jfree.items()}
-    amp = {  # tracker-noise amplification: prediction std / σ at the other data set's poses
-        "line_cal_on_lines": prediction_std(Jfree["lines"].reshape(-1, len(FREE)), Jfree["lines"]),
-        "line_cal_on_spiral": prediction_std(Jfree["lines"].reshape(-1, len(FREE)), Jfree["spiral"]),
-        "spiral_cal_on_spiral": prediction_std(Jfree["spiral"].reshape(-1, len(FREE)), Jfree["spiral"]),
-        "spiral_cal_on_lines": prediction_std(Jfree["spiral"].reshape(-1, len(FREE)), Jfree["lines"]),
-    }
-    poses = {"lines": lines.reshape(-1, 3), "spiral": spiral}
-    amp = {k: dict(max=float(v.max()), mean=float(v.mean()),
-                   at_mm=(poses[k.split("_on_")[1]][int(v.argmax())] / MM).tolist()) for k, v in amp.items()}
-
-    # -- calibrations ----------------------------------------------------------------------------
-    cal = {k: calibrate(model, th, meas, T, args, raw_ga=(k == "spiral" and not args.no_raw_ga))
-           for k, (th, meas, T) in data.items()}
-
-    # -- evaluation on every trajectory ----------------------------------------------------------
-    runs = {"before": None}
-    for k, c in cal.items():
-        runs[f"{k}-LM"] = c["problem"].full(c["x_lm"])
-        runs[f"{k}-GA"] = c["problem"].full(c["x_ga"])
-    ev = {r: evaluate(model, truth, p, trajs, sigma, args.seed) for r, p in runs.items()}
-    st = {r: {n: stats(ev[r][n]) for n in names} for r in runs}
-
-    def worst(run: str, which: str) -> float:
-        sel = [n for n in names if (n == "spiral") == (which == "spiral")]
-        return max(st[run][n]["max_mm"] for n in sel)
-
-    # -- LM vs GA agreement ----------------------------------------------------------------------
-    agree = {}
-    for k, c in cal.items():
-        sd = c["cov"].diagonal().sqrt()
-        z = ((c["x_ga"] - c["x_lm"]) / sd).abs()
-        agree[k] = dict(max_abs_z=float(z.max()), worst=FREE[int(z.argmax())],
-                        lm_vs_truth_max_abs_z=float(((c["x_lm"] - eff) / sd).abs().max()))
-        if "x_ga_raw" in c:
-            agree[k]["raw_ga_max_abs_z"] = float(((c["x_ga_raw"] - c["x_lm"]) / sd).abs().max())
-
-    # -- Monte Carlo of the lesson (LM only: cheap) ----------------------------------------------
-    # Each draw: fresh calibration noise, fresh evaluation noise; maxima over the lines (all 7)
-    # and over the spiral, measured (tracker) and true (noise-free). "perfect" = the controller
-    # knows the true parameters, so its measured error is the tracker noise alone: the floor.
-    mc = []
-    for i in range(args.mc):
-        gi = torch.Generator().manual_seed(1000 + i)
-        fits = {"perfect": truth}
-        for key, T in (("lines", lines.reshape(-1, 3)), ("spiral", spiral)):
-            th, _, meas = simulate_tracker(model, T, truth, sigma, generator=gi)
-            p = RRRUCalibration(model, th, meas, free=FREE, p0=T)
-            fits[key] = p.full(get_solver("lm").minimize(p).x)
-        row = {}
-        for key, par in fits.items():
-            e = evaluate(model, truth, par, trajs, sigma, 1000 + i)
-            for which, sel in (("lines", names[:-1]), ("spiral", ["spiral"])):
-                row[f"{key}_cal_on_{which}"] = max(float(e[n]["distance"].max()) for n in sel) / MM
-                row[f"{key}_cal_on_{which}_true"] = max(float(e[n]["true_distance"].max()) for n in sel) / MM
-        mc.append(row)
+    r = study(noise_mm=args.noise_mm, seed=args.seed, ga_iter=args.ga_iter, mc_draws=args.mc,
+              raw_ga=not args.no_raw_ga)
+    summary, st, agree, amp, obs, ident, mc = (r[k] for k in ("summary", "stats", "agree", "amp", "obs", "ident", "mc"))
+    cal, ev, trajs, names, eff, sigma = (r[k] for k in ("cal", "ev", "trajs", "names", "eff", "sigma"))
 
     # -- outputs -----------------------------------------------------------------------------------
     figures(out, trajs, ev, names, sigma)
     param_figure(out, cal, eff)
     write_tables(out, args, st, names, cal, eff, ident, obs, amp, agree, mc, sigma)
 
-    s4 = 4 * args.noise_mm
-    summary = dict(
-        tracker_noise_mm=args.noise_mm,
-        before_max_mm=max(worst("before", "lines"), worst("before", "spiral")),
-        before_lines_max_mm=worst("before", "lines"), before_spiral_max_mm=worst("before", "spiral"),
-        line_cal_on_lines_max_mm=worst("lines-GA", "lines"),
-        line_cal_on_spiral_max_mm=worst("lines-GA", "spiral"),
-        spiral_cal_on_lines_max_mm=worst("spiral-GA", "lines"),
-        spiral_cal_on_spiral_max_mm=worst("spiral-GA", "spiral"),
-        lm=dict(line_cal_on_lines_max_mm=worst("lines-LM", "lines"),
-                line_cal_on_spiral_max_mm=worst("lines-LM", "spiral"),
-                spiral_cal_on_lines_max_mm=worst("spiral-LM", "lines"),
-                spiral_cal_on_spiral_max_mm=worst("spiral-LM", "spiral")),
-        ga_minus_lm_max_sigma=dict(lines=agree["lines"]["max_abs_z"], spiral=agree["spiral"]["max_abs_z"]),
-        raw_ga_minus_lm_max_sigma=agree["spiral"].get("raw_ga_max_abs_z"),
-        identifiable=f"{ident['spiral'].rank} of {len(PARAM_NAMES)}", dropped=ident["spiral"].dropped,
-        O1=dict(lines=obs["lines"]["O1"], spiral=obs["spiral"]["O1"]),
-        condition=dict(lines=obs["lines"]["condition"], spiral=obs["spiral"]["condition"]),
-        noise_amplification_max=dict(line_cal_on_spiral=amp["line_cal_on_spiral"]["max"],
-                                     spiral_cal_on_lines=amp["spiral_cal_on_lines"]["max"]),
-        mc_draws=len(mc),
-    )
-    if mc:
-        med = lambda k: sorted(r[k] for r in mc)[len(mc) // 2]  # noqa: E731
-        frac = lambda f: sum(bool(f(r)) for r in mc) / len(mc)  # noqa: E731
-        for k in ("lines_cal_on_spiral", "spiral_cal_on_spiral", "spiral_cal_on_lines", "perfect_cal_on_lines",
-                  "perfect_cal_on_spiral", "lines_cal_on_spiral_true", "spiral_cal_on_spiral_true",
-                  "spiral_cal_on_lines_true"):
-            summary[f"mc_{k}_median_mm"] = med(k)
-        summary["mc_spiral_cal_within_4sigma_frac"] = frac(
-            lambda r: max(r["spiral_cal_on_lines"], r["spiral_cal_on_spiral"]) <= s4)
-        summary["mc_noise_alone_within_4sigma_frac"] = frac(
-            lambda r: max(r["perfect_cal_on_lines"], r["perfect_cal_on_spiral"]) <= s4)
-        summary["mc_line_cal_on_spiral_above_4sigma_frac"] = frac(lambda r: r["lines_cal_on_spiral"] > s4)
-        summary["mc_line_cal_worse_on_spiral_true_frac"] = frac(
-            lambda r: r["lines_cal_on_spiral_true"] > r["spiral_cal_on_spiral_true"])
-    summary["target_spiral_cal_within_4sigma"] = bool(
-        max(summary["spiral_cal_on_lines_max_mm"], summary["spiral_cal_on_spiral_max_mm"],
-            summary["lm"]["spiral_cal_on_lines_max_mm"], summary["lm"]["spiral_cal_on_spiral_max_mm"]) <= s4)
-    summary["target_lm_ga_agree_1sigma"] = bool(max(summary["ga_minus_lm_max_sigma"].values()) <= 1.0)
-    summary["lesson_line_cal_fails_spiral"] = bool(summary["line_cal_on_spiral_max_mm"] > s4
-                                                   and summary["lm"]["line_cal_on_spiral_max_mm"] > s4)
-    summary["wall_s"] = round(time.perf_counter() - t_start, 1)
     (out / "results.json").write_text(json.dumps(dict(
         summary=summary, stats=st, agree=agree, amplification=amp, observability=obs,
         identifiability={k: v.to_dict() for k, v in ident.items()}, monte_carlo=mc,

@@ -54,7 +54,8 @@ from torchcal.problems.identifiability_report import (IdentifiabilityReport, dep
                                                       zero_column_reason)
 
 __all__ = ["stacked_jacobian", "identifiability", "analyse_jacobian", "observability", "DEFAULT_PREFER",
-           "resolve_free", "normalise_columns", "preference_tiers", "TIE_BOOST", "observability_indices"]
+           "resolve_free", "normalise_columns", "preference_tiers", "TIE_BOOST", "observability_indices",
+           "jacobian_observability"]
 
 # Preference tiers (glob patterns), earliest kept first when parameters are interchangeable.
 # The base frame comes first, with the other unknowns of the set-up (touched planes, fixed points):
@@ -225,6 +226,22 @@ def observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
         O1 = float(np.exp(np.mean(np.log(s)))) / math.sqrt(n_rows) if smin > 0 else 0.0  # log: no overflow
     return dict(O1=O1, O2=smin / smax if smax > 0 else 0.0, O3=smin, O4=smin ** 2 / smax if smax > 0 else 0.0,
                 condition=smax / smin if smin > 0 else math.inf)
+
+
+def jacobian_observability(J: Tensor, scale: Tensor | None = None) -> dict[str, float]:
+    """O1-O4 and the condition number of a stacked Jacobian ``(m, k)`` with its columns divided by
+    ``scale (k,)`` (default: their own RMS, as the analysis does). Pass one ``scale``
+    (e.g. the column RMS of all data together) to compare data sets on the same footing; ``O1`` is
+    then per measured row, ``O3``, ``O4`` grow with ``√m`` (:func:`observability_indices`)."""
+    J = torch.as_tensor(J, dtype=torch.float64)
+    m = J.shape[0]
+    if scale is None:
+        scale = torch.linalg.vector_norm(J, dim=0) / math.sqrt(m)
+    s = torch.linalg.svdvals(J / scale).cpu().numpy()
+    out = observability_indices(s, m)
+    out["n_rows"] = m
+    return out
+
 
 
 # ---------------------------------------------------------------------------- analysis

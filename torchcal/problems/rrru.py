@@ -34,22 +34,12 @@ from torch import Tensor
 from torchcal.kinematics.rrru import RRRU
 from torchcal.kinematics.rrru_params import N_PARAMS, PARAM_NAMES, PARAM_UNITS
 from torchcal.problems.base import Problem
-from torchcal.problems.identifiability import analyse_jacobian, observability_indices
+from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.problems.identifiability_report import IdentifiabilityReport
 from torchcal.problems.uncertainty import covariance
 
-__all__ = ["LINE_OFFSETS", "line_trajectories", "spiral_trajectory", "simulate_tracker",
-           "RRRUCalibration", "DecorrelatedProblem", "identifiability", "observability_indices",
-           "prediction_std", "compensation", "covariance", "shared_lengths", "param_index", "PREFER"]
-
-#: Offsets of the seed's 7 lines from line 1 (m). Line 1 runs in the ``xoz`` plane through the
-#: workspace centre; lines 2-3 are nearest to it, lines 6-7 near the boundary (the seed's
-#: section 3.2). Reconstruction: all at the seed's height ``z = 0.6`` m, stepped in ``y`` by
-#: ±0.05 m; at ``x = -0.8`` m the workspace ends near ``|y| = 0.18`` m (``|y| = 0.2`` is out of
-#: reach of branches 2/3), so ``±0.15`` m is "near the boundary".
-LINE_OFFSETS: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, -0.05, 0.0), (0.0, 0.10, 0.0), (0.0, -0.10, 0.0),
-    (0.0, 0.15, 0.0), (0.0, -0.15, 0.0))
+__all__ = ["RRRUCalibration", "DecorrelatedProblem", "identifiability",
+           "prediction_std", "covariance", "shared_lengths", "param_index", "PREFER"]
 
 #: Preference tiers for :func:`~torchcal.problems.identifiability.analyse_jacobian`: keep the drive
 #: offsets and link lengths first, then ``dR`` (so ``dr`` is the one dropped).
@@ -63,87 +53,6 @@ def param_index(names: Sequence[str]) -> list[int]:
     except ValueError:
         bad = [n for n in names if n not in PARAM_NAMES]
         raise KeyError(f"unknown parameter(s) {bad}; names are {', '.join(PARAM_NAMES)}") from None
-
-
-def line_trajectories(n_points: int = 26, start: Sequence[float] = (-0.8, 0.0, 0.6),
-                      end: Sequence[float] = (-0.3, 0.0, 0.6),
-                      offsets: Sequence[Sequence[float]] = LINE_OFFSETS, *,
-                      dtype: torch.dtype = torch.float64) -> Tensor:
-    """The seed's straight lines: ``n_points`` equally spaced points from ``start`` to ``end``
-    (m), shifted by each of ``offsets`` (m).
-
-    Returns:
-        ``(n_lines, n_points, 3)`` positions (m); line ``k`` is ``start + offsets[k] + s (end - start)``.
-    """
-    a = torch.as_tensor(start, dtype=dtype)
-    b = torch.as_tensor(end, dtype=dtype)
-    off = torch.as_tensor(offsets, dtype=dtype).reshape(-1, 1, 3)
-    s = torch.linspace(0.0, 1.0, n_points, dtype=dtype)[:, None]
-    return off + a + s * (b - a)
-
-
-def spiral_trajectory(n_points: int = 40, centre: Sequence[float] = (-0.5, 0.0),
-                      radius: float = 0.25, z: Sequence[float] = (0.45, 0.9), turns: float = 2.5,
-                      phase: float = math.pi, *, dtype: torch.dtype = torch.float64) -> Tensor:
-    """A helix about a vertical axis (the seed's "spiral", Fig. 11a; its size is not given).
-
-    Default (reconstruction): axis through ``(-0.5, 0)`` m, radius 0.25 m, so that it covers the
-    lines' patch (``x`` from -0.75 to -0.25 m, ``|y| ≤ 0.25`` m), climbing from ``z = 0.45`` to
-    ``0.9`` m in 2.5 turns, i.e. over the height the lines (all at ``z = 0.6`` m) never leave;
-    40 points equally spaced in angle, starting at azimuth ``phase = π`` (``x = -0.75`` m).
-
-    Returns:
-        ``(n_points, 3)`` positions (m).
-    """
-    u = torch.linspace(0.0, 1.0, n_points, dtype=dtype)
-    ang = phase + 2 * math.pi * turns * u
-    return torch.stack([centre[0] + radius * ang.cos(), centre[1] + radius * ang.sin(),
-                        z[0] + (z[1] - z[0]) * u], -1)
-
-
-def simulate_tracker(model: RRRU, targets: Tensor, true_params: Tensor, noise: float = 0.0, *,
-                     controller_params: Tensor | None = None,
-                     generator: torch.Generator | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """Drive the robot to ``targets`` with the controller's model and measure with a tracker.
-
-    The controller commands ``θ = ik(targets, controller_params)`` (nominal by default); the
-    real robot (``true_params``) goes to ``fk(θ, true_params)``; the tracker adds independent
-    Gaussian noise of ``noise`` (m, σ per axis).
-
-    Args:
-        targets: ``(..., 3)`` desired positions (m).
-
-    Returns:
-        ``(theta, actual, measured)``: commanded angles ``(..., 3)`` (rad), true positions and
-        tracker readings ``(..., 3)`` (m).
-    """
-    theta = model.ik(targets, controller_params)
-    with torch.no_grad():
-        actual = model.fk(theta, true_params, p0=targets)
-    meas = actual
-    if noise > 0:
-        meas = actual + noise * torch.randn(actual.shape, generator=generator, dtype=actual.dtype,
-                                             device=actual.device)
-    return theta, actual, meas
-
-
-def compensation(model: RRRU, true_params: Tensor, identified: Tensor | None, targets: Tensor,
-                 noise: float = 0.0, *, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-    """Track ``targets`` with a (calibrated) controller model and measure the error, as the seed's
-    Figs. 9-12 do after compensation: the controller inverts its model (``identified``; ``None`` =
-    nominal, i.e. before calibration), the true robot moves, the tracker measures.
-
-    Returns:
-        dict of ``(..., 3)`` tensors (m): ``measured`` (tracker), ``actual`` (truth),
-        ``error`` = measured - target, ``true_error`` = actual - target; and ``(...)``
-        ``distance`` = ``|error|`` (the seed's eq. 11) and ``true_distance``.
-    """
-    _, actual, meas = simulate_tracker(model, targets, true_params, noise, controller_params=identified,
-                                       generator=generator)
-    err, terr = meas - targets, actual - targets
-    return dict(measured=meas, actual=actual, error=err, true_error=terr,
-                distance=torch.linalg.vector_norm(err, dim=-1),
-                true_distance=torch.linalg.vector_norm(terr, dim=-1))
 
 
 def shared_lengths(dtheta: Sequence[float], dL: Sequence[float], dR: float = 0.0,
@@ -292,22 +201,6 @@ class DecorrelatedProblem(Problem):
 
     def jacobian(self, z: Tensor) -> Tensor:
         return self.base.jacobian(self.to_x(z)) @ self.M
-
-
-def observability_indices(J: Tensor, scale: Tensor | None = None) -> dict[str, float]:
-    """O1-O4 and the condition number of a stacked Jacobian ``(m, k)`` with its columns divided by
-    ``scale (k,)`` (default: their own RMS, as :func:`identifiability` does). Pass one ``scale``
-    (e.g. the column RMS of all data together) to compare data sets on the same footing; ``O1`` is
-    then per measured row, ``O3``, ``O4`` grow with ``√m`` (definitions in
-    :mod:`torchcal.problems.identifiability`)."""
-    J = torch.as_tensor(J, dtype=torch.float64)
-    m = J.shape[0]
-    if scale is None:
-        scale = torch.linalg.vector_norm(J, dim=0) / math.sqrt(m)
-    s = torch.linalg.svdvals(J / scale).cpu().numpy()
-    out = observability_indices(s, m)
-    out["n_rows"] = m
-    return out
 
 
 def prediction_std(J_cal: Tensor, J_eval: Tensor, sigma: float = 1.0) -> Tensor:
