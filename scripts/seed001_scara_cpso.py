@@ -37,20 +37,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
 from pathlib import Path
 
 import torch
 
-from torchcal.dynamics import excitation as exc
-from torchcal.problems import dynamics as idf
-from torchcal.dynamics import scara
-from torchcal.optim import get_solver
-from torchcal.optim.ga import GeneticAlgorithm
-
-SEED_SWARM = dict(pop_size=200, max_iter=200, c1=1.3, c2=1.8, w=(0.9, 0.2))  # seed 001
-FRICTION_TRUE = dict(fv=(0.8, 0.5), fc=(1.2, 0.7))  # illustrative, used with --friction
+from torchcal.pipelines.dynamics import DynamicsSettings, study
 
 
 def parse() -> argparse.Namespace:
@@ -66,83 +58,6 @@ def parse() -> argparse.Namespace:
     ap.add_argument("--friction", action="store_true", help="add viscous + Coulomb friction")
     ap.add_argument("--quick", action="store_true", help="1 rep, 1 start, short GA (smoke test)")
     return ap.parse_args()
-
-
-def timed(fn):
-    t0 = time.perf_counter()
-    out = fn()
-    return out, time.perf_counter() - t0
-
-
-# -- 1. excitation design ---------------------------------------------------------------------
-def design(args, friction: bool):
-    ex = exc.FourierExcitation.from_robot("scara")
-    reg = lambda q, qd, qdd: scara.regressor(q, qd, qdd, friction)  # noqa: E731
-    prob = exc.ExcitationProblem(ex, reg)
-    g = torch.Generator().manual_seed(args.seed)
-    X_rand = ex.random(100, g)
-    c_rand = prob.fitness(X_rand)
-
-    ga_opts = dict(GeneticAlgorithm.PRESETS["seed001"], max_iter=40 if args.quick else 200)
-    ga, t_ga = timed(lambda: get_solver("ga", seed=args.seed, **ga_opts).minimize(prob))
-
-    # L-BFGS from the first random designs (the first is also the "random start" reported)
-    grads, t_grad = [], 0.0
-    for i in range(1 if args.quick else args.starts):
-        p_i = exc.ExcitationProblem(ex, reg, x0=X_rand[i])
-        r, dt = timed(lambda: get_solver("lbfgs", max_iter=100).minimize(p_i))
-        grads.append(r)
-        t_grad += dt
-    grad = min(grads, key=lambda r: r.fun)
-
-    best = ga if ga.fun <= grad.fun else grad
-    x_opt = prob.decode(best.x[None])[0]
-    x_rand = X_rand[0]
-    fine = ex.times(20 * ex.n_samples)
-    info = {
-        "cond_random": float(c_rand.median()), "cond_random_min": float(c_rand.min()),
-        "cond_random_start": float(c_rand[0]),
-        "cond_ga": ga.fun, "cond_gradient": grad.fun, "cond_optimised": best.fun,
-        "design_method": "ga" if best is ga else "lbfgs",
-        "ga_time_s": t_ga, "gradient_time_s": t_grad, "gradient_starts": len(grads),
-        "design_violation": float(ex.violation(x_opt[None], fine)[0]),
-    }
-    return ex, prob, x_opt, x_rand, ga, grads, info
-
-
-# -- 2. data ----------------------------------------------------------------------------------
-def simulate(ex, x, xi, friction, args, g, n=1000, periods=2.0):
-    """True states, noisy states, noise-free and noisy torques along trajectory ``x``."""
-    t = ex.times(n, periods)
-    q, qd, qdd = ex.evaluate(x, t)
-    W_true = scara.regressor(q, qd, qdd, friction)
-    tau = W_true @ xi
-    noise = lambda s, like: s * torch.randn(like.shape, generator=g, dtype=like.dtype)  # noqa: E731
-    qm, qdm, qddm = q + noise(args.noise_q, q), qd + noise(args.noise_qd, qd), qdd + noise(args.noise_qdd, qdd)
-    return dict(t=t, q=q, qd=qd, qdd=qdd, W_true=W_true, tau=tau,
-                W=scara.regressor(qm, qdm, qddm, friction), tau_meas=tau + noise(args.noise_tau, tau))
-
-
-# -- 3. identification -----------------------------------------------------------------------
-def identify_all(train, box, args):
-    lo, hi = box
-    problem = idf.TorqueFitProblem(train["W"], train["tau_meas"], lo, hi)
-    methods = {
-        "ls": lambda: (idf.ols(train["W"], train["tau_meas"]), None),
-        "rls": lambda: (idf.rls(train["W"], train["tau_meas"])[0], None),
-        "pso": lambda: (lambda r: (r.x, r))(get_solver("pso", seed=args.seed, **SEED_SWARM).minimize(problem)),
-        "cpso": lambda: (lambda r: (r.x, r))(get_solver("cpso", seed=args.seed, mu=4.0,
-                                                        **SEED_SWARM).minimize(problem)),
-    }
-    times = {m: [] for m in methods}
-    out = {}
-    names = list(methods)
-    for rep in range(1 if args.quick else args.reps):
-        for m in names[rep % len(names):] + names[:rep % len(names)]:
-            (x, res), dt = timed(methods[m])
-            times[m].append(dt)
-            out.setdefault(m, (x, res))
-    return problem, out, {m: statistics.median(v) for m, v in times.items()}
 
 
 # -- figures ---------------------------------------------------------------------------------
@@ -244,62 +159,13 @@ def main() -> None:
     torch.set_num_threads(1)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    friction = args.friction
-    truth = scara.PlanarParams.from_robot("scara", **(FRICTION_TRUE if friction else {}))
-    xi = scara.lumped(truth, friction)
-    names = list(scara.SEED_NAMES) + (list(scara.FRICTION_NAMES) if friction else [])
-    box = idf.physical_box(friction_max=(5.0, 5.0) if friction else None)
-
-    ex, _, x_opt, x_rand, ga, grads, info = design(args, friction)
-
-    g = torch.Generator().manual_seed(args.seed + 1000)
-    train = simulate(ex, x_opt, xi, friction, args, g)
-    x_val = ex.random(1, torch.Generator().manual_seed(args.seed + 2000))[0]
-    val = simulate(ex, x_val, xi, friction, args, g)
-
-    problem, results, times = identify_all(train, box, args)
-    xi_hat = {m: results[m][0] for m in results}
-    ls_fit = float(problem.fitness(xi_hat["ls"][None])[0])
-    # ties imposed: the three base parameters (linear too, so LS is again exact)
-    Wb = lambda d: d["W"][..., :6] @ scara.BASE_TO_SEED  # noqa: E731
-    wb_train = torch.cat([Wb(train), train["W"][..., 6:]], -1)
-    beta = idf.ols(wb_train, train["tau_meas"])
-    xi_ls3 = torch.cat([scara.BASE_TO_SEED @ beta[:3], beta[3:]])
-
-    # Extras (not timed): the seed's printed mu = 2 (its logistic map collapses onto 1/2, so the
-    # "chaotic" initial swarm degenerates), and both swarms on the random, worse-conditioned design.
-    mu2 = get_solver("cpso", seed=args.seed, mu=2.0, **SEED_SWARM).minimize(problem)
-    rnd = simulate(ex, x_rand, xi, friction, args, g)
-    p_rnd = idf.TorqueFitProblem(rnd["W"], rnd["tau_meas"], *box)
-    f_rnd_ls = float(p_rnd.fitness(idf.ols(rnd["W"], rnd["tau_meas"])[None])[0])
-    extras = {"cpso_mu2_vs_ls_fit_pct": 100 * (mu2.fun / ls_fit - 1),
-              "random_design_cond": info["cond_random_start"]}
-    for m, opts in (("pso", {}), ("cpso", {"mu": 4.0})):
-        r = get_solver(m, seed=args.seed, **opts, **SEED_SWARM).minimize(p_rnd)
-        extras[f"random_design_{m}_vs_ls_fit_pct"] = 100 * (r.fun / f_rnd_ls - 1)
-    results["cpso_mu2"] = (mu2.x, mu2)
-
-    summary = {}
-    rows = []
-    for m in ("ls", "rls", "pso", "cpso"):
-        x = xi_hat[m]
-        rel = (x - xi).abs() / xi.abs() * 100
-        summary[m] = {
-            "fit_rmse": float(problem.fitness(x[None])[0]),
-            "torque_rmse": float(idf.torque_rmse(val["W"], val["tau_meas"], x)),
-            "torque_rmse_true": float(idf.torque_rmse(val["W_true"], val["tau"], x)),
-            "torque_rmse_joint": idf.torque_rmse(val["W"], val["tau_meas"], x, per_joint=True).tolist(),
-            "param_err_pct": rel.tolist(),
-            "time_s": times[m],
-            "dist_to_ls": float((x - xi_hat["ls"]).norm() / xi_hat["ls"].norm()),
-        }
-        rows.append(m)
-    ls3 = {"torque_rmse": float(idf.torque_rmse(val["W"], val["tau_meas"], xi_ls3)),
-           "torque_rmse_true": float(idf.torque_rmse(val["W_true"], val["tau"], xi_ls3)),
-           "param_err_pct": ((xi_ls3 - xi).abs() / xi.abs() * 100).tolist()}
-
-    xi_hat["ls3"] = xi_ls3
-    figures(out_dir, ex, x_opt, x_rand, ga, grads, results, val, xi_hat, ls_fit, info)
+    cfg = DynamicsSettings(**{k: v for k, v in vars(args).items() if k != "out"})
+    r = study(cfg)
+    res, summary, ls3, xi, xi_hat, names, results, box = (r[k] for k in ("res", "summary", "ls3", "xi", "xi_hat",
+                                                                          "names", "results", "box"))
+    info, train, val, rows, x_opt = r["info"], r["train"], r["val"], r["rows"], r["x_opt"]
+    xi_ls3 = xi_hat["ls3"]
+    figures(out_dir, r["ex"], x_opt, r["x_rand"], r["ga"], r["grads"], results, val, xi_hat, r["ls_fit"], info)
 
     # -- report -----------------------------------------------------------------------------
     print(f"Excitation: cond random median {info['cond_random']:.3f} (best of 100 "
@@ -323,21 +189,6 @@ def main() -> None:
     for m in rows:
         print(f"{m:6s} param error %: " + " ".join(f"{v:6.2f}" for v in summary[m]["param_err_pct"]))
 
-    res = {
-        **{f"{m}_torque_rmse": summary[m]["torque_rmse"] for m in rows},
-        **{f"{m}_torque_rmse_true": summary[m]["torque_rmse_true"] for m in rows},
-        **{f"{m}_fit_rmse": summary[m]["fit_rmse"] for m in rows},
-        **{f"{m}_time_s": summary[m]["time_s"] for m in rows},
-        **{f"{m}_param_err_max_pct": max(summary[m]["param_err_pct"]) for m in rows},
-        "ls3_torque_rmse": ls3["torque_rmse"], "ls3_torque_rmse_true": ls3["torque_rmse_true"],
-        **extras,
-        "cpso_vs_ls_fit_pct": 100 * (summary["cpso"]["fit_rmse"] / summary["ls"]["fit_rmse"] - 1),
-        "pso_vs_ls_fit_pct": 100 * (summary["pso"]["fit_rmse"] / summary["ls"]["fit_rmse"] - 1),
-        "cpso_vs_ls_val_pct": 100 * (summary["cpso"]["torque_rmse"] / summary["ls"]["torque_rmse"] - 1),
-        **info,
-        "noise": {"tau": args.noise_tau, "q": args.noise_q, "qd": args.noise_qd, "qdd": args.noise_qdd},
-        "friction": friction, "seed": args.seed, "mu": 4.0,
-    }
     (out_dir / "results.json").write_text(json.dumps(
         {"summary": res, "per_method": summary, "ls3": ls3, "xi_true": xi.tolist(),
          "xi_hat": {m: v.tolist() for m, v in xi_hat.items()}, "names": names,

@@ -10,6 +10,7 @@ from torch.func import jvp
 
 from torchcal.dynamics import excitation as exc
 from torchcal.problems import dynamics as idf
+from torchcal.problems.excitation import ExcitationProblem
 from torchcal.dynamics import lagrangian, scara
 from torchcal.optim import get_solver
 from torchcal.optim.ga import GeneticAlgorithm
@@ -122,15 +123,15 @@ def test_projection_enforces_limits(ex):
     again = ex.project(proj)
     assert torch.allclose(again, proj, rtol=1e-3, atol=0)
     # penalty mode charges the raw, infeasible vectors
-    pen = exc.ExcitationProblem(ex, constraint="penalty")
-    sc = exc.ExcitationProblem(ex)
+    pen = ExcitationProblem(ex, constraint="penalty")
+    sc = ExcitationProblem(ex)
     v = ex.violation(raw)
     assert bool((pen.fitness(raw) >= pen.penalty * v).all())
     assert torch.allclose(pen.fitness(proj), sc.fitness(proj), rtol=1e-3)
 
 
 def test_condition_number_objective_is_batched(ex):
-    prob = exc.ExcitationProblem(ex)
+    prob = ExcitationProblem(ex)
     X = ex.random(5, torch.Generator().manual_seed(2))
     f = prob.fitness(X)
     assert f.shape == (5,)
@@ -143,12 +144,12 @@ def test_condition_number_objective_is_batched(ex):
 
 
 def test_optimised_excitation_beats_random_and_is_feasible(ex):
-    prob = exc.ExcitationProblem(ex)
+    prob = ExcitationProblem(ex)
     g = torch.Generator().manual_seed(0)
     X_rand = ex.random(20, g)
     c_rand = prob.fitness(X_rand)
     ga = get_solver("ga", seed=0, max_iter=60, **GeneticAlgorithm.PRESETS["seed001"]).minimize(prob)
-    grad = get_solver("lbfgs", max_iter=25).minimize(exc.ExcitationProblem(ex, x0=X_rand[0]))
+    grad = get_solver("lbfgs", max_iter=25).minimize(ExcitationProblem(ex, x0=X_rand[0]))
     fine = ex.times(20 * ex.n_samples)
     for r in (ga, grad):
         x = prob.decode(r.x[None])
@@ -182,7 +183,7 @@ def test_least_squares_recovers_truth_noise_free(ex, truth):
 def seed_problem(ex, truth):
     """Seed 001's identification problem: GA-designed excitation, noisy torques and states,
     physical box bounds; plus a validation trajectory."""
-    prob = exc.ExcitationProblem(ex)
+    prob = ExcitationProblem(ex)
     ga = get_solver("ga", seed=0, **GeneticAlgorithm.PRESETS["seed001"]).minimize(prob)
     g = torch.Generator().manual_seed(1000)
     xi = scara.lumped(truth)
