@@ -34,7 +34,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from seed002_mma_elm import SimulatedRobot  # noqa: E402
 
 from torchcal import calibrate  # noqa: E402
-from torchcal.cli.correct import correct_main, matrix_to_quat  # noqa: E402
+from torchcal.cli.correct import correct_main  # noqa: E402
+from torchcal.kinematics.transforms import matrix_to_quat  # noqa: E402
 from torchcal.deploy.correct import Corrector  # noqa: E402
 from torchcal.deploy.elm import tune_elm  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchcal.cli.correct import matrix_to_quat
+from torchcal.kinematics.transforms import matrix_to_quat
 from torchcal.kinematics.fk_compact import PositionKernel
 from torchcal.measure.blocks import PoseResidual, PositionResidual
 from torchcal.measure.data import Measurements

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from torchcal.cli.app import main as torchcal_main
-from torchcal.cli.correct import correct_main, matrix_to_quat, quat_to_matrix
+from torchcal.cli.correct import correct_main
+from torchcal.kinematics.transforms import matrix_to_quat, quat_to_matrix
 
 
 def cli_main(argv):

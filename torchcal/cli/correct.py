@@ -35,8 +35,7 @@ from torchcal.outputs import atomic_write_text, check_out_file
 from torchcal.deploy.persist import load
 from torchcal.kinematics.transforms import matrix_to_quat, quat_to_matrix
 
-__all__ = ["add_correct_parser", "correct_main", "read_targets", "write_corrections", "quat_to_matrix",
-           "matrix_to_quat"]
+__all__ = ["add_correct_parser", "correct_main", "read_targets", "write_corrections"]
 
 _POS, _QUAT = ("x", "y", "z"), ("qw", "qx", "qy", "qz")
 

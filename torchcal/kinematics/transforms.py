@@ -2,14 +2,21 @@
 
 Rotations are ``(..., 3, 3)`` matrices, translations ``(..., 3)`` in metres, angles in radians.
 The roll-pitch-yaw convention is URDF's: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+
+Quaternion conversions come from ``pytorch_kinematics.transforms`` (same ``(w, x, y, z)`` order,
+equal to 1e-15). The functions on the kinematics' hot path stay written here: ``rpy_to_matrix``
+(pytorch-kinematics' ``euler_angles_to_matrix(..., "ZYX")`` gives the same matrices but takes
+about 1.4x as long on the small batches FK builds), and ``so3_exp``/``so3_log`` with their series
+near 0 and the stable branch near π that the parameter Jacobian relies on.
 """
 from __future__ import annotations
 
+import pytorch_kinematics.transforms as pk_transforms
 import torch
 from torch import Tensor
 
-__all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix", "matrix_to_rpy", "so3_exp",
-           "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
+__all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix",
+           "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
 
 
 def skew(v: Tensor) -> Tensor:
@@ -164,33 +171,15 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> tuple[Ten
 
 
 def quat_to_matrix(qt: Tensor) -> Tensor:
-    """``(..., 4)`` quaternion ``(w, x, y, z)`` (normalised here) ``-> (..., 3, 3)``."""
-    qt = qt / qt.norm(dim=-1, keepdim=True)
-    w, x, y, z = qt.unbind(-1)
-    return torch.stack([
-        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        torch.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        torch.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
+    """``(..., 4)`` quaternion ``(w, x, y, z)`` (any non-zero norm) ``-> (..., 3, 3)``
+    (pytorch-kinematics' ``quaternion_to_matrix``)."""
+    return pk_transforms.quaternion_to_matrix(qt)
 
 
 def matrix_to_quat(R: Tensor) -> Tensor:
-    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's
-    method: the largest of the four candidates is computed first, so it is accurate everywhere)."""
-    r00, r01, r02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
-    r10, r11, r12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
-    r20, r21, r22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
-    t = torch.stack([1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22], -1)
-    k = t.argmax(-1)
-    s = torch.sqrt(t.gather(-1, k[..., None]).clamp(min=1e-300))[..., 0] * 2  # 4 |component k|
-    cand = [
-        torch.stack([s / 4, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s], -1),
-        torch.stack([(r21 - r12) / s, s / 4, (r01 + r10) / s, (r02 + r20) / s], -1),
-        torch.stack([(r02 - r20) / s, (r01 + r10) / s, s / 4, (r12 + r21) / s], -1),
-        torch.stack([(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, s / 4], -1),
-    ]
-    q = torch.stack(cand, -2).gather(-2, k[..., None, None].expand(*k.shape, 1, 4))[..., 0, :]
-    q = torch.where(q[..., :1] < 0, -q, q)
-    return q / q.norm(dim=-1, keepdim=True)
+    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0``
+    (pytorch-kinematics' ``matrix_to_quaternion``, accurate near every angle, then standardised)."""
+    return pk_transforms.standardize_quaternion(pk_transforms.matrix_to_quaternion(R))
 
 
 def similarity(src: Tensor, dst: Tensor, scale: bool = True) -> tuple[Tensor, float]:
