@@ -5,6 +5,7 @@ and parameter populations ``(P, K)``. Rotations ``(..., 3, 3)``, translations an
 from __future__ import annotations
 
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -16,12 +17,24 @@ from torchcal.params import ParamSet
 
 __all__ = ["ForwardKinematics"]
 
+_LAYOUT_FIELDS = ('slot_gather', 'slices', 'Mmap', 'moff', 'kinds', 'dh_idx', 'dh_nom', 'urdf_idx', 'aligned', 'CmT', 'mk_t', 'mk_R', 'mk_frame', 'perm', 'C', 'CpT', 'U_R', 'U_t')
+
 
 class ForwardKinematics:
     """The forward-kinematics half of :class:`~torchcal.kinematics.robot.Robot` (a mixin: it reads
     the layout :meth:`Robot._build` lays out)."""
 
     # ------------------------------------------------------------------ geometry pieces
+    def layout(self) -> SimpleNamespace:
+        """The parameter and frame layout :meth:`Robot._build` lays out, read-only, for kernels built on
+        this robot (:class:`~torchcal.kinematics.fk_compact.PositionKernel`): ``slots(p)`` maps
+        ``(P, K)`` parameters to ``(P, S)`` slot values; ``slot_gather``, ``slices`` (parameter blocks),
+        the joint-value map ``Mmap``/``moff``, joint ``kinds`` (1 revolute, 2 prismatic, 0 fixed),
+        ``dh_idx``/``urdf_idx``/``dh_nom``, marker frames ``mk_R``/``mk_t``/``mk_frame``, ``CmT``,
+        ``aligned``, the axis alignments ``C``/``CpT``, the URDF origins ``U_R``/``U_t`` and the joint
+        order ``perm``."""
+        return SimpleNamespace(slots=self._slots, **{f: getattr(self, "_" + f) for f in _LAYOUT_FIELDS})
+
     def _slots(self, p: Tensor) -> Tensor:
         """(P, K) -> (P, S) slot values (0 where no parameter moves a slot)."""
         pad = torch.cat([p, p.new_zeros(p.shape[0], 1)], 1)

@@ -88,67 +88,68 @@ class PositionKernel:
                  cols: Tensor | None = None, base: bool = True):
         dt = dict(dtype=robot.dtype, device=robot.device)
         self.robot = r = robot
+        self.layout = lay = robot.layout()
         q = robot.check_q(q)
         free_index = torch.as_tensor(free_index, device=r.device).long()
         self.N, self.k, self.J = int(q.shape[0]), int(free_index.numel()), len(r.joints)
         fixed = torch.as_tensor(values, **dt).clone()
         fixed[free_index] = 0
-        slots0 = r._slots(fixed[None])[0]  # fixed values per slot, 0 where a free value goes
+        slots0 = lay.slots(fixed[None])[0]  # fixed values per slot, 0 where a free value goes
         E = torch.zeros(self.k, r.n_slots, **dt)  # free value -> the slots it fills
         for i, p in enumerate(free_index.tolist()):
-            E[i, r._slot_gather == p] = 1
+            E[i, lay.slot_gather == p] = 1
 
         def group(name: str) -> tuple[Tensor, Tensor, bool]:
-            sl = r._slices[name]
+            sl = lay.slices[name]
             return slots0[sl], E[:, sl].contiguous(), bool(E[:, sl].any())
 
         # --- joint values: exp(i q) per pose; free offsets of revolute DH joints go into φ
         o0, Eo, _ = group("offset")
-        Eo_j = Eo @ r._Mmap.T  # (k, J) free value -> joint angle / travel
-        qj0 = (q + o0) @ r._Mmap.T + r._moff  # (N, J) with the fixed offsets
-        dh_rev = torch.tensor([r._kinds[j] == 1 for j in r._dh_idx], device=r.device)
+        Eo_j = Eo @ lay.Mmap.T  # (k, J) free value -> joint angle / travel
+        qj0 = (q + o0) @ lay.Mmap.T + lay.moff  # (N, J) with the fixed offsets
+        dh_rev = torch.tensor([lay.kinds[j] == 1 for j in lay.dh_idx], device=r.device)
         per_pose = torch.ones(self.J, device=r.device, **{"dtype": r.dtype})
-        per_pose[[j for j, v in zip(r._dh_idx, dh_rev.tolist()) if v]] = 0
+        per_pose[[j for j, v in zip(lay.dh_idx, dh_rev.tolist()) if v]] = 0
         self._off = (Eo_j * per_pose) if bool((Eo_j * per_pose).any()) else None
         self._th = qj0  # prismatic travel per pose
         self._Eq = torch.polar(torch.ones_like(qj0), qj0)  # (N, J)
         self._rot = list(self._Eq.T.contiguous())  # per joint (N,) complex
-        self._any_pri = 2 in r._kinds
+        self._any_pri = 2 in lay.kinds
 
         # --- DH origins from a (10, Jd) block of values per parameter vector (see _N_COS)
         self._dh = None
         dh_c = urdf_c = None
-        if r._dh_idx:
-            Jd = len(r._dh_idx)
+        if lay.dh_idx:
+            Jd = len(lay.dh_idx)
             d0, Ed, _ = group("dh")
-            v0 = (r._dh_nom.reshape(-1) + d0).reshape(Jd, 4)  # a, d, α, φ
+            v0 = (lay.dh_nom.reshape(-1) + d0).reshape(Jd, 4)  # a, d, α, φ
             Ed = Ed.reshape(self.k, Jd, 4)
-            Ephi = Ed[..., 3] + Eo_j[:, r._dh_idx] * dh_rev
+            Ephi = Ed[..., 3] + Eo_j[:, lay.dh_idx] * dh_rev
             al, ph, zero = v0[:, 2], v0[:, 3], torch.zeros(Jd, **dt)
             w0 = torch.stack([al + _SHIFT[0], al + _SHIFT[1], al + _SHIFT[2], zero, ph + _SHIFT[0],
                               ph + _SHIFT[1], ph + _SHIFT[2], v0[:, 0], v0[:, 1], zero]).reshape(-1)
             Z = torch.zeros_like(Ephi)
             Ew = torch.stack([Ed[..., 2]] * 3 + [Z] + [Ephi] * 3 + [Ed[..., 0], Ed[..., 1], Z], 1).reshape(self.k, -1)
-            pairs = _dh_pairs([r.joints[j].dh.convention for j in r._dh_idx], r.device)
+            pairs = _dh_pairs([r.joints[j].dh.convention for j in lay.dh_idx], r.device)
             if bool(Ew.any()):
                 self._dh = (w0, Ew.contiguous(), pairs)
             else:
                 dh_c = self._dh_T(w0[None].clone(), pairs).transpose(1, 2).unflatten(-1, (4, 4))
         # the DH origins go straight into a work buffer unless other joints must be merged in
-        self._dh_direct = self._dh is not None and not r._urdf_idx
+        self._dh_direct = self._dh is not None and not lay.urdf_idx
         self._urdf = None
-        if r._urdf_idx:
+        if lay.urdf_idx:
             u0, Eu, u_var = group("urdf")
             if u_var:
                 self._urdf = (u0, Eu)
             else:
                 urdf_c = self._urdf_T(u0.reshape(1, -1, 6))
-        if not r._aligned:
+        if not lay.aligned:
             # A_aligned = diag(Cp^T, 1) A diag(C, 1), so A_aligned^T = diag(C^T, 1) A^T diag(Cp, 1)
             self._left_C = torch.eye(4, **dt).repeat(self.J, 1, 1)
-            self._left_C[:, :3, :3] = r._C.transpose(-1, -2)
+            self._left_C[:, :3, :3] = lay.C.transpose(-1, -2)
             self._right_C = torch.eye(4, **dt).repeat(self.J, 1, 1)
-            self._right_C[:, :3, :3] = r._CpT.transpose(-1, -2)
+            self._right_C[:, :3, :3] = lay.CpT.transpose(-1, -2)
         self._dh_c, self._urdf_c = dh_c, urdf_c
         self._AT_c = None
         if self._dh is None and self._urdf is None:
@@ -157,12 +158,12 @@ class PositionKernel:
         # --- markers: only the point matters for positions, and it is linear in its offsets
         m0, Em, mk_var = group("marker")
         M = len(r.markers)
-        CmT = r._CmT if not r._aligned else torch.eye(3, **dt).expand(M, 3, 3)
-        mt0 = r._mk_t + (r._mk_R @ m0.reshape(M, 6)[:, :3, None])[..., 0]
+        CmT = lay.CmT if not lay.aligned else torch.eye(3, **dt).expand(M, 3, 3)
+        mt0 = lay.mk_t + (lay.mk_R @ m0.reshape(M, 6)[:, :3, None])[..., 0]
         self._mk0 = torch.cat([(CmT @ mt0[..., None])[..., 0], torch.ones(M, 1, **dt)], -1)  # (M, 4)
         self._mk = None
         if mk_var:
-            Em3 = torch.einsum("kmj,mij->kmi", Em.reshape(self.k, M, 6)[..., :3], CmT @ r._mk_R)
+            Em3 = torch.einsum("kmj,mij->kmi", Em.reshape(self.k, M, 6)[..., :3], CmT @ lay.mk_R)
             self._mk = (self._mk0.reshape(-1), torch.cat([Em3, torch.zeros(self.k, M, 1, **dt)], -1).reshape(self.k, -1))
 
         # --- base frame, applied after the chain
@@ -176,7 +177,7 @@ class PositionKernel:
 
         # --- per-marker chains: joints from the marker's link up to the root
         self._paths = []
-        for f in r._mk_frame:
+        for f in lay.mk_frame:
             path = []
             while f != 0:
                 path.append(f - 1)
@@ -204,22 +205,22 @@ class PositionKernel:
         return torch.mul(g[:, :16], g[:, 16:], out=out)
 
     def _urdf_T(self, e: Tensor) -> Tensor:
-        r = self.robot
-        R = r._U_R @ rpy_to_matrix(e[..., 3:])
-        t = r._U_t + (r._U_R @ e[..., :3, None])[..., 0]
+        lay = self.layout
+        R = lay.U_R @ rpy_to_matrix(e[..., 3:])
+        t = lay.U_t + (lay.U_R @ e[..., :3, None])[..., 0]
         return _hom_T(R, t)
 
     def _origins_T(self, dh_T: Tensor | None, urdf_T: Tensor | None) -> Tensor:
         """``(P|1, J, 4, 4)`` transposed origins in the axis-aligned frames the chain works in."""
-        r = self.robot
+        lay = self.layout
         parts = [t for t in (urdf_T, dh_T) if t is not None]
         if len(parts) == 2:
             P = max(parts[0].shape[0], parts[1].shape[0])
             parts = [t.expand(P, -1, -1, -1) for t in parts]
         AT = parts[0] if len(parts) == 1 else torch.cat(parts, 1)
-        if r._perm is not None:
-            AT = AT[:, r._perm]
-        if not r._aligned:
+        if lay.perm is not None:
+            AT = AT[:, lay.perm]
+        if not lay.aligned:
             AT = self._left_C @ AT @ self._right_C
         return AT
 
@@ -247,7 +248,7 @@ class PositionKernel:
         DH origins ``(P, 16, Jd)`` as written and as per-joint ``(P, 4, 4)`` matrices."""
         v = self._views.get(P)
         if v is None:
-            Jd = len(self.robot._dh_idx)
+            Jd = len(self.layout.dh_idx)
             if P > self._cap:
                 dt = dict(dtype=self.robot.dtype, device=self.robot.device)
                 self._bufs = ([torch.empty(P, self.N, 4, **dt) for _ in range(2)], torch.empty(P, Jd, 16, **dt))
@@ -294,7 +295,7 @@ class PositionKernel:
                BT: Tensor | None) -> Tensor:
         """Carry the homogeneous marker point ``u (P|1, 4)`` from its link to the base through the
         joints of ``path`` (leaf first), ``v <- A_j M_j(q_j) v``, then the base. ``(P, N, 3)``."""
-        kinds = self.robot._kinds
+        kinds = self.layout.kinds
         i = 0
         # fixed joints next to the marker act on one point per parameter vector, not per pose
         while i < len(path) and kinds[path[i]] == 0:

@@ -131,6 +131,31 @@ class PositionResidual(ResidualBlock):
             raise ValueError(f"position weights must have one entry per observation ({self.n_obs}), "
                              f"got shape {tuple(torch.as_tensor(weights).shape)}")
 
+    @property
+    def rows(self) -> Tensor:
+        """``(n_obs,)`` pose row of each observation."""
+        return self._rows
+
+    @property
+    def cols(self) -> Tensor:
+        """``(n_obs,)`` robot marker of each observation."""
+        return self._cols
+
+    @property
+    def measured(self) -> Tensor:
+        """``(n_obs, 3)`` measured positions (m; 0 on axes not measured)."""
+        return self._meas
+
+    @property
+    def axes_mask(self) -> Tensor:
+        """``(n_obs, 3)`` 1 on measured axes, 0 elsewhere."""
+        return self._mask
+
+    @property
+    def weighted(self) -> bool:
+        """Whether rows carry weights."""
+        return self._weights is not None
+
     def _raw(self, params: Tensor) -> Tensor:
         p = self.robot.positions(self.data.q, params, check=False)  # (P, N, M, 3)
         return (p[:, self._rows, self._cols] - self._meas) * self._mask

@@ -90,11 +90,11 @@ class CalibrationProblem(Problem):
         if getattr(self, "_kernel_key", None) == key:
             return self._kernel_cache
         # partial axes are masked in the general path only
-        ok = all(type(b) is PositionResidual and bool(b._mask.all()) and (not self.fitness_is_sse or
-                 (b._weights is None and b.loss.kind == "l2")) for b in self.blocks)
+        ok = all(type(b) is PositionResidual and bool(b.axes_mask.all()) and (not self.fitness_is_sse or
+                 (not b.weighted and b.loss.kind == "l2")) for b in self.blocks)
         kern = None
         if ok:
-            kern = [(PositionKernel(b.robot, b.data.q, ps.values, ps.free_index, b._rows, b._cols), b._meas)
+            kern = [(PositionKernel(b.robot, b.data.q, ps.values, ps.free_index, b.rows, b.cols), b.measured)
                     for b in self.blocks]
         self._kernel_key, self._kernel_cache = key, kern
         return kern
