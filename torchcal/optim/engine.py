@@ -30,7 +30,7 @@ from torchcal.optim.base import Solver
 from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
 
-__all__ = ["IterativeSolver", "Recorder", "evaluate", "run"]
+__all__ = ["IterativeSolver", "LocalSolver", "Recorder", "evaluate", "run"]
 
 
 def evaluate(problem: Problem, X: Tensor) -> Tensor:
@@ -102,6 +102,14 @@ class IterativeSolver(Solver):
 
     def _run(self, problem: Problem) -> Result:
         return run(self, problem)
+
+
+class LocalSolver(IterativeSolver):
+    """An iterative solver that follows one point (least squares, gradient methods): its history is
+    kept in float64 whatever the problem's dtype, and the callback hears iterations, not the start."""
+
+    callback_at_start = False
+    history_dtype = torch.float64
 
 
 def run(solver: IterativeSolver, problem: Problem) -> Result:

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from torchcal.optim.base import register
-from torchcal.optim.engine import IterativeSolver
+from torchcal.optim.engine import LocalSolver
 from torchcal.optim.lm import JAC_MODES, LsqEvaluator, bounds64, fitness_is_sum_of_squares, require_residuals
 from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
@@ -34,7 +34,7 @@ def _held(x: Tensor, grad: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
 
 # -- Gauss-Newton ----------------------------------------------------------------------------
 @register
-class GaussNewton(IterativeSolver):
+class GaussNewton(LocalSolver):
     """Gauss-Newton with minimum-norm steps and a backtracking line search.
 
     Each iteration solves ``min ||J h + r||`` for the minimum-norm ``h`` (``torch.linalg.lstsq``
@@ -68,9 +68,6 @@ class GaussNewton(IterativeSolver):
         ``(m,)`` at the solution, ``"cost"`` ``= 0.5 ||r||^2``, ``"rank"`` (numerical rank of
         the Jacobian columns of the moving parameters at the solution) and ``"n_jac"``.
     """
-
-    callback_at_start = False
-    history_dtype = torch.float64
 
     name = "gn"
     aliases = ("gauss-newton",)
@@ -236,7 +233,7 @@ def _autograd_setup(problem: Problem, who: str):
 
 
 @register
-class LBFGS(IterativeSolver):
+class LBFGS(LocalSolver):
     """L-BFGS (``torch.optim.LBFGS``) with a strong-Wolfe line search on ``problem.fitness``.
 
     Gradients come from autograd through ``problem.fitness`` on a ``(1, k)`` batch; the problem
@@ -265,9 +262,6 @@ class LBFGS(IterativeSolver):
         ``x`` is the best point evaluated; ``history`` the best fitness after each iteration;
         ``n_evals`` counts fitness(+gradient) evaluations.
     """
-
-    callback_at_start = False
-    history_dtype = torch.float64
 
     name = "lbfgs"
 
@@ -328,7 +322,7 @@ class LBFGS(IterativeSolver):
 
 
 @register
-class Adam(IterativeSolver):
+class Adam(LocalSolver):
     """Adam (``torch.optim.Adam``) on ``problem.fitness`` with autograd gradients.
 
     A first-order method with a fixed learning rate: it gets near a minimum, not to machine
@@ -345,9 +339,6 @@ class Adam(IterativeSolver):
         ``x`` is the best point evaluated; ``history`` the best fitness after each step;
         ``n_evals`` counts fitness(+gradient) evaluations.
     """
-
-    callback_at_start = False
-    history_dtype = torch.float64
 
     name = "adam"
 

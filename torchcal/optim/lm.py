@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from torchcal.optim.base import Solver, register
-from torchcal.optim.engine import IterativeSolver
+from torchcal.optim.engine import LocalSolver
 from torchcal.optim.result import Result
 from torchcal.problems.base import LeastSquaresProblem, Problem
 
@@ -132,7 +132,7 @@ class LsqEvaluator:
 
 # -- Levenberg-Marquardt ---------------------------------------------------------------------
 @register
-class LevenbergMarquardt(IterativeSolver):
+class LevenbergMarquardt(LocalSolver):
     """Levenberg-Marquardt with Nielsen's gain-ratio damping update.
 
     Each iteration solves ``(JᵀJ + mu D) h = -Jᵀr`` by Cholesky and tries ``x + h``. With
@@ -178,9 +178,6 @@ class LevenbergMarquardt(IterativeSolver):
         ``= 0.5 ||r||^2``, ``"mu_history"`` (damping after each trial step), ``"n_jac"``
         (Jacobian evaluations) and ``"n_rejected"``.
     """
-
-    callback_at_start = False  # the callback hears every trial step, not the start
-    history_dtype = torch.float64
 
     name = "lm"
     aliases = ("levenberg-marquardt",)
