@@ -18,7 +18,7 @@ from torch import Tensor
 
 from torchcal.optim.base import register
 from torchcal.optim.engine import LocalSolver
-from torchcal.optim.lm import JAC_MODES, LsqEvaluator, bounds64, fitness_is_sum_of_squares, require_residuals
+from torchcal.optim.lm import JAC_MODES, LsqEvaluator, bounds64, require_residuals
 from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
 
@@ -108,7 +108,7 @@ class GaussNewton(LocalSolver):
             x = torch.clamp(x, lower, upper)
         r = ev.residuals(x)
         st = SimpleNamespace(problem=problem, lower=lower, upper=upper, bounded=bounded, ev=ev, free_idx=free_idx,
-                             sos=fitness_is_sum_of_squares(problem), x=x, r=r, S=float(r @ r), n_evals=0,
+                             sos=problem.fitness_is_sse, x=x, r=r, S=float(r @ r), n_evals=0,
                              halvings=0.5 ** torch.arange(1, self.n_backtrack + 1, dtype=_F64, device=x.device))
         st.best = self._fit_at(st)
         st.J = ev.jacobian(x, r)

@@ -35,12 +35,6 @@ def require_residuals(problem: Problem, who: str) -> None:
             "minimize(problem, 'pso') that needs only fitness().")
 
 
-def fitness_is_sum_of_squares(problem: Problem) -> bool:
-    """True when ``problem.fitness`` is the sum of squared residuals, so a solver may reuse its own
-    sum of squares instead of calling ``fitness`` again (:attr:`Problem.fitness_is_sse`)."""
-    return problem.fitness_is_sse
-
-
 def bounds64(problem: Problem) -> tuple[Tensor, Tensor, bool]:
     """``(lower, upper, bounded)``: float64 ``(k,)`` bounds on the problem's device, and whether
     any bound is finite (so clipping can be skipped entirely when none is)."""
@@ -207,7 +201,7 @@ class LevenbergMarquardt(LocalSolver):
         lower, upper, bounded = bounds64(problem)
         ev = LsqEvaluator(problem, self.jac, *((lower, upper) if bounded else (None, None)))
         st = SimpleNamespace(problem=problem, lower=lower, upper=upper, bounded=bounded, ev=ev,
-                             sos=fitness_is_sum_of_squares(problem), marquardt=self.scaling == "marquardt",
+                             sos=problem.fitness_is_sse, marquardt=self.scaling == "marquardt",
                              mu_history=[], n_rejected=0)
         x = problem.start().to(_F64)
         if bounded:
