@@ -44,6 +44,7 @@ FRICTION_TRUE = dict(fv=(0.8, 0.5), fc=(1.2, 0.7))  # illustrative, used with --
 
 
 def timed(fn):
+    """``(fn(), wall-clock seconds)``."""
     t0 = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t0
