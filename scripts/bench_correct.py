@@ -26,7 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from seed002_mma_elm import SimulatedRobot, make_data, sample_q, ur5e_masses  # noqa: E402
+from seed002_mma_elm import make_data  # noqa: E402
+
+from torchcal.sim.compliant_arm import CompliantArm, sample_q, ur5e_masses  # noqa: E402
 
 from torchcal.deploy.correct import Corrector  # noqa: E402
 from torchcal.deploy.elm import tune_elm  # noqa: E402
@@ -46,7 +48,7 @@ def main(argv=None) -> dict:
     torch.set_num_threads(a.threads)
 
     robot = shipped("ur5e")
-    sim = SimulatedRobot(robot, ur5e_masses(robot), seed=0)
+    sim = CompliantArm(robot, ur5e_masses(robot), seed=0)
     data = make_data(robot, sim, 300, 100, 10, 1)
     X = {s: q for s, (q, _) in data.items()}
     Y = {s: pose_error(T, sim.measure(q)) for s, (q, T) in data.items()}

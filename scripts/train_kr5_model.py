@@ -5,7 +5,7 @@ Simulated data: the KR 5 arc of ``urdf/kuka_kr5_arc.urdf`` with geometric errors
 compliance under gravity (lumped link masses: KUKA publishes no per-link inertials, so the
 masses below are an illustrative split of the arm's weight) and a cyclic joint error on A2/A3.
 The instrument measures the flange pose (position 20 µm, orientation 20 µrad noise) in the
-robot base frame. The truth stays inside :class:`SimulatedRobot`; the fitting code sees only
+robot base frame. The truth stays inside :class:`CompliantArm`; the fitting code sees only
 (commanded q, measured pose).
 
 Model: ``calibrate(kind="pose")`` on 300 + 100 poses, then an MMA-ELM (30 hidden neurons) on the
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from seed002_mma_elm import SimulatedRobot  # noqa: E402
+from torchcal.sim.compliant_arm import CompliantArm  # noqa: E402
 
 from torchcal import calibrate  # noqa: E402
 from torchcal.cli.correct import correct_main  # noqa: E402
@@ -80,7 +80,7 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
 
     robot = shipped("kuka_kr5_arc")
-    sim = SimulatedRobot(robot, KR5_MASSES, seed=a.seed, compliance=KR5_COMPLIANCE, cyclic=KR5_CYCLIC)
+    sim = CompliantArm(robot, KR5_MASSES, seed=a.seed, compliance=KR5_COMPLIANCE, cyclic=KR5_CYCLIC)
     g = torch.Generator().manual_seed(a.seed + 1)
     q = {s: sample_q(n, g) for s, n in (("train", 300), ("val", 100), ("test", 200))}
     T = {s: sim.measure(v) for s, v in q.items()}  # the only thing fitting code sees, with q
