@@ -25,7 +25,7 @@ from torchcal.problems.psd import SpotResidual
 from torchcal.problems.rrru import RRRUCalibration
 from torchcal.sim.compliant_arm import CompliantArm, ur5e_masses
 from torchcal.sim.psd import PSDSimulator
-from torchcal.sim.rrru import simulate_tracker
+from torchcal.sim.rrru import TrackerSimulator, simulate_tracker
 from torchcal.sim.scara import ScaraTorqueSimulator
 from torchcal.sim.serial import SimConfig, simulate, simulated_robot
 
@@ -115,16 +115,31 @@ def test_every_system_is_a_problem_and_every_solver_runs_on_it(name):
     assert min(finals.values()) < f0, finals  # someone improved on the start
 
 
-def test_simulators_are_reproducible_and_keep_the_truth_apart():
+def _tensors(data) -> list[torch.Tensor]:
+    """The tensors of a simulated data set, whatever its form (Measurements, PSDData, dict)."""
+    items = data.values() if isinstance(data, dict) else vars(data).values()
+    return [v for v in items if isinstance(v, torch.Tensor)]
+
+
+def test_every_simulator_is_reproducible_from_its_seed_and_keeps_the_truth_apart():
     robot = shipped("ur5e", markers=["flange"])
-    arms = {"serial": simulated_robot(robot, SimConfig(noise=2e-5, seed=1)),
-            "compliant arm": CompliantArm(shipped("ur5e", markers=["flange"]), ur5e_masses(robot), seed=1)}
-    for name, sim in arms.items():
-        a, b, c = sim.simulate(12, seed=5), sim.simulate(12, seed=5), sim.simulate(12, seed=6)
-        da, db, dc = (x.data if not isinstance(x.data, dict) else x.data["T"] for x in (a, b, c))
-        da = getattr(da, "positions", da)
-        db = getattr(db, "positions", db)
-        dc = getattr(dc, "positions", dc)
-        assert torch.equal(da, db), name
-        assert not torch.equal(da, dc), name
-        assert a.truth and "params" in a.truth, name
+    kr5 = shipped("kuka_kr5_arc", source="dh")
+    centres = torch.tensor([[0.95, -0.30, 0.15], [0.85, 0.45, 0.55]], **F64)
+    R = torch.stack([psd_frame(torch.tensor([0.1, 0.0, 1.0], **F64) - c, 0.3 * j) for j, c in enumerate(centres)])
+    ex = FourierExcitation.from_robot("scara")
+    xi = scara.lumped(scara.PlanarParams.from_robot("scara"), False)
+    rrru_truth = torch.zeros(14, **F64)
+    rrru_truth[0] = 1e-3
+    sims = {"serial": simulated_robot(robot, SimConfig(noise=2e-5, seed=1)),
+            "compliant arm": CompliantArm(shipped("ur5e", markers=["flange"]), ur5e_masses(robot), seed=1),
+            "PSD": PSDSimulator(kr5, torch.zeros(kr5.n_params, **F64), Laser(), R, centres, q_noise=1e-5,
+                                q0=torch.tensor([0.0, -1.4, 2.4, 0.0, 0.5, 0.0], **F64)),
+            "SCARA torques": ScaraTorqueSimulator(ex, ex.random(1, torch.Generator().manual_seed(0))[0], xi, False,
+                                                  DynamicsSettings()),
+            "3-RRRU tracker": TrackerSimulator(RRRU(), spiral_trajectory(12), rrru_truth, 2e-5)}
+    for name, sim in sims.items():
+        a, b, c = sim.simulate(6, seed=5), sim.simulate(6, seed=5), sim.simulate(6, seed=6)
+        ta, tb, tc = _tensors(a.data), _tensors(b.data), _tensors(c.data)
+        assert ta and all(torch.equal(x, y) for x, y in zip(ta, tb)), name
+        assert not all(torch.equal(x, y) for x, y in zip(ta, tc)), name
+        assert a.truth, name

@@ -3,10 +3,11 @@ truth that made it. Identifying code receives only ``data``; tests and scripts c
 ``truth``."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-__all__ = ["Simulated", "Simulator"]
+__all__ = ["Simulated", "Simulator", "expected_noise_norm"]
 
 
 @dataclass
@@ -32,3 +33,9 @@ class Simulator(Protocol):
     trajectory points) reproducibly from ``seed``."""
 
     def simulate(self, n: int, *, seed: int = 0) -> Simulated: ...
+
+
+def expected_noise_norm(sigma: float) -> float:
+    """Mean Euclidean norm (m) of isotropic 3-D Gaussian noise with ``sigma`` (m) per axis:
+    ``σ √2 Γ(2) / Γ(3/2) ≈ 1.596 σ``."""
+    return sigma * math.sqrt(2.0) * math.gamma(2.0) / math.gamma(1.5)

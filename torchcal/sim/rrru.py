@@ -7,8 +7,9 @@ import torch
 from torch import Tensor
 
 from torchcal.kinematics.rrru import RRRU
+from torchcal.sim.base import Simulated, expected_noise_norm
 
-__all__ = ["compensation", "simulate_tracker"]
+__all__ = ["compensation", "simulate_tracker", "TrackerSimulator"]
 
 
 def simulate_tracker(model: RRRU, targets: Tensor, true_params: Tensor, noise: float = 0.0, *,
@@ -54,3 +55,23 @@ def compensation(model: RRRU, true_params: Tensor, identified: Tensor | None, ta
     return dict(measured=meas, actual=actual, error=err, true_error=terr,
                 distance=torch.linalg.vector_norm(err, dim=-1),
                 true_distance=torch.linalg.vector_norm(terr, dim=-1))
+
+
+class TrackerSimulator:
+    """Seed 004's measurements behind :class:`~torchcal.sim.base.Simulator`: the robot with true errors
+    ``true_params (14,)`` driven along ``targets (n, 3)`` (m) by its nominal controller, measured by
+    a tracker with ``noise`` (m, σ per axis)."""
+
+    def __init__(self, model: RRRU, targets: Tensor, true_params: Tensor, noise: float = 0.0):
+        self.model, self.targets, self.true_params, self.noise = model, targets, true_params, float(noise)
+
+    def simulate(self, n: int, *, seed: int = 0) -> Simulated:
+        """The first ``n`` targets; ``data`` holds the commanded angles ``theta (n, 3)`` rad and the
+        tracker readings ``meas (n, 3)`` m, ``truth`` the errors and the true positions."""
+        if not 0 < n <= self.targets.shape[0]:
+            raise ValueError(f"n must lie in 1..{self.targets.shape[0]} (the targets given), got {n}")
+        T = self.targets[:n]
+        theta, actual, meas = simulate_tracker(self.model, T, self.true_params, self.noise,
+                                               generator=torch.Generator().manual_seed(int(seed)))
+        return Simulated({"theta": theta, "meas": meas, "targets": T}, {"params": self.true_params, "actual": actual},
+                         noise_floor=expected_noise_norm(self.noise))

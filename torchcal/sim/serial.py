@@ -17,7 +17,7 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.io import save_measurements
 from torchcal.outputs import atomic_write_text
 from torchcal.params import ParamSet
-from torchcal.sim.base import Simulated
+from torchcal.sim.base import Simulated, expected_noise_norm
 
 __all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
            "simulate_fleet", "SimulatedRobot", "simulated_robot", "hide_axes"]
@@ -281,7 +281,7 @@ class SimulatedRobot:
         finally:
             self.g = saved
         return Simulated(data, {"params": self.truth, "effects": self.effects, "noise_m": self.noise},
-                         noise_floor=self.noise * math.sqrt(2.0) * math.gamma(2.0) / math.gamma(1.5))
+                         noise_floor=expected_noise_norm(self.noise))
 
 
     # ------------------------------------------------------------------ partial measurements
