@@ -7,7 +7,6 @@ Running one after the other gets both.
 from __future__ import annotations
 
 import copy
-import importlib
 from typing import Any, Callable
 
 import torch
@@ -17,21 +16,6 @@ from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
 
 __all__ = ["Hybrid"]
-
-
-def _solver(method: str, options: dict[str, Any]) -> Solver:
-    """``get_solver`` that imports ``torchcal.optim.<method>`` on first use if the name is not
-    registered yet: the polish solver (``lm``) lives in another module, looked up lazily so this
-    module imports whether or not that one is loaded (or written) yet."""
-    try:
-        return get_solver(method, **options)
-    except ValueError:
-        try:
-            importlib.import_module(f"{__package__}.{method.lower()}")
-        except ImportError:
-            raise ValueError(f"unknown method {method!r} (and no module torchcal.optim."
-                             f"{method.lower()} registers it)") from None
-        return get_solver(method, **options)
 
 
 @register
@@ -81,13 +65,13 @@ class Hybrid(Solver):
 
     def _run(self, problem: Problem) -> Result:
         problem.require_finite_bounds(self.name)
-        sw = _solver(self.swarm, self._stage_options(self.swarm_options, lambda: 0))
+        sw = get_solver(self.swarm, **self._stage_options(self.swarm_options, lambda: 0))
         r1 = sw.minimize(problem)
 
         # Start the polish at the swarm's best without mutating the caller's problem.
         p2 = copy.copy(problem)
         p2.x0 = r1.x.detach().clone()
-        pol = _solver(self.polish, self._stage_options(self.polish_options, lambda: r1.n_iter))
+        pol = get_solver(self.polish, **self._stage_options(self.polish_options, lambda: r1.n_iter))
         r2 = pol.minimize(p2)
 
         # Compare on the problem's own fitness (one extra evaluation, counted): the polish may
