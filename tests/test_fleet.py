@@ -134,11 +134,14 @@ def test_fleet_equals_per_robot_calibrate(kr5, ragged):
 
 
 def test_fleet_exact_mode_follows_calibrate(kr5, ragged):
-    """Without Jacobian reuse the batched LM takes the single solver's steps."""
+    """Without Jacobian reuse the batched LM takes the single solver's steps. Accepted steps are
+    compared: a round that starts at its minimum has a gradient cosine at gtol to rounding, and
+    one solver may then try (and reject) one step that the other does not."""
     fr = calibrate_fleet(kr5, ragged[:3], options={"reuse": None})
+    accepted = lambda s: s.n_iter - s.extra["n_rejected"]  # noqa: E731
     for a, d in zip(fr.results, ragged[:3]):
         b = calibrate(kr5, d, method="lm")
-        assert a.solver.n_iter == b.solver.n_iter
+        assert accepted(a.solver) == accepted(b.solver)
         assert torch.allclose(a.params.values, b.params.values, atol=1e-9, rtol=0)
 
 

@@ -68,6 +68,17 @@ class Jacobians:
         I3 = eye.expand(*e.shape[:-1], 3, 3)
         return R0 @ torch.cat([I3, roll, pitch, I3[..., 2:3]], -1)
 
+    @staticmethod
+    def _turn(R: Tensor, D: Tensor) -> Tensor:
+        """``R (P, N, n, 3, 3)`` frames times ``D (P, n, 3, k)`` directions given in them, laid out
+        ``(P, 3, N, n·k)``. One ``(N·3, 3) @ (3, k)`` product per parameter vector and frame: the
+        same product as ``R @ D[:, None]`` without ``P·N·n`` tiny 3 x 3 ones."""
+        P, N, n = R.shape[:3]
+        k = D.shape[-1]
+        D = D.expand(P, n, 3, k)
+        out = torch.bmm(R.permute(0, 2, 1, 3, 4).reshape(P * n, N * 3, 3), D.reshape(P * n, 3, k))
+        return out.reshape(P, n, N, 3, k).permute(0, 3, 2, 1, 4).reshape(P, 3, N, n * k)
+
     def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
         mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
@@ -75,89 +86,93 @@ class Jacobians:
         dt = dict(dtype=self.dtype, device=self.device)
         eye = torch.eye(3, **dt)
         Jn = len(self.joints)
-        # frames as the URDF defines them (undo the internal axis alignment); root = identity
-        RF = torch.stack([eye.expand(P, N, 3, 3) if R is None else R.expand(P, N, 3, 3) for R in Rs], 2)
-        if not self._aligned:
-            RF = RF @ self._CfT
-        RP = RF[:, :, self.parent_frame]  # (P, N, J, 3, 3)
-        tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
-                          for f in self.parent_frame], 2)
+        # internal (axis-aligned) frames; root = identity. The URDF frame is RFi·Cᵀ: the Cᵀ is folded
+        # into the small per-parameter-vector direction matrices, not into every pose's frames
+        RFi = torch.stack([eye.expand(P, N, 3, 3) if R is None else R.expand(P, N, 3, 3) for R in Rs], 2)
         RJ = torch.stack([x.expand(P, N, 3, 3) for x in JR], 2)  # internal (aligned) joint frames
         CJ = None if self._aligned else self._CfT[1:]
-        if self._dh_idx and CJ is not None:
-            RJ_urdf = RJ @ CJ
-        else:
-            RJ_urdf = RJ
         tJ = torch.stack([x.expand(P, N, 3) for x in Jt], 2)
-        axes, points, is_rot, masks = [], [], [], []
+        # every rotational column turns about an axis through one of these points: the joint
+        # origins (J), the parent origins (J, DH only) and the markers (M)
+        pts = [tJ]
+        axes, is_rot, masks, pidx = [], [], [], []
         anc = self._anc  # (J, M)
         if self._urdf_idx:
             U = self._urdf_idx
+            pU = [self.parent_frame[j] for j in U]
             e = slots[:, self._slices["urdf"]].reshape(P, -1, 6)
             # x, y, z, roll, pitch, yaw directions of each origin frame F0 = RP·U_R: F0 times
             # small per-parameter-vector matrices, so one batched product per pose
-            B = self._rpy_directions(e, self._U_R)  # (P, U, 3, 6)
-            ax = (RP[:, :, U] @ B[:, None]).transpose(-1, -2)  # (P, N, U, 6, 3)
-            axes.append(ax.reshape(P, N, -1, 3))
-            points.append(tJ[:, :, U, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
+            B = self._rpy_directions(e, self._U_R)  # (P, U, 3, 6), URDF parent frames
+            if not self._aligned:
+                B = self._CfT[pU] @ B
+            axes.append(self._turn(RFi[:, :, pU], B))
             is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(len(U)))
+            pidx += [j for j in U for _ in range(3)]
             masks.append(anc[U].repeat_interleave(6, 0))
         if self._dh_idx:
             D = self._dh_idx
-            Rp, tp, Rj, tj = RP[:, :, D], tP[:, :, D], RJ_urdf[:, :, D], tJ[:, :, D]
+            RP = RFi[:, :, self.parent_frame] if self._aligned else RFi[:, :, self.parent_frame] @ self._CpT
+            tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
+                              for f in self.parent_frame], 2)
+            pts.append(tP)
+            RJ_urdf = RJ if CJ is None else RJ @ CJ
+            Rp, Rj = RP[:, :, D], RJ_urdf[:, :, D]
             cls = self._dh_classic[:, None]
             x_p, z_p, z_j = Rp[..., 0], Rp[..., 2], Rj[..., 2]
             # classic Tz(d)Tx(a)Rx(α)Rz(φ): a along x_p, d along z_p, α about x_p at t_J
             # modified Rx(α)Tx(a)Tz(d)Rz(φ): α about x_p at t_p, a along x_p, d along z_J
             a_d = torch.where(cls, z_p, z_j)
-            pt_al = torch.where(cls, tj, tp)
             ax = torch.stack([x_p, a_d, x_p, z_j], -2)
-            pt = torch.stack([tj, tj, pt_al, tj], -2)
-            axes.append(ax.reshape(P, N, -1, 3))
-            points.append(pt.reshape(P, N, -1, 3))
+            axes.append(ax.reshape(P, N, -1, 3).permute(0, 3, 1, 2))
             is_rot.append(torch.tensor([False, False, True, True], device=self.device).repeat(len(D)))
+            Jn_ = len(self.joints)
+            for j, c in zip(D, self._dh_classic.tolist()):
+                pidx += [j if c else Jn_ + j, j]
             masks.append(anc[D].repeat_interleave(4, 0))
         # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
         mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
         mov_ax = (RJ @ mov_dir)[..., 0]  # (P, N, J, 3)
-        axes.append(mov_ax)
-        points.append(tJ)
+        axes.append(mov_ax.permute(0, 3, 1, 2))
         is_rot.append(self._is_rev.clone())
+        pidx += torch.nonzero(self._is_rev).flatten().tolist()
         masks.append(anc)
         # marker offsets: like a fixed joint on the marker's link
         M = len(self.markers)
         e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
-        ax = (RF[:, :, self._mk_frame] @ self._rpy_directions(e, self._mk_R)[:, None]).transpose(-1, -2)
-        axes.append(ax.reshape(P, N, -1, 3))
-        points.append(mt[:, :, :, None, :].expand(-1, -1, -1, 6, -1).reshape(P, N, -1, 3))
+        dirs = self._rpy_directions(e, self._mk_R)
+        if not self._aligned:
+            dirs = self._CmT @ dirs
+        axes.append(self._turn(RFi[:, :, self._mk_frame], dirs))
         is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(M))
+        off = sum(x.shape[2] for x in pts)
+        pidx += [off + m for m in range(M) for _ in range(3)]
+        pts.append(mt)
         masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
 
         # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
         # every elementwise pass runs over long rows (with the 3 components innermost, as the
         # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
         # batched 3 x 3 product per parameter vector.
-        V = sum(x.shape[2] for x in axes)
+        V = sum(x.shape[-1] for x in axes)
         rot = torch.cat(is_rot)  # (V,)
         mask = torch.cat(masks, 0).to(self.dtype).T  # (M, V)
         Rb, tb = self._base(slots)
 
-        def to_base(vecs: list[Tensor], shift: bool) -> Tensor:
-            """(P, N, v, 3) pieces, robot-base frame -> (P, 3, N, V), instrument frame."""
-            x = torch.cat([v.permute(0, 3, 1, 2) for v in vecs], -1).reshape(P, 3, N * V)
-            x = (Rb @ x).reshape(P, 3, N, V)
-            return x + tb[:, :, None, None] if shift else x
-
-        a = to_base(axes, False)
-        pt = to_base(points, True)
-        mw = (Rb @ mt.permute(0, 3, 1, 2).reshape(P, 3, N * M)).reshape(P, 3, N, M)  # Rb·mt, (P, 3, N, M)
+        # the axes in the instrument frame, (P, 3, N, V)
+        a = (Rb @ torch.cat(axes, -1).reshape(P, 3, N * V)).reshape(P, 3, N, V)
+        Vp = sum(x.shape[2] for x in pts)
+        pw = (Rb @ torch.cat([x.permute(0, 3, 1, 2) for x in pts], -1).reshape(P, 3, N * Vp)).reshape(P, 3, N, Vp)
+        mw = pw[..., Vp - M:]  # Rb·mt, (P, 3, N, M)
         m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
         ri = torch.nonzero(rot).flatten()
-        ar, lev = a[..., ri][:, :, :, None, :], m_inst[..., None] - pt[..., ri][:, :, :, None, :]
+        # lever arms from each rotational column's point to the markers: the translation tb cancels
+        at = pw[..., torch.tensor(pidx, dtype=torch.long, device=self.device)]
+        ar, lev = a[..., ri][:, :, :, None, :], mw[..., None] - at[:, :, :, None, :]
         ax_, ay_, az_ = ar.unbind(1)
         lx, ly, lz = lev.unbind(1)
         lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
-        lin[..., ri] = torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1)
+        lin.index_copy_(-1, ri, torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1))
         lin *= mask
         rows = [lin]
         if kind == "pose":

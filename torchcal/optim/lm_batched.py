@@ -69,13 +69,18 @@ class BatchedLMResult:
                       extra={"cost": 0.5 * S, "n_jac": int(self.n_jac[b]), "n_rejected": int(self.n_rejected[b])})
 
 
-def _linearise(J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upper: Tensor, bounded: bool):
-    """``JᵀJ``, ``Jᵀr`` of each problem over its free columns (fixed ones zeroed), and the same with
-    parameters held on an active bound removed too (1 on their diagonal, so their step is 0)."""
+def _gram(J: Tensor, free: Tensor) -> Tensor:
+    """``JᵀJ`` of each problem over its free columns (fixed ones zeroed): ``(B, k, k)``."""
     J = J * free[:, None, :].to(J.dtype)
-    Jt = J.transpose(-1, -2)
-    A = torch.bmm(Jt, J)
-    g = torch.bmm(Jt, r[..., None])[..., 0]
+    return torch.bmm(J.transpose(-1, -2), J)
+
+
+def _equations(A: Tensor, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upper: Tensor,
+               bounded: bool):
+    """``Jᵀr`` over the free columns, and the normal equations with parameters held on an active
+    bound removed too (1 on their diagonal, so their step is 0). ``A`` is :func:`_gram` of ``J``:
+    a step that keeps the Jacobian changes only the residuals, so only ``Jᵀr`` is recomputed."""
+    g = torch.bmm(J.transpose(-1, -2), r[..., None])[..., 0] * free.to(J.dtype)
     move = free
     if bounded:
         held = ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
@@ -83,7 +88,7 @@ def _linearise(J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upp
     f = move.to(A.dtype)
     Ae = A * f[:, :, None] * f[:, None, :] + torch.diag_embed(1.0 - f)
     ge = g * f
-    return A, g, Ae, ge
+    return g, Ae, ge
 
 
 def _gcos(ge: Tensor, A: Tensor, S: Tensor) -> Tensor:
@@ -135,13 +140,15 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         X[:, cols] = xr
         return X
 
-    def lin(idx: Tensor):
-        return _linearise(J[idx][:, :, cols], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded)
+    def equations(idx: Tensor):
+        return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded)
 
     r = residuals(full, everyone).to(_F64)
-    J = (jacobian(full, everyone) if jac0 is None else jac0).to(_F64).clone()
+    J = (jacobian(full, everyone) if jac0 is None else jac0).to(_F64).clone()  # all K columns, returned
+    Jc = J[:, :, cols]  # the columns the solver works on
     x, free, lower, upper = x[:, cols], free[:, cols], lower[:, cols], upper[:, cols]
-    A, g, Ae, ge = lin(everyone)  # filled in place from here on
+    A = _gram(Jc, free)  # JᵀJ of the current Jacobians; these are filled in place from here on
+    g, Ae, ge = equations(everyone)
     S = (r * r).sum(-1)
     gnorm = _gcos(ge, A, S)
     xnorm = torch.linalg.vector_norm(x * free, dim=-1)
@@ -167,13 +174,18 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
 
     def new_jacobian(idx: Tensor) -> None:
         if idx.numel():
-            J[idx] = jacobian(at(x[idx], idx), idx).to(_F64)
+            Jn = jacobian(at(x[idx], idx), idx).to(_F64)
+            J[idx] = Jn
+            Jn = Jn[:, :, cols]
+            Jc[idx] = Jn
+            A[idx] = _gram(Jn, free[idx])
             n_jac[idx] += 1
             xJ[idx] = x[idx]
 
-    def relinearise(idx: Tensor) -> None:
-        A[idx], g[idx], Ae[idx], ge[idx] = lin(idx)
-        Dvec[idx] = torch.maximum(Dvec[idx], A[idx].diagonal(dim1=-2, dim2=-1))
+    def relinearise(idx: Tensor, new_jac: bool) -> None:
+        g[idx], Ae[idx], ge[idx] = equations(idx)
+        if new_jac:
+            Dvec[idx] = torch.maximum(Dvec[idx], A[idx].diagonal(dim1=-2, dim2=-1))
         gnorm[idx] = _gcos(ge[idx], A[idx], S[idx])
 
     while True:
@@ -201,8 +213,9 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
             S_old = S[o]
             S_new = (r_new * r_new).sum(-1)
             hh = (h * h).sum(-1)
-            Jh = torch.bmm(J[o][:, :, cols], h[..., None])[..., 0]  # h is 0 on fixed entries: no mask needed
-            pred = -2.0 * (h * g[o]).sum(-1) - (Jh * Jh).sum(-1)
+            # |J h|² = hᵀ JᵀJ h: h is 0 on fixed entries, where A's rows and columns are zeroed
+            hAh = (h * torch.bmm(A[o], h[..., None])[..., 0]).sum(-1)
+            pred = -2.0 * (h * g[o]).sum(-1) - hAh
             gain = S_old - S_new
             rho = torch.where((pred > 0) & torch.isfinite(S_new), gain / pred, torch.full_like(pred, -1.0))
             small_f = (gain.abs() <= ftol * S_old) & (pred <= ftol * S_old) & (rho <= 2.0)
@@ -226,12 +239,12 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
                 # where a step from an old one failed, and where a stopping test fired on an old one
                 # (stopping tests count only on a fresh Jacobian: gtol's at the new point, ftol's
                 # and xtol's at the step's start); one batched evaluation for all of them
-                relinearise(ia)
+                relinearise(ia, False)
                 want = (acc & ((rho <= reuse) | (gnorm[o] < gtol))) | ((~acc | small_f | small_x) & stale_step)
                 need = o[want]
                 need = need[stale(need)]
             new_jacobian(need)
-            relinearise(ia if reuse is None else need)
+            relinearise(ia if reuse is None else need, True)
             fresh_now, fresh_step = ~stale(o), ~stale_step
             c_g = (acc | torch.isin(o, need)) & (gnorm[o] < gtol) & fresh_now
             c_f = ~c_g & small_f & fresh_step

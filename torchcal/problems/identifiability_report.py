@@ -24,18 +24,20 @@ def zero_column_reason(name: str, kind: str = "position") -> str:
 
 
 def dependency_reason(i: int, c, res: float, kept: list[int], names: list[str], units: list[str], norms,
-                      rtol: float) -> tuple[str, dict[str, float]]:
+                      rtol: float, order=None) -> tuple[str, dict[str, float]]:
     """Why column ``i`` is dropped: the sentence and its relation (partner -> unscaled coefficient).
 
     Args:
         c: ``(len(kept),)`` least-squares coefficients of unit-norm column ``i`` on the unit-norm
             kept columns; ``res``: the relative residual of that fit.
         kept: column positions kept; ``norms``: every column's 2-norm (m per unit parameter).
+        order: ``np.argsort(-abs(c), kind="stable")`` when the caller sorted many rows at once.
     """
     c = np.asarray(c, dtype=float)
     n = names[i]
     # partners by decreasing |coefficient| (ties: earlier kept column first)
-    order = np.argsort(-np.abs(c), kind="stable")
+    if order is None:
+        order = np.argsort(-np.abs(c), kind="stable")
     partners = order[np.abs(c[order]) > _PARTNER_TOL].tolist()
     # unscaled: a_i/|a_i| = Σ c_j a_j/|a_j|  =>  a_i = Σ c_j |a_i|/|a_j| a_j (per unit of p_i)
     cu = {names[kept[t]]: float(c[t] * norms[i] / norms[kept[t]]) for t in partners}

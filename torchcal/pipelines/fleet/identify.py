@@ -14,6 +14,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,28 +45,30 @@ def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> T
     (boosted) residual norm while its residual norm exceeds ``rtol`` times the first pick's."""
     Bn, n, k = An.shape
     dev = An.device
+    # columns as rows (B, k, n): every norm and projection then runs along contiguous memory
+    Ar = An.transpose(-1, -2).contiguous()
     kept = torch.zeros(Bn, k, dtype=torch.bool, device=dev)
-    Q = An.new_zeros(Bn, n, k)  # the kept directions (zero columns where a robot picked nothing)
+    Q = An.new_zeros(Bn, k, n)  # the kept directions as rows (zero where a robot picked nothing)
     nq = 0
     tol = An.new_zeros(Bn)
     tol_set = torch.zeros(Bn, dtype=torch.bool, device=dev)
     rows = torch.arange(Bn, device=dev)
     for tier in tiers:
-        T = An[:, :, tier]
+        T = Ar[:, tier]
         if nq:
             # project out the kept span twice: once loses orthogonality for nearly dependent columns
-            Qk = Q[:, :, :nq]
+            Qk = Q[:, :nq]
             for _ in range(2):
-                T = T - Qk @ (Qk.transpose(-1, -2) @ T)
+                T = T - (T @ Qk.transpose(-1, -2)) @ Qk
         boost = 1.0 + TIE_BOOST * torch.arange(len(tier), 0, -1, dtype=An.dtype, device=dev)
-        T = T * boost
+        T = T * boost[:, None]
         avail = valid[:, tier].clone()
         cols = torch.as_tensor(tier, device=dev)
         going = avail.any(-1)
         for _ in range(len(tier)):
             if not bool(going.any()):
                 break
-            nrm = torch.where(avail, T.norm(dim=1), -1.0)
+            nrm = torch.where(avail, T.norm(dim=-1), -1.0)
             best, j = nrm.max(-1)
             d = best / boost[j]
             fresh = going & ~tol_set
@@ -74,10 +77,10 @@ def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> T
             going = going & (d > tol)
             if not bool(going.any()):
                 break
-            v = T[rows, :, j]
-            v = v * (going / v.norm(dim=1).clamp(min=1e-300))[:, None]
-            T = T - v[:, :, None] * (v[:, None, :] @ T)
-            Q[:, :, nq] = v
+            v = T[rows, j]
+            v = v * (going / v.norm(dim=-1).clamp(min=1e-300))[:, None]
+            T = T - (T @ v[:, :, None]) * v[:, None, :]
+            Q[:, nq] = v
             nq += 1
             avail[rows, j] &= ~going
             kept[rows, cols[j]] |= going
@@ -99,7 +102,7 @@ def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1
     norms = J.norm(dim=1)
     big = norms.amax(-1, keepdim=True)
     zero = torch.where(big > 0, norms <= rtol * big, torch.ones_like(norms, dtype=torch.bool))
-    An = torch.where(zero[:, None, :], torch.zeros_like(J), J / torch.where(zero, 1.0, norms)[:, None, :])
+    An = J * torch.where(zero, 0.0, 1.0 / torch.where(zero, 1.0, norms))[:, None, :]
     if m > k:
         An = torch.linalg.qr(An, mode="r").R
     tiers = [t for t in preference_tiers(markers, names, prefer) if t]
@@ -141,15 +144,19 @@ def explain(dec: FleetDecision, names: list[str], units: list[str], kind: str = 
         if kept and todo:
             Bk, rhs = An[:, :, kept], An[:, :, todo]
             coef = torch.linalg.lstsq(Bk, rhs, driver="gelsd" if Bk.device.type == "cpu" else None).solution
-            res = (rhs - Bk @ coef).norm(dim=1)
+            # to numpy once: indexing a tensor element by element costs more than the sentence
+            res = (rhs - Bk @ coef).norm(dim=1).cpu().numpy()
+            coef = coef.transpose(-1, -2).cpu().numpy()  # (members, todo, kept)
+            order = np.argsort(-np.abs(coef), axis=-1, kind="stable")
+        zero_np, norms_np = zero.cpu().numpy(), norms.cpu().numpy()
         for r, b in enumerate(members.tolist()):
-            zr, nr = zero[r].tolist(), norms[r].cpu().numpy()
+            zr, nr = zero_np[r], norms_np[r]
             for t, i in enumerate(todo):
                 if zr[i]:
                     out[b][names[i]] = zero_column_reason(names[i], kind)
                 elif kept:
-                    out[b][names[i]] = dependency_reason(i, coef[r, :, t].cpu().numpy(), float(res[r, t]), kept,
-                                                         names, units, nr, rtol)[0]
+                    out[b][names[i]] = dependency_reason(i, coef[r, t], float(res[r, t]), kept, names, units, nr,
+                                                         rtol, order[r, t])[0]
                 else:
                     out[b][names[i]] = f"{names[i]} is numerically dependent on the identifiable parameters"
     return [out[b] for b in rows]
