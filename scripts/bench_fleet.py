@@ -14,7 +14,8 @@ at R = 10 and 100, once at R = 1000), median per side; ``ratio = loop / fleet``.
 shared with other jobs: ratios measured interleaved, not absolute times, are what to compare.
 
 On a GPU (when one is present, or ``--device cuda``) it adds the kinematics throughput of a
-parameter population × poses and the fleet solve at ``--gpu-robots`` (10 000) robots.
+parameter population × poses and the fleet solve at ``--gpu-robots`` (10 000) robots. The test
+suite runs that code path on the CPU at a small size (``device_figures``).
 
 Prints one JSON line.
 
@@ -72,25 +73,34 @@ def compare(robot: Robot, data: list, reps: int) -> dict:
             "max_param_diff_mm_or_mrad": 1e3 * diff, "same_free_sets": same_sets}
 
 
-def gpu_figures(device: str, n_robots: int, poses: int, seed: int) -> dict:
-    """Population × poses FK throughput and the fleet solve at ``n_robots`` on ``device``."""
+def sync(device: str) -> None:
+    """Wait for the device's queued work, so that a wall-clock time covers it."""
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def device_figures(device: str, n_robots: int, poses: int, seed: int, populations=(1000, 10000)) -> dict:
+    """Population × poses FK throughput and the fleet solve at ``n_robots`` on ``device`` (the
+    GPU figures; on ``cpu`` the same code path, which the tests run at a small size)."""
     robot = Robot.from_urdf(ROOT / "urdf" / "kuka_kr5_arc.urdf", markers=MARKERS, device=device)
     g = torch.Generator().manual_seed(seed)
-    out = {"device": torch.cuda.get_device_name(0) if device.startswith("cuda") else device}
+    out = {"device": torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else device}
     fk = {}
-    for P, N in ((1000, 1000), (10000, 1000)):
+    N = 1000
+    for P in populations:
         q = torch.rand(N, robot.dof, generator=g, dtype=torch.float64).to(device)
         X = (1e-3 * torch.randn(P, robot.n_params, generator=g, dtype=torch.float64)).to(device)
         robot.positions(q, X, check=False)
-        torch.cuda.synchronize()
-        t, _ = timed(lambda: (robot.positions(q, X, check=False), torch.cuda.synchronize()))
-        fk[f"{P}x{N}"] = {"s": t, "pairs_per_s": P * N / t}
+        sync(device)
+        t, p = timed(lambda: (robot.positions(q, X, check=False), sync(device))[0])
+        fk[f"{P}x{N}"] = {"s": t, "pairs_per_s": P * N / t, "shape": list(p.shape)}
     out["fk_population_x_poses"] = fk
     cpu = Robot.from_urdf(ROOT / "urdf" / "kuka_kr5_arc.urdf", markers=MARKERS)
     data = [d.to(device) for d in fleet_data(cpu, n_robots, poses, seed)]
     calibrate_fleet(robot, data[:10])
-    torch.cuda.synchronize()
+    sync(device)
     t, fr = timed(lambda: calibrate_fleet(robot, data))
+    sync(device)
     out["fleet_solve"] = {"robots": n_robots, "s": t, "ms_per_robot": 1e3 * t / n_robots,
                           "converged": sum(r.solver.converged for r in fr.results)}
     return out
@@ -124,7 +134,7 @@ def main() -> None:
            "target_10x_at_100": rows["100"]["ratio"] >= 10 if "100" in rows else None,
            "threads": a.threads, "torch": torch.__version__, "python": platform.python_version(),
            "machine": platform.machine(),
-           "gpu": gpu_figures(device, a.gpu_robots, a.poses, a.seed) if device else "no GPU on this machine"}
+           "gpu": device_figures(device, a.gpu_robots, a.poses, a.seed) if device else "no GPU on this machine"}
     print(json.dumps(out))
 
 

@@ -194,6 +194,8 @@ def test_fleet_cli_refuses_a_filled_output_a_wrong_effect_and_a_prior_on_two_rob
     assert rc == 2 and "invalid choice: 'backlash' (choose from 'joint_compliance')" in err
     rc, err = _fleet(["--data", str(data), "--z", "inf"], tmp_path / "o2", capsys)
     assert rc == 2 and "argument --z: must be a finite number" in err
+    rc, err = _fleet(["--data", str(data), "--false-alarm", "5"], tmp_path / "o2", capsys)
+    assert rc == 2 and "argument --false-alarm: must be a probability in (0, 1)" in err
     two = _write(tmp_path / "two", train[:2], ["r0", "r1"])
     rc, err = _fleet(["--data", str(two), "--prior", "fleet"], tmp_path / "o2", capsys)
     assert rc == 2 and "2 robot(s) are too few" in err and "at least 3 robots" in err
@@ -208,6 +210,8 @@ def test_fleet_cli_refuses_a_filled_output_a_wrong_effect_and_a_prior_on_two_rob
     ({"test": {"x": 0}}, ValueError, r"held-out data for robots \['x'\], which are not in the fleet"),
     ({"payload": "everyone"}, ValueError, "payload must be 'shared' or 'per_robot'"),
     ({"z_threshold": -1.0}, ValueError, "z_threshold is a robust z-score.*give a positive number"),
+    ({"false_alarm": 1.5}, ValueError, "false_alarm is the chance.*between 0 and 1"),
+    ({"false_alarm": 0}, ValueError, "false_alarm is the chance.*between 0 and 1"),
     # one effect named by a string is that effect (here refused for the model's missing inertials)
     ({"effects": "joint_compliance"}, ValueError, "needs link inertials in the URDF"),
 ])

@@ -18,7 +18,7 @@ from torchcal.kinematics.urdf import urdf_links
 from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, read_csv
 from torchcal.outputs import atomic_write_text, provenance
 
-__all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "add_common", "expand_config",
+__all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",
            "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
 
 logger = logging.getLogger("torchcal")
@@ -62,6 +62,10 @@ def nonnegative_float(text: str) -> float:
 
 def fraction(text: str) -> float:
     return _float(text, lambda v: 0 <= v < 1, "a fraction in [0, 1)")
+
+
+def probability(text: str) -> float:
+    return _float(text, lambda v: 0 < v < 1, "a probability in (0, 1)")
 
 
 def add_common(p: argparse.ArgumentParser, units: bool = True) -> None:

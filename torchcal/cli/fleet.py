@@ -13,8 +13,9 @@ from pathlib import Path
 
 import torch
 
-from torchcal.cli.common import add_common, int_at_least, positive_float, robot_for, run_record
+from torchcal.cli.common import add_common, int_at_least, positive_float, probability, robot_for, run_record
 from torchcal.pipelines.fleet.run import calibrate_fleet
+from torchcal.report.fleet import FALSE_ALARM
 from torchcal.measure.io import UnitsError, load_measurements, read_csv
 from torchcal.outputs import check_out_dir, staged_dir
 from torchcal.kinematics.urdf import load_joints
@@ -79,7 +80,11 @@ def add_fleet_parser(sub) -> argparse.ArgumentParser:
                    help="fit joint compliance per robot (needs URDF inertials)")
     f.add_argument("--payload", choices=["shared", "per_robot"], default="shared",
                    help="with --effect: one unknown payload for the fleet, or one per robot")
-    f.add_argument("--z", type=positive_float, default=5.0, help="robust z-score beyond which a parameter is flagged")
+    f.add_argument("--z", type=positive_float, default=5.0,
+                   help="flag a robot's parameter this many standard deviations from its siblings (default 5)")
+    f.add_argument("--false-alarm", type=probability, default=FALSE_ALARM,
+                   help="chance that a fleet of healthy robots raises any flag (default 0.05); with few robots it "
+                        "raises the bound above --z")
     f.add_argument("--min-rows", type=int_at_least(1), default=3, help="refuse robots with fewer rows")
     f.add_argument("--ray", metavar="ADDRESS", help="run on Ray: 'local' (in-process), 'auto' or ray://host:port "
                                                    "(pip install torchcal[ray])")
@@ -103,7 +108,8 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     test_files = fleet_files(a.test) if a.test else []
     test = _load_all(test_files, robot, units) or None
     fr = calibrate_fleet(robot, data, test=test, prior=a.prior, effects=a.effect, payload=a.payload,
-                         z_threshold=a.z, min_rows=a.min_rows, ray=a.ray, ray_shards=a.shards)
+                         z_threshold=a.z, false_alarm=a.false_alarm, min_rows=a.min_rows, ray=a.ray,
+                         ray_shards=a.shards)
     inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}
     with staged_dir(a.out, a.force) as d:
         fr.save(d, figures=not a.no_figures)

@@ -1,13 +1,21 @@
 """Fleet reports: how every parameter spreads over the robots, which robots stand out, and the
 files ``torchcal fleet`` writes (``<robot>/calibrated.urdf``, ``report.md/json``, ``fleet.md/json``).
 
-Outliers are judged by a robust z-score per parameter, ``z = (x − median) / sqrt(s² + se²)``, with
-``s = max(1.4826 · MAD, median standard error)`` and ``se`` the robot's own standard error: the
-median absolute deviation ignores the outliers it is looking for, the floor keeps a fleet whose
-spread is below the measurement precision from flagging noise, and a value the robot's own data
-barely fix is not called an outlier. A joint offset 5 s from its siblings is, in practice, a
-re-mastered or damaged axis. The instrument frame (``base.*``) is where the tracker stood and the
-marker points are the tooling, not properties of the robot, so they are left out.
+A robot's parameter is judged against its siblings: ``z = (x − m) / sqrt(s² (1 + 1/k) + se²)``,
+with ``m`` and ``s`` the mean and standard deviation of the ``k`` siblings that lie within
+:data:`SCREEN` robust standard deviations (1.4826 · MAD) of the fleet median, ``s`` floored at the
+median standard error (a fleet whose spread is below the measurement precision does not flag
+noise), and ``se`` the robot's own standard error (a value its own data barely fix is no outlier).
+Leaving the robot itself and the far siblings out of ``m`` and ``s`` keeps one damaged robot from
+hiding itself or another.
+
+A robot is flagged where ``|z|`` exceeds both ``z_threshold`` (5: in practice a re-mastered or
+damaged axis) and the Student-t bound at which a fleet of healthy robots with normally spread
+parameters would raise any flag at all with probability ``false_alarm`` (Bonferroni over every
+robot and parameter, ``k − 1`` degrees of freedom). A spread estimated from a handful of siblings
+is itself uncertain: with 6 robots the bound is about 13, with 10 about 7, and from about 20
+robots on ``z_threshold`` decides alone. The instrument frame (``base.*``) is where the tracker
+stood and the marker points are the tooling, not properties of the robot, so they are left out.
 """
 from __future__ import annotations
 
@@ -17,16 +25,18 @@ import math
 import re
 from pathlib import Path
 
-import torch
+import numpy as np
+from scipy import stats
 
 from torchcal.params import display_unit
 from torchcal.report.calibration import write_json
 
-__all__ = ["parameter_spread", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS"]
+__all__ = ["parameter_spread", "sibling_z", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS",
+           "FALSE_ALARM"]
 
 MIN_ROBOTS = 5  # fewer robots than this: a median and a MAD say too little to flag anyone
-# below this many robots, simulated healthy fleets still drew flags (KR5, 0.2x spread: none at 40)
-FEW_ROBOTS = 20
+SCREEN = 4.0  # siblings beyond this many robust standard deviations do not set the yardstick
+FALSE_ALARM = 0.05  # default chance that a fleet of healthy robots raises any flag
 _MAD = 1.4826  # MAD -> standard deviation for a normal distribution
 
 
@@ -35,10 +45,12 @@ def _columns(results, extra) -> list[tuple[str, str, list[float | None], list[fl
     p0 = results[0].params
     markers = set(results[0].robot.marker_names)
     cols = []
+    values = [r.params.values.tolist() for r in results]  # one conversion per robot, not per entry
+    free = [r.params.free.tolist() for r in results]
     for i, (n, u) in enumerate(zip(p0.names, p0.units)):
         if n.startswith("base.") or n.split(".")[0] in markers:
             continue
-        vals = [float(r.params.values[i]) if bool(r.params.free[i]) else None for r in results]
+        vals = [v[i] if f[i] else None for v, f in zip(values, free)]
         if any(v is not None for v in vals):
             cols.append((n, u, vals, [r.std_errors.get(n) for r in results]))
     if extra:
@@ -49,41 +61,81 @@ def _columns(results, extra) -> list[tuple[str, str, list[float | None], list[fl
     return cols
 
 
-def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra: dict | None = None
-                     ) -> tuple[dict, list[dict]]:
+def sibling_z(x: np.ndarray, se: np.ndarray, floor: float = 0.0, screen: float = SCREEN
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Each robot's distance from its siblings in their standard deviations.
+
+    Args:
+        x: ``(n,)`` one parameter over the robots that fitted it; ``se``: ``(n,)`` their standard
+            errors (0 where unknown); ``floor``: the least standard deviation the siblings are given
+            (the measurement precision), in the parameter's unit.
+    Returns:
+        ``(z, k)``: ``(n,)`` z-scores as the module docstring defines them, and how many siblings
+        set each robot's yardstick (its Student-t bound has ``k − 1`` degrees of freedom).
+    """
+    n = x.size
+    med = float(np.median(x))
+    d = x - med  # centred: the sums below then lose no digits to the parameter's nominal size
+    s0 = max(_MAD * float(np.median(np.abs(d))), floor)
+    near = np.abs(d) <= screen * s0 if s0 > 0 else np.ones(n, dtype=bool)
+    # leave-one-out sums over each robot's siblings: the near ones, or all of them where fewer than
+    # 3 near siblings are left to say how far is far
+    k = near.sum() - near
+    few = k < 3
+    w = near.astype(float)
+    s1 = np.where(few, d.sum() - d, (w * d).sum() - near * d)
+    s2 = np.where(few, (d * d).sum() - d * d, (w * d * d).sum() - near * d * d)
+    k = np.where(few, n - 1, k)
+    mean = s1 / k
+    var = np.maximum(s2 - k * mean * mean, 0.0) / (k - 1)
+    s = np.maximum(np.sqrt(var), floor)
+    den = np.sqrt(s * s * (1.0 + 1.0 / k) + se * se)
+    z = np.where(den > 0, (d - mean) / np.where(den > 0, den, 1.0), 0.0)
+    return z, k
+
+
+def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra: dict | None = None,
+                     false_alarm: float = FALSE_ALARM) -> tuple[dict, list[dict]]:
     """Per parameter: mean, std, median, robust spread and outliers over the robots that fitted it.
 
     Args:
         names: robot ids; ``results``: their :class:`~torchcal.pipelines.calibrate.CalibrationResult`.
+        z_threshold: the least ``|z|`` that flags (see the module docstring).
         extra: per-robot effect parameters (``names``, ``units``, ``values``, ``free``,
             ``std_errors``: lists per robot) to include.
+        false_alarm: the chance that a fleet of healthy robots raises any flag; with few robots it
+            raises the bound above ``z_threshold``.
     Returns:
-        ``(spread, flags)``: ``spread[param]`` holds values in SI units (m, rad, …) and the robots
-        beyond ``z_threshold``; ``flags`` lists ``{robot, parameter, value, median, z, unit}``,
-        largest ``|z|`` first.
+        ``(spread, flags)``: ``spread[param]`` holds values in SI units (m, rad, …), the bound
+        ``z_needed`` (at ``n − 1`` siblings) and the robots flagged; ``flags`` lists ``{robot,
+        parameter, value, median, z, z_needed, unit}``, largest ``|z|`` first.
     """
+    cols = _columns(results, extra)
+    judged = [(n, u, vals, ses) for n, u, vals, ses in cols if sum(v is not None for v in vals) >= MIN_ROBOTS]
+    n_tests = sum(sum(v is not None for v in vals) for _, _, vals, _ in judged)
+    # the two-sided tail each test may spend: Bonferroni over every robot and parameter judged
+    tail = false_alarm / (2 * max(n_tests, 1))
     spread, flags = {}, []
-    for n, u, vals, ses in _columns(results, extra):
+    for n, u, vals, ses in cols:
         who = [i for i, v in enumerate(vals) if v is not None]
-        x = torch.tensor([vals[i] for i in who], dtype=torch.float64)
-        med = float(x.median())
-        mad = float((x - med).abs().median())
-        se = [ses[i] for i in who if ses[i] is not None and math.isfinite(ses[i])]
-        floor = float(torch.tensor(se, dtype=torch.float64).median()) if se else 0.0
-        scale = max(_MAD * mad, floor)
-        entry = {"unit": u, "n": len(who), "mean": float(x.mean()), "std": float(x.std()) if len(who) > 1 else 0.0,
-                 "median": med, "robust_std": _MAD * mad, "median_std_error": floor, "z_scale": scale,
-                 "min": float(x.min()), "max": float(x.max()), "outliers": []}
-        if len(who) >= MIN_ROBOTS and scale > 0:
-            # a robot's own uncertainty widens its yardstick: a value its data barely fix is no outlier
-            own = torch.tensor([ses[i] if ses[i] is not None and math.isfinite(ses[i]) else 0.0 for i in who],
-                               dtype=torch.float64)
-            z = (x - med) / torch.sqrt(scale ** 2 + own ** 2)
-            for i, zi in zip(who, z.tolist()):
-                if abs(zi) > z_threshold:
+        x = np.array([vals[i] for i in who], dtype=float)
+        med = float(np.median(x))
+        mad = float(np.median(np.abs(x - med)))
+        se_all = np.array([ses[i] if ses[i] is not None and math.isfinite(ses[i]) else np.nan for i in who])
+        floor = float(np.nanmedian(se_all)) if np.isfinite(se_all).any() else 0.0
+        entry = {"unit": u, "n": len(who), "mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(who) > 1 else 0.0,
+                 "median": med, "robust_std": _MAD * mad, "median_std_error": floor,
+                 "z_scale": max(_MAD * mad, floor), "z_needed": None, "min": float(x.min()), "max": float(x.max()),
+                 "outliers": []}
+        if len(who) >= MIN_ROBOTS and entry["z_scale"] > 0:
+            z, k = sibling_z(x, np.nan_to_num(se_all, nan=0.0), floor)
+            need = np.maximum(z_threshold, stats.t.isf(tail, k - 1))
+            entry["z_needed"] = float(max(z_threshold, stats.t.isf(tail, len(who) - 2)))
+            for i, zi, ni in zip(who, z.tolist(), need.tolist()):
+                if abs(zi) > ni:
                     entry["outliers"].append(names[i])
                     flags.append({"robot": names[i], "parameter": n, "value": vals[i], "median": med, "z": zi,
-                                  "unit": u})
+                                  "z_needed": ni, "unit": u})
         spread[n] = entry
     flags.sort(key=lambda f: -abs(f["z"]))
     return spread, flags
@@ -108,7 +160,8 @@ def fleet_report(fr) -> dict:
                                   "message": r.solver.message},
                        "flags": flagged.get(n, [])})
     return {"model": fr.robot.name, "n_robots": len(fr.names), "identify": fr.identify,
-            "z_threshold": fr.z_threshold, "min_robots_for_flags": MIN_ROBOTS, "wall_time_s": fr.wall_time_s,
+            "z_threshold": fr.z_threshold, "false_alarm": fr.false_alarm, "z_needed": _bound(fr),
+            "min_robots_for_flags": MIN_ROBOTS, "wall_time_s": fr.wall_time_s,
             "prior": fr.prior, "effects": None if fr.effects is None else
             {k: v for k, v in fr.effects.items() if k in ("names", "units", "shared", "payload")},
             "robots": robots, "flags": fr.flags, "spread": fr.spread}
@@ -125,22 +178,31 @@ def fleet_markdown(fr) -> str:
                   f"{fr.prior['sigma_m'] * 1e3:.4f} mm, {fr.prior['n_outer']} rounds of scale estimation.", ""]
     if fr.effects and fr.effects.get("shared"):
         lines += ["Shared by the fleet: " + ", ".join(f"{k} = {v:.4g}" for k, v in fr.effects["shared"].items()), ""]
-    lines += [f"## Flags (robust |z| > {fr.z_threshold:g})", ""]
+    bound = _bound(fr)
+    lines += [f"## Flags (|z| from the siblings > {fr.z_threshold:g}" +
+              (f" and > {bound:.1f}, the bound for {len(fr.names)} robots" if bound and bound > fr.z_threshold else "")
+              + ")", ""]
     if len(fr.names) < MIN_ROBOTS:
         lines.append(f"Too few robots ({len(fr.names)} < {MIN_ROBOTS}) to flag outliers.")
-    elif not fr.flags:
-        lines.append("No robot stands out.")
     else:
-        lines += ["| robot | parameter | value | fleet median | z |", "|---|---|---|---|---|"]
-        for f in fr.flags:
-            sc, us = display_unit(f["unit"])
-            lines.append(f"| {f['robot']} | {f['parameter']} | {f['value'] * sc:.4f} {us} | {f['median'] * sc:.4f} {us} "
-                         f"| {f['z']:+.1f} |")
-        lines += ["", "A joint offset far from its siblings usually means a re-mastered or damaged axis."]
-        if len(fr.names) < FEW_ROBOTS:
-            lines += [f"With {len(fr.names)} robots the median and the MAD are themselves uncertain, and an identified "
-                      "parameter also carries what the robot's unidentifiable errors project onto it: healthy robots "
-                      "of small fleets get flagged too. Confirm a flag by measuring that axis again."]
+        lines.append(f"z is a robot's distance from its siblings' mean in their standard deviations. A fleet of healthy "
+                     f"robots raises any flag with probability {fr.false_alarm:g}: the bound is the Student-t value "
+                     "for that chance over every robot and parameter, since a spread estimated from few siblings is "
+                     "itself uncertain." + (f" With {len(fr.names)} robots only a parameter about {bound:.0f} standard "
+                                            "deviations away is flagged; more robots lower the bound towards "
+                                            f"{fr.z_threshold:g}." if bound and bound > fr.z_threshold else ""))
+        lines.append("")
+        if not fr.flags:
+            lines.append("No robot stands out.")
+        else:
+            lines += ["| robot | parameter | value | fleet median | z | bound |", "|---|---|---|---|---|---|"]
+            for f in fr.flags:
+                sc, us = display_unit(f["unit"])
+                lines.append(f"| {f['robot']} | {f['parameter']} | {f['value'] * sc:.4f} {us} | "
+                             f"{f['median'] * sc:.4f} {us} | {f['z']:+.1f} | {f['z_needed']:.1f} |")
+            lines += ["", "A joint offset far from its siblings usually means a re-mastered or damaged axis. An "
+                      "identified parameter also carries what the robot's unidentifiable errors project onto it: "
+                      "confirm a flag by measuring that axis again."]
     lines += ["", "## Robots", "", f"| robot | rows | parameters | train mean: nominal → {last} (mm) | test mean (mm) | "
               "solver |", "|---|---|---|---|---|---|"]
     for n, r in zip(fr.names, fr.results):
@@ -149,13 +211,21 @@ def fleet_markdown(fr) -> str:
         lines.append(f"| {n} | {r.n_train} | {s1['n_params']} | {_mean_mm(s0, 'train'):.4f} → "
                      f"{_mean_mm(s1, 'train'):.4f} | {te} | {r.solver.n_iter} it, {r.solver.message} |")
     lines += ["", "## Parameter spread over the fleet", "",
-              "| parameter | robots | mean | std | median | robust std | min | max | unit | outliers |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "| parameter | robots | mean | std | median | robust std | min | max | unit | flag bound | outliers |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, e in fr.spread.items():
         sc, us = display_unit(e["unit"])
         v = " | ".join(f"{e[k] * sc:.4g}" for k in ("mean", "std", "median", "robust_std", "min", "max"))
-        lines.append(f"| {n} | {e['n']} | {v} | {us} | {', '.join(e['outliers']) or '–'} |")
+        zb = "–" if e.get("z_needed") is None else f"{e['z_needed']:.1f}"
+        lines.append(f"| {n} | {e['n']} | {v} | {us} | {zb} | {', '.join(e['outliers']) or '–'} |")
     return "\n".join(lines) + "\n"
+
+
+def _bound(fr) -> float | None:
+    """The flag bound of a parameter that every robot fits (fewer robots fit the others, whose
+    bounds are higher: each parameter's own is in the spread table)."""
+    b = [e["z_needed"] for e in fr.spread.values() if e.get("z_needed") is not None]
+    return min(b) if b else None
 
 
 _SAFE = re.compile(r"^[A-Za-z0-9_.\-]+$")

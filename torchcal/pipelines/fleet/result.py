@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.pipelines.calibrate import CalibrationResult
-from torchcal.report.fleet import fleet_markdown, fleet_report, parameter_spread, save_fleet
+from torchcal.report.fleet import FALSE_ALARM, fleet_markdown, fleet_report, parameter_spread, save_fleet
 
 __all__ = ["FleetResult"]
 
@@ -26,6 +26,8 @@ class FleetResult:
         values: ``(R, K)`` identified parameters; ``free``: ``(R, K)`` which were fitted.
         spread: per parameter, its distribution over the fleet and the robots flagged as outliers
             (:func:`~torchcal.report.fleet.parameter_spread`); ``flags``: those robots, worst first.
+        z_threshold, false_alarm: the flag rule (a robot's ``|z|`` beyond ``z_threshold`` and beyond
+            the bound at which healthy fleets raise any flag with probability ``false_alarm``).
         prior: the hierarchical prior (fleet mean, scales, noise) when one was used.
         effects: per robot, the fitted effect parameters (name -> value), and the shared ones.
         wall_time_s: the whole fleet solve (every robot's result is part of it).
@@ -43,6 +45,7 @@ class FleetResult:
     prior: dict | None = None
     effects: dict | None = None
     wall_time_s: float = 0.0
+    false_alarm: float = FALSE_ALARM
 
     def __len__(self) -> int:
         return len(self.names)

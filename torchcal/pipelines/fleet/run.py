@@ -38,7 +38,7 @@ from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fl
                                            validate_fleet)
 from torchcal.pipelines.fleet.identify import check_rank, decide, explain
 from torchcal.pipelines.fleet.result import FleetResult
-from torchcal.report.fleet import parameter_spread
+from torchcal.report.fleet import FALSE_ALARM, parameter_spread
 
 __all__ = ["calibrate_fleet", "FleetData", "fleet_template", "validate_fleet"]
 
@@ -188,8 +188,8 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
 def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=None, params: ParamSet | None = None,
                     free=None, prior: str | None = None, prior_scale: dict | None = None, effects=None,
                     payload: str = "shared", identify: str | None = None, register: bool = True, prefer=None,
-                    min_rows: int = 3, z_threshold: float = 5.0, options: dict | None = None,
-                    ray: str | None = None, ray_shards: int | None = None) -> FleetResult:
+                    min_rows: int = 3, z_threshold: float = 5.0, false_alarm: float = FALSE_ALARM,
+                    options: dict | None = None, ray: str | None = None, ray_shards: int | None = None) -> FleetResult:
     """Calibrate ``R`` robots of one model in one batched solve.
 
     Args:
@@ -211,7 +211,10 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         identify: ``"per_robot"`` (default without coupling) or ``"pooled"``: one identifiable
             set judged on all robots' poses together (always so with a prior or effects).
         min_rows: robots with fewer rows are refused.
-        z_threshold: robust z-score beyond which a robot's parameter is flagged.
+        z_threshold: the least distance from its siblings (in their standard deviations) at which a
+            robot's parameter is flagged (:mod:`torchcal.report.fleet`).
+        false_alarm: the chance that a fleet of healthy robots raises any flag; with few robots the
+            bound it sets (Student-t, Bonferroni over robots and parameters) exceeds ``z_threshold``.
         options: Levenberg-Marquardt options (``max_iter``, ``tau``, ``gtol``, ``xtol``, ``ftol``).
         ray: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``, or ``"local"`` for an
             in-process one) to spread the robots over (``pip install torchcal[ray]``); ``ray_shards``
@@ -230,6 +233,9 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
     if not (isinstance(z_threshold, numbers.Real) and 0 < z_threshold < float("inf")):
         raise ValueError(f"z_threshold is a robust z-score beyond which a parameter is flagged: give a positive number "
                          f"(default 5), got {z_threshold!r}")
+    if not (isinstance(false_alarm, numbers.Real) and 0 < false_alarm < 1):
+        raise ValueError(f"false_alarm is the chance that a fleet of healthy robots raises any flag: give a number "
+                         f"between 0 and 1 (default {FALSE_ALARM}), got {false_alarm!r}")
     need = _PRIOR_MIN_ROBOTS if prior_scale is None else 2
     if prior is not None and len(names) < need:
         raise ValueError(f"prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
@@ -251,7 +257,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         return calibrate_fleet_ray(robot, dict(zip(names, datasets)), test=None if tests is None else
                                    {n: t for n, t in zip(names, tests) if t is not None}, address=ray,
                                    shards=ray_shards, params=params, free=free, identify=identify, register=register,
-                                   prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, options=options)
+                                   prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, false_alarm=false_alarm,
+                                   options=options)
     template = fleet_template(robot, datasets[0].marker_names, params, free)
     fd = FleetData.build(robot, datasets)
     fd_test = None
@@ -278,10 +285,10 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                                                                     prefer, opts)
         results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin,
                            J_fin, time.perf_counter() - t0)
-    spread, flags = parameter_spread(names, results, z_threshold, extra=extra)
+    spread, flags = parameter_spread(names, results, z_threshold, extra=extra, false_alarm=false_alarm)
     return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
                        identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,
-                       wall_time_s=time.perf_counter() - t0)
+                       wall_time_s=time.perf_counter() - t0, false_alarm=false_alarm)
 
 
 # ------------------------------------------------------------------------- beyond one machine (Ray)
@@ -335,6 +342,7 @@ def calibrate_fleet_ray(robot, data: dict, *, test: dict | None = None, address:
         chunks = [names[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
         task = ray.remote(num_cpus=1)(_solve_shard)
         z = kwargs.pop("z_threshold", 5.0)
+        alarm = kwargs.pop("false_alarm", FALSE_ALARM)
         refs = [task.remote(robot, {k: data[k] for k in c}, {k: test[k] for k in c if test and k in test}, kwargs, 1)
                 for c in chunks]
         parts = ray.get(refs)
@@ -342,10 +350,10 @@ def calibrate_fleet_ray(robot, data: dict, *, test: dict | None = None, address:
         if started:
             ray.shutdown()
     results = [r for p in parts for r in p.results]
-    spread, flags = parameter_spread(names, results, z)
+    spread, flags = parameter_spread(names, results, z, false_alarm=alarm)
     return FleetResult(robot=robot, names=names, results=results, values=torch.cat([p.values for p in parts]),
                        free=torch.cat([p.free for p in parts]), spread=spread, flags=flags, identify=parts[0].identify,
-                       z_threshold=z, wall_time_s=time.perf_counter() - t0)
+                       z_threshold=z, wall_time_s=time.perf_counter() - t0, false_alarm=alarm)
 
 
 def _paths() -> list[str]:
