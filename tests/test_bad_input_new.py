@@ -212,6 +212,7 @@ def test_fleet_cli_refuses_a_filled_output_a_wrong_effect_and_a_prior_on_two_rob
     ({"z_threshold": -1.0}, ValueError, "z_threshold is a robust z-score.*give a positive number"),
     ({"false_alarm": 1.5}, ValueError, "false_alarm is the chance.*between 0 and 1"),
     ({"false_alarm": 0}, ValueError, "false_alarm is the chance.*between 0 and 1"),
+    ({"plausible": {"mm": 10}}, ValueError, r"plausible: unknown unit\(s\) \['mm'\].*metres and radians"),
     # one effect named by a string is that effect (here refused for the model's missing inertials)
     ({"effects": "joint_compliance"}, ValueError, "needs link inertials in the URDF"),
 ])

@@ -17,7 +17,7 @@ from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import atomic_write_text, staged_dir
 from torchcal.params import ParamSet, display_unit
-from torchcal.pipelines.fitting import fit_identified
+from torchcal.pipelines.fitting import check_plausible, fit_identified
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
@@ -200,7 +200,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
               loss: str = "l2", loss_scale: float | None = None, register: bool = True,
               reduce: bool = True, prefer=None, fitness: str = "sse", search_radius: dict | None = None,
               options: dict | None = None, seed: int = 0, progress: bool = False,
-              polish: bool | None = None) -> CalibrationResult:
+              polish: bool | None = None, plausible: dict | None = None) -> CalibrationResult:
     """Identify geometric errors from measurements.
 
     Steps: (1) base registration by Kabsch (when the base parameters are free and ``register``);
@@ -219,6 +219,11 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             (default ``{"m": 5e-3, "rad": 0.05}``), intersected with the ParamSet bounds.
         polish: run LM after a swarm method (default: no, so swarm results are reported as
             they are).
+        plausible: the largest plausible error per unit (default
+            :data:`~torchcal.pipelines.fitting.PLAUSIBLE`: 10 mm, 10 mrad). With position data and
+            a gradient method, a parameter whose standard error (at the noise the fit's residuals
+            show) exceeds it is fixed at its start and the fit repeated; ``{}`` keeps every
+            parameter of full rank.
     """
     t0 = time.perf_counter()
     if kind not in ("position", "pose"):
@@ -281,6 +286,10 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             s = s2
         return s
 
+    # a parameter the data pin down worse than its plausible size is fixed (fit_identified), judged
+    # at the noise the fit's own position residuals show; a swarm's search box bounds it already
+    noise = "residuals" if kind == "position" and not swarm else None
+    plausible = check_plausible(plausible)
     # robust losses: the scale is re-estimated from the residuals until it settles (IRLS-style);
     # the first estimate comes from a start millimetres off, so it shrinks over several rounds
     report = None
@@ -295,7 +304,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             loss_obj = Loss(loss, scale)
         p, s, rep = fit_identified(lambda q: make_problem(q, loss_obj), p if rnd == 0 else p_cand(p),
                                    solve=solve, markers=robot.marker_names, kind=kind, prefer=prefer,
-                                   reduce=reduce)
+                                   reduce=reduce, noise=noise, plausible=plausible)
         report = rep or report
     unident = {n: report.reasons.get(n, "not identifiable") for n in report.dropped} if report else {}
 

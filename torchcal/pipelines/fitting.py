@@ -5,14 +5,17 @@ from __future__ import annotations
 from typing import Callable
 
 import torch
+from torch import Tensor
 
 from torchcal.measure.observations import SETUP_PREFIXES
 from torchcal.optim import Result, get_solver
 from torchcal.params import ParamSet, display_unit
 from torchcal.problems.base import Problem
 from torchcal.problems.identifiability import analyse_jacobian
+from torchcal.problems.uncertainty import residual_noise, unit_variances
 
-__all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "imprecise"]
+__all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
+           "imprecise_reason"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
 # than this (one standard error) is not identified by them, whatever its numerical rank. A marker
@@ -20,26 +23,73 @@ __all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "imprecise"]
 PLAUSIBLE = {"m": 0.01, "rad": 0.01}
 
 
+def check_plausible(plausible: dict | None) -> dict:
+    """``plausible`` as a dict unit -> largest plausible error (default :data:`PLAUSIBLE`), or an
+    error that says what is wrong."""
+    if plausible is None:
+        return dict(PLAUSIBLE)
+    if not isinstance(plausible, dict):
+        raise TypeError(f"plausible must be a dict unit -> size, e.g. {PLAUSIBLE}, got {type(plausible).__name__}")
+    bad = [u for u in plausible if u not in PLAUSIBLE]
+    if bad:
+        raise ValueError(f"plausible: unknown unit(s) {bad}; geometric errors are in {sorted(PLAUSIBLE)} "
+                         "(metres and radians), e.g. {'m': 0.01, 'rad': 0.01}")
+    neg = {u: v for u, v in plausible.items() if not (isinstance(v, (int, float)) and v > 0)}
+    if neg:
+        raise ValueError(f"plausible: sizes must be positive numbers (m or rad; inf for no limit), got {neg}")
+    return {u: float(v) for u, v in plausible.items()}
+
+
+def drop_imprecise(J: Tensor, keep: Tensor, limit: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
+    """Among each problem's ``keep`` columns, drop the one whose standard error
+    ``noise · sqrt((JᵀJ)⁻¹_ii)`` exceeds its ``limit`` by the largest factor, and repeat while any
+    does (each drop makes the others better determined). Batched over problems (a fleet).
+
+    The inverse over the kept columns comes once from a QR factor
+    (:func:`~torchcal.problems.uncertainty.unit_variances`); dropping column ``j`` then updates it
+    by ``H − H e_j e_jᵀ H / H_jj``, the inverse of the Gram matrix without ``j``.
+
+    Args:
+        J: ``(B, m, k)`` Jacobians (m per unit); keep: ``(B, k)`` bool, full column rank;
+        limit: ``(k,)`` plausible sizes (inf: none); noise: ``(B,)`` per-axis noise (m).
+    Returns:
+        ``(step (B, k) long: the round in which a column was dropped, −1 for the others;
+        standard errors (B, k) when dropped)``.
+    """
+    keep = keep.clone()
+    B, k = keep.shape
+    step = torch.full((B, k), -1, dtype=torch.long, device=keep.device)
+    se_at = J.new_zeros(B, k)
+    s = J.norm(dim=1).clamp(min=1e-300)
+    An = J / s[:, None, :]
+    H = unit_variances(An, keep, full=True)  # (B, k, k) inverse Gram over the kept columns
+    rows = torch.arange(B, device=keep.device)
+    for t in range(k):
+        se = noise[:, None] * H.diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt() / s
+        ratio = torch.where(keep, se / limit, torch.full_like(se, -1.0))
+        worst_ratio, worst = ratio.max(-1)
+        hit = worst_ratio > 1
+        if not bool(hit.any()):
+            break
+        r, j = rows[hit], worst[hit]
+        step[r, j] = t
+        se_at[r, j] = se[hit, j]
+        keep[r, j] = False
+        h = H[r, :, j]
+        H[r] = H[r] - h[:, :, None] * h[:, None, :] / h[torch.arange(r.numel()), j][:, None, None]
+    return step, se_at
+
+
 def imprecise(J, names: list[str], units: list[str], noise: float, plausible: dict | None = None) -> dict[str, float]:
     """Parameters whose standard error ``noise · sqrt((JᵀJ)⁻¹_ii)`` exceeds their plausible size,
-    dropped worst first (each drop makes the others better determined): name -> standard error."""
+    dropped worst first (:func:`drop_imprecise`): name -> standard error, in the order dropped."""
     plausible = PLAUSIBLE if plausible is None else plausible
     J = torch.as_tensor(J)
-    keep = list(range(len(names)))
-    out: dict[str, float] = {}
-    while keep:
-        A = J[:, keep]
-        s = A.norm(dim=0).clamp(min=1e-300)
-        cov = torch.linalg.pinv((A / s).T @ (A / s)) / (s[:, None] * s[None, :])
-        se = noise * cov.diagonal().clamp(min=0).sqrt()
-        lim = torch.tensor([plausible.get(units[i], float("inf")) for i in keep], dtype=se.dtype)
-        ratio = se / lim
-        worst = int(ratio.argmax())
-        if not float(ratio[worst]) > 1:
-            break
-        out[names[keep[worst]]] = float(se[worst])
-        keep.pop(worst)
-    return out
+    lim = torch.tensor([plausible.get(u, float("inf")) for u in units], dtype=J.dtype, device=J.device)
+    keep = torch.ones(1, len(names), dtype=torch.bool, device=J.device)
+    step, se = drop_imprecise(J[None], keep, lim, torch.tensor([float(noise)], dtype=J.dtype, device=J.device))
+    order = sorted((t, i) for i, t in enumerate(step[0].tolist()) if t >= 0)
+    return {names[i]: float(se[0, i]) for _, i in order}
 
 
 def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, markers=(), kind="position",
@@ -66,28 +116,41 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
             out.fix(n)
             rep.dropped.append(n)
             rep.identifiable.remove(n)
-            f, u = display_unit(units[params.free_names.index(n)])
-            rep.reasons[n] = (f"{n} is determined only to ±{se * f:.3g} {u} by these "
-                              f"poses (noise {noise * 1e3:.3g} mm), more than such an error can plausibly be")
+            rep.imprecise.append(n)
+            rep.reasons[n] = imprecise_reason(n, units[params.free_names.index(n)], se, noise)
     return out, rep
+
+
+def imprecise_reason(name: str, unit: str, se: float, noise: float) -> str:
+    """Why a parameter of full rank is not identified: its standard error ``se`` (its unit) at
+    the per-axis ``noise`` (m) exceeds what such an error can plausibly be."""
+    f, u = display_unit(unit)
+    return (f"{name} is determined only to ±{se * f:.3g} {u} by these poses (noise {noise * 1e3:.3g} mm), more "
+            "than such an error can plausibly be")
 
 
 def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, method: str = "lm",
                    options: dict | None = None, seed: int = 0, progress: bool = False, markers=(),
                    kind: str = "position", prefer=None, reduce: bool = True, rounds: int = 3,
-                   solve: Callable | None = None, noise: float | None = None,
+                   solve: Callable | None = None, noise: float | str | None = None,
                    plausible: dict | None = None, zero_dropped: tuple[str, ...] = ()
                    ) -> tuple[ParamSet, Result, object]:
     """Fit the identifiable subset of ``params``' free entries.
 
     Identifiability depends on where it is judged (a marker guessed on a joint axis hides that
     joint's offset), so it is judged at the start, then again at each solution; while the
-    identifiable set grows the fit is repeated from the current values.
+    identifiable set grows the fit is repeated from the current values. A parameter judged too
+    imprecise (see ``noise``) is fixed at its start value for good and the fit repeated without it:
+    a value the data cannot pin down is noise, and leaving it in the model would export it.
 
     Args:
         make_problem: builds a problem for a ParamSet (its free flags choose the unknowns).
         solve: optional ``(problem) -> Result`` replacing the plain solver call.
-        noise, plausible: see :func:`reduce_free`.
+        noise: the per-axis measurement noise (m) that judges imprecision (:func:`reduce_free`);
+            ``"residuals"``: each fit's own (:func:`~torchcal.problems.uncertainty.residual_noise`,
+            the σ its standard errors are reported with), from the first solution on; None: rank
+            alone.
+        plausible: see :func:`reduce_free`.
         zero_dropped: name prefixes of parameters set to 0 when identifiability drops them (a
             model's optional parts, whose start may hold meaningless values along the directions
             the data cannot see).
@@ -95,6 +158,9 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
         (fitted ParamSet, the solver's Result, the last identifiability report or None).
     """
     candidates = params.clone()
+    from_fit = isinstance(noise, str)
+    if from_fit and noise != "residuals":
+        raise ValueError(f"noise must be metres, 'residuals' or None, got {noise!r}")
 
     def run(p: ParamSet):
         prob = make_problem(p)
@@ -102,10 +168,10 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
             get_solver(method, seed=seed, progress=progress, **dict(options or {})).minimize(prob)
         out = p.clone()
         out.values = prob.full(res.x).detach()
-        return out, res
+        return out, res, prob
 
     if not reduce:
-        p, res = run(params)
+        p, res, _ = run(params)
         return p, res, None
     def zeroed(p: ParamSet) -> ParamSet:
         if zero_dropped:
@@ -114,16 +180,40 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
                     p.values[i] = 0.0
         return p
 
-    p, rep = reduce_free(make_problem, candidates, markers=markers, kind=kind, prefer=prefer, noise=noise,
-                         plausible=plausible)
+    def restart(p: ParamSet, names) -> ParamSet:
+        """``p`` with ``names`` fixed back at their start values."""
+        p = p.clone()
+        for n in names:
+            p[n] = float(candidates[n])
+        if names:
+            p.fix(*names)
+        return p
+
+    p, rep = reduce_free(make_problem, candidates, markers=markers, kind=kind, prefer=prefer,
+                         noise=None if from_fit else noise, plausible=plausible)
     p = zeroed(p)
-    for _ in range(rounds):
-        p, res = run(p)
+    loose: dict[str, str] = {}  # imprecise parameters, fixed from then on, and why
+    for i in range(rounds):
+        p, res, prob = run(p)
+        nz = float(residual_noise(prob.residuals(res.x[None])[0], res.x.numel())) if from_fit else noise
         nxt = candidates.clone()
         nxt.values = p.values.clone()
-        nxt, rep2 = reduce_free(make_problem, nxt, markers=markers, kind=kind, prefer=prefer, noise=noise,
+        if loose:
+            nxt.fix(*loose)
+        nxt, rep2 = reduce_free(make_problem, nxt, markers=markers, kind=kind, prefer=prefer, noise=nz,
                                 plausible=plausible)
-        if set(nxt.free_names) <= set(p.free_names):
+        new_loose = [n for n in rep2.imprecise if n in p.free_names]
+        loose.update({n: rep2.reasons[n] for n in rep2.imprecise})
+        for n, why in loose.items():
+            if n not in rep2.reasons:
+                rep2.dropped.append(n)
+                rep2.reasons[n] = why
+        if set(nxt.free_names) <= set(p.free_names) and not new_loose:
             break
-        p, rep = zeroed(nxt), rep2
+        rep = rep2
+        if i == rounds - 1:
+            if new_loose:  # the last round may not grow the set, but it leaves no noise in the model
+                p, res, _ = run(restart(p, new_loose))
+            break
+        p = zeroed(restart(nxt, [n for n in loose if n in nxt.names]))
     return p, res, rep

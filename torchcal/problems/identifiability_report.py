@@ -92,6 +92,8 @@ class IdentifiabilityReport:
         column_rms: per free parameter, its column's RMS over rows (m per unit parameter);
             pass to :func:`observability` as ``scale`` to compare other pose sets on this footing.
         pivot_order: identifiable parameters in the order the QR chose them.
+        imprecise: the dropped parameters of full rank that the data pin down worse than their
+            plausible size (:func:`torchcal.pipelines.fitting.reduce_free`).
     """
 
     rank: int
@@ -113,6 +115,7 @@ class IdentifiabilityReport:
     rtol: float = 1e-9
     column_rms: dict[str, float] = field(default_factory=dict)
     pivot_order: list[str] = field(default_factory=list)
+    imprecise: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
         """A multi-line, human-readable account: rank, indices, kept and dropped parameters."""

@@ -36,8 +36,10 @@ from torchcal.pipelines.calibrate import CalibrationResult
 from torchcal.pipelines.fleet.coupled import solve_coupled
 from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
                                            validate_fleet)
+from torchcal.pipelines.fitting import check_plausible, drop_imprecise, imprecise_reason
 from torchcal.pipelines.fleet.identify import check_rank, decide, explain
 from torchcal.pipelines.fleet.result import FleetResult
+from torchcal.problems.uncertainty import residual_noise
 from torchcal.report.fleet import FALSE_ALARM, parameter_spread
 
 __all__ = ["calibrate_fleet", "FleetData", "fleet_template", "validate_fleet"]
@@ -58,23 +60,32 @@ def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_
     return decide(J.reshape(1, -1, J.shape[-1]), names_c, robot.marker_names, prefer)
 
 
-def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts):
+def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible):
     """Rounds of judge -> batched LM -> judge again at the solution, per robot, as
-    :func:`torchcal.pipelines.fitting.fit_identified` does for one robot. The LM's Jacobian at its solution
-    serves the next judgement and the next round's start; the reasons in words are written once,
-    for the decision each robot ends with."""
+    :func:`torchcal.pipelines.fitting.fit_identified` does for one robot (with ``noise="residuals"``,
+    as :func:`~torchcal.pipelines.calibrate.calibrate` calls it): a parameter that grows identifiable
+    is fitted in the next round; one the robot's data pin down worse than its plausible size is
+    fixed at its start for good and the robot refitted without it. The LM's Jacobian at its
+    solution serves the next judgement and the next round's start; the reasons in words are
+    written once, for the decision each robot ends with."""
     R_, K = X0.shape
     dev = X0.device
     cand = template.free_index
     names_c = [template.names[i] for i in cand.tolist()]
     units_c = [template.units[i] for i in cand.tolist()]
+    limit = torch.tensor([plausible.get(u, float("inf")) for u in units_c], dtype=X0.dtype, device=dev)
     everyone = torch.arange(R_, device=dev)
+    precise = identify != "pooled"  # a pooled design pins every robot's parameters down together
+    loose = torch.zeros(R_, K, dtype=torch.bool, device=dev)  # fixed for imprecision, for good
+    loose_why: list[dict] = [{} for _ in range(R_)]
 
     def judge(X, J, idx):
         if identify == "pooled":
             d = pooled_decision(robot, fd, X, cand, names_c, prefer)
             return d, d.kept.expand(idx.numel(), -1), torch.zeros(idx.numel(), dtype=torch.long, device=dev)
-        d = decide(J[:, :, cand], names_c, robot.marker_names, prefer)
+        # a parameter already fixed for imprecision is no candidate: its column is left out (zero)
+        Jc = J[:, :, cand] * (~loose[idx][:, cand])[:, None, :].to(J.dtype)
+        d = decide(Jc, names_c, robot.marker_names, prefer)
         return d, d.kept, torch.arange(idx.numel(), device=dev)
 
     J = fd.jacobian(robot, X0, everyone)
@@ -88,24 +99,53 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts):
     r_fin, J_fin = X.new_zeros(R_, m), X.new_zeros(R_, m, K)
     solver = [None] * R_
     todo = everyone
-    for _ in range(3):
-        sub = todo
+    rounds = 3
+
+    def fit(sub, J0):
         res = lm_batched(lambda Xb, i: fd.residuals(robot, Xb, sub[i]), lambda Xb, i: fd.jacobian(robot, Xb, sub[i]),
-                         X[sub], free[sub], template.lower, template.upper, jac0=J, **opts)
+                         X[sub], free[sub], template.lower, template.upper, jac0=J0, **opts)
         X[sub], r_fin[sub], J_fin[sub] = res.x, res.residuals, res.jacobian
         for j, b in enumerate(sub.tolist()):
             solver[b] = res.result(j, free[b])
+        return res
+
+    for i in range(rounds):
+        sub = todo
+        res = fit(sub, J)
         d2, kept2, row2 = judge(X[sub], res.jacobian, sub)
         nxt = torch.zeros(sub.numel(), K, dtype=torch.bool, device=dev)
         nxt[:, cand] = kept2
+        new_loose = torch.zeros_like(nxt)
+        if precise:
+            noise = residual_noise(res.residuals, free[sub].sum(-1))
+            step, se = drop_imprecise(res.jacobian[:, :, cand], kept2, limit, noise)
+            drop = step >= 0
+            nxt[:, cand] &= ~drop
+            new_loose[:, cand] = drop
+            for j, b in enumerate(sub.tolist()):
+                for c in torch.nonzero(drop[j]).flatten().tolist():
+                    loose_why[b][names_c[c]] = imprecise_reason(names_c[c], units_c[c], float(se[j, c]),
+                                                                float(noise[j]))
+            loose[sub] |= new_loose
+            new_loose &= free[sub]  # dropped now, fitted until now
         grew = (nxt & ~free[sub]).any(-1)
-        if not bool(grew.any()):
+        change = grew | new_loose.any(-1)
+        if not bool(change.any()):
             break
-        todo = sub[grew]
-        free[todo] = nxt[grew]
-        decisions.append((d2, row2[grew], todo))
-        # a robot that grows after the last round is judged, not refitted (as fit_identified)
-        J = res.jacobian[grew]
+        todo = sub[change]
+        decisions.append((d2, row2[change], todo))
+        reset = new_loose[change]
+        X[todo] = torch.where(loose[todo], X0[todo], X[todo])  # imprecise values back to their start
+        if i == rounds - 1:
+            # a robot that grows after the last round is judged, not refitted (as fit_identified),
+            # but none keeps a value its data cannot pin down
+            refit = todo[reset.any(-1)]
+            if refit.numel():
+                free[refit] &= ~loose[refit]
+                fit(refit, None)
+            break
+        free[todo] = nxt[change]
+        J = res.jacobian[change] if not bool(reset.any()) else None
     reasons: list[dict] = [{} for _ in range(R_)]
     last = torch.full((R_,), -1, dtype=torch.long, device=dev)
     for t, (_, _, who) in enumerate(decisions):
@@ -118,7 +158,7 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts):
             check_rank(d, uniq, {rw: names[b] for rw, b in zip(rows, who[mine].tolist())})
             at = dict(zip(uniq, explain(d, names_c, units_c, rows=uniq)))
             for b, rw in zip(who[mine].tolist(), rows):
-                reasons[b] = at[rw]
+                reasons[b] = {**at[rw], **loose_why[b]}
     J_fin = J_fin * free[:, None, :].to(X.dtype)  # the Jacobian of each robot's final free set
     return X, free, reasons, solver, r_fin, J_fin
 
@@ -189,7 +229,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                     free=None, prior: str | None = None, prior_scale: dict | None = None, effects=None,
                     payload: str = "shared", identify: str | None = None, register: bool = True, prefer=None,
                     min_rows: int = 3, z_threshold: float = 5.0, false_alarm: float = FALSE_ALARM,
-                    options: dict | None = None, ray: str | None = None, ray_shards: int | None = None) -> FleetResult:
+                    plausible: dict | None = None, options: dict | None = None, ray: str | None = None,
+                    ray_shards: int | None = None) -> FleetResult:
     """Calibrate ``R`` robots of one model in one batched solve.
 
     Args:
@@ -215,6 +256,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
             robot's parameter is flagged (:mod:`torchcal.report.fleet`).
         false_alarm: the chance that a fleet of healthy robots raises any flag; with few robots the
             bound it sets (Student-t, Bonferroni over robots and parameters) exceeds ``z_threshold``.
+        plausible: the largest plausible error per unit, as for :func:`torchcal.pipelines.calibrate`
+            (a robot's parameter its data pin down worse is fixed; ``{}``: none is).
         options: Levenberg-Marquardt options (``max_iter``, ``tau``, ``gtol``, ``xtol``, ``ftol``).
         ray: address of a Ray cluster (``"auto"``, ``"ray://host:10001"``, or ``"local"`` for an
             in-process one) to spread the robots over (``pip install torchcal[ray]``); ``ray_shards``
@@ -249,6 +292,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         raise ValueError("a prior or fleet-wide effects couple the robots: their parameters are judged on the pooled "
                          "design; use identify='pooled' (or leave it out)")
     identify = identify or ("pooled" if coupled else "per_robot")
+    plausible = check_plausible(plausible)
     opts = {**_LM_DEFAULTS, **dict(options or {})}
     if ray is not None:
         if coupled:
@@ -258,7 +302,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                                    {n: t for n, t in zip(names, tests) if t is not None}, address=ray,
                                    shards=ray_shards, params=params, free=free, identify=identify, register=register,
                                    prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, false_alarm=false_alarm,
-                                   options=options)
+                                   plausible=plausible, options=options)
     template = fleet_template(robot, datasets[0].marker_names, params, free)
     fd = FleetData.build(robot, datasets)
     fd_test = None
@@ -282,7 +326,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         X, free = sol.X, sol.free[:, : X0.shape[1]]
     else:
         X, free, reasons, solver, r_fin, J_fin = _solve_independent(robot, fd, template, X0, names, identify,
-                                                                    prefer, opts)
+                                                                    prefer, opts, plausible)
         results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin,
                            J_fin, time.perf_counter() - t0)
     spread, flags = parameter_spread(names, results, z_threshold, extra=extra, false_alarm=false_alarm)

@@ -249,6 +249,9 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             cand_report.append({"name": n, "accepted": False, "applicable": False, "reason": why or "no parameters"})
             continue
         pool.append(n)
+        # whatever the selection decides, the held-out rows cannot check a candidate whose
+        # covariates they leave: say so for every candidate tried
+        flags += extrapolation(eff, test)
     accepted_steps: list[tuple[str, Model, dict]] = []
     bar = progress_bar(progress)
     rnd = 0
@@ -284,7 +287,6 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
                 entry["test_gain_mm"] = test_gain(robot, current, r["model"], test, setup)
-                flags += extrapolation(r["model"].effects[-1], test)
             cand_report.append(entry)
         if winner is None:
             break
