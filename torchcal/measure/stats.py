@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["error_stats", "errors_by_marker"]
+__all__ = ["error_stats", "errors_by_marker", "errors_by_marker_batched"]
 
 
 def error_stats(err_m: Tensor) -> dict:
@@ -28,4 +28,34 @@ def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict
         if bool(sel.any()):
             per[m] = error_stats(e[sel])
     out["per_marker"] = per
+    return out
+
+
+def _masked_stats(e: Tensor, mask: Tensor) -> list[dict]:
+    """:func:`error_stats` of each row of ``e (B, n)`` (mm) over its ``mask``: one pass per statistic
+    for all rows, the same definitions (unbiased std, lower median)."""
+    n = mask.sum(-1)
+    w = mask.to(e.dtype)
+    nn = n.clamp(min=1).to(e.dtype)
+    mean = (e * w).sum(-1) / nn
+    d = (e - mean[:, None]) * w
+    std = torch.where(n > 1, torch.sqrt((d * d).sum(-1) / (n - 1).clamp(min=1).to(e.dtype)), torch.zeros_like(mean))
+    mx = torch.where(mask, e, torch.full_like(e, -float("inf"))).amax(-1)
+    rmse = torch.sqrt((e * e * w).sum(-1) / nn)
+    srt = torch.where(mask, e, torch.full_like(e, float("inf"))).sort(-1).values
+    med = srt.gather(-1, ((n - 1).clamp(min=0) // 2)[:, None])[:, 0]
+    cols = [c.tolist() for c in (n, mean, std, mx, rmse, med)]
+    return [{"n": int(k), "mean_mm": a, "std_mm": b, "max_mm": c, "rmse_mm": r, "median_mm": m} if k else {"n": 0}
+            for k, a, b, c, r, m in zip(*cols)]
+
+
+def errors_by_marker_batched(e: Tensor, seen: Tensor, marker_names: list[str]) -> list[dict]:
+    """:func:`errors_by_marker` of many data sets at once: errors ``e (B, N, M)`` (m) of ``M``
+    markers at ``N`` rows, ``seen (B, N, M)`` the real observations. One dict per data set."""
+    B, N, M = e.shape
+    mm = e.detach().double() * 1e3
+    out = _masked_stats(mm.reshape(B, N * M), seen.reshape(B, N * M))
+    per = [_masked_stats(mm[:, :, k], seen[:, :, k]) for k in range(M)]
+    for b in range(B):
+        out[b]["per_marker"] = {m: per[k][b] for k, m in enumerate(marker_names) if per[k][b]["n"]}
     return out

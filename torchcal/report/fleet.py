@@ -123,7 +123,8 @@ def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra:
         mad = float(np.median(np.abs(x - med)))
         se_all = np.array([ses[i] if ses[i] is not None and math.isfinite(ses[i]) else np.nan for i in who])
         floor = float(np.nanmedian(se_all)) if np.isfinite(se_all).any() else 0.0
-        entry = {"unit": u, "n": len(who), "mean": float(x.mean()), "std": float(x.std(ddof=1)) if len(who) > 1 else 0.0,
+        entry = {"unit": u, "n": len(who), "mean": float(x.mean()),
+                 "std": float(x.std(ddof=1)) if len(who) > 1 else 0.0,
                  "median": med, "robust_std": _MAD * mad, "median_std_error": floor,
                  "z_scale": max(_MAD * mad, floor), "z_needed": None, "min": float(x.min()), "max": float(x.max()),
                  "outliers": []}
@@ -185,12 +186,14 @@ def fleet_markdown(fr) -> str:
     if len(fr.names) < MIN_ROBOTS:
         lines.append(f"Too few robots ({len(fr.names)} < {MIN_ROBOTS}) to flag outliers.")
     else:
-        lines.append(f"z is a robot's distance from its siblings' mean in their standard deviations. A fleet of healthy "
-                     f"robots raises any flag with probability {fr.false_alarm:g}: the bound is the Student-t value "
-                     "for that chance over every robot and parameter, since a spread estimated from few siblings is "
-                     "itself uncertain." + (f" With {len(fr.names)} robots only a parameter about {bound:.0f} standard "
-                                            "deviations away is flagged; more robots lower the bound towards "
-                                            f"{fr.z_threshold:g}." if bound and bound > fr.z_threshold else ""))
+        note = ("z is a robot's distance from its siblings' mean in their standard deviations. A fleet of healthy "
+                f"robots raises any flag with probability {fr.false_alarm:g}: the bound is the Student-t value for "
+                "that chance over every robot and parameter, since a spread estimated from few siblings is itself "
+                "uncertain.")
+        if bound and bound > fr.z_threshold:
+            note += (f" With {len(fr.names)} robots only a parameter about {bound:.0f} standard deviations away is "
+                     f"flagged; more robots lower the bound towards {fr.z_threshold:g}.")
+        lines.append(note)
         lines.append("")
         if not fr.flags:
             lines.append("No robot stands out.")

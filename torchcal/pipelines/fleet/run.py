@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
-from torchcal.measure.stats import errors_by_marker
+from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate import CalibrationResult
@@ -118,7 +118,8 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
         new_loose = torch.zeros_like(nxt)
         if precise:
             noise = residual_noise(res.residuals, free[sub].sum(-1))
-            step, se = drop_imprecise(res.jacobian[:, :, cand], kept2, limit, noise)
+            # the judgement's R factor times the column norms has the Jacobian's Gram matrix in k rows
+            step, se = drop_imprecise(d2.An * d2.norms[:, None, :], kept2, limit, noise)
             drop = step >= 0
             nxt[:, cand] &= ~drop
             new_loose[:, cand] = drop
@@ -175,11 +176,6 @@ def standard_errors(J: Tensor, r: Tensor, free: Tensor, n_res: Tensor) -> Tensor
     return torch.where((info != 0)[:, None], torch.full_like(se, float("nan")), se)
 
 
-def _stage(e: Tensor, seen: Tensor, robot: Robot) -> dict:
-    mk = torch.nonzero(seen)[:, 1]
-    return errors_by_marker(e[seen], mk, robot.marker_names)
-
-
 def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin, J_fin,
              wall_time_s: float, test_errors=None, stage: str = "geometric", n_extra: Tensor | None = None,
              se: Tensor | None = None) -> list[CalibrationResult]:
@@ -198,6 +194,11 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
         Et0 = fd_test.errors(robot, X0)
         Et = fd_test.errors(robot, X) if test_errors is None else test_errors
     n_extra = torch.zeros(R_, dtype=torch.long) if n_extra is None else n_extra
+    # every robot's error statistics per stage, in one pass per statistic
+    mk = robot.marker_names
+    stats = {"train": [errors_by_marker_batched(e, fd.seen, mk) for e in (E0, E)]}
+    if fd_test is not None:
+        stats["test"] = [errors_by_marker_batched(e, fd_test.seen, mk) for e in (Et0, Et)]
     out = []
     cand = template.free
     for b in range(R_):
@@ -210,11 +211,12 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
         dropped = [n for n, c, f in zip(p.names, cand.tolist(), free[b].tolist()) if c and not f]
         has_test = tests is not None and tests[b] is not None
         stages, errors = [], {}
-        for name, e, et, k in (("nominal", E0, Et0, 0), (stage, E, Et, int(free[b].sum() + n_extra[b]))):
-            st = {"name": name, "n_params": k, "train": _stage(e[b], fd.seen[b], robot)}
+        last = (stage, E, Et, int(free[b].sum() + n_extra[b]))
+        for i, (name, e, et, k) in enumerate((("nominal", E0, Et0, 0), last)):
+            st = {"name": name, "n_params": k, "train": stats["train"][i][b]}
             errors[name] = {"train": e[b][fd.seen[b]], "test": torch.zeros(0)}
             if has_test:
-                st["test"] = _stage(et[b], fd_test.seen[b], robot)
+                st["test"] = stats["test"][i][b]
                 errors[name]["test"] = et[b][fd_test.seen[b]]
             stages.append(st)
         out.append(CalibrationResult(robot=robot, params=p, std_errors=std,
