@@ -333,3 +333,23 @@ def test_bench_device_figures_run_on_cpu():
     assert out["device"] == "cpu"
     assert out["fk_population_x_poses"]["20x1000"]["shape"] == [20, 1000, 1, 3]
     assert out["fleet_solve"]["robots"] == 12 and out["fleet_solve"]["converged"] == 12
+
+
+def test_batched_error_stats_equal_per_robot():
+    """errors_by_marker_batched gives, per data set, what errors_by_marker gives on its observations
+    (ragged masks, a marker never seen, a set with one observation)."""
+    from torchcal.measure.stats import errors_by_marker, errors_by_marker_batched
+    g = torch.Generator().manual_seed(0)
+    e = 1e-4 * torch.rand(5, 7, 2, generator=g, dtype=torch.float64)
+    seen = torch.rand(5, 7, 2, generator=g) > 0.3
+    seen[0, :, 1] = False
+    seen[1] = False
+    seen[1, 0, 0] = True
+    got = errors_by_marker_batched(e, seen, ["a", "b"])
+    for b in range(5):
+        ref = errors_by_marker(e[b][seen[b]], torch.nonzero(seen[b])[:, 1], ["a", "b"])
+        assert got[b].keys() == ref.keys() and got[b]["per_marker"].keys() == ref["per_marker"].keys()
+        for mine, theirs in [(got[b], ref)] + [(got[b]["per_marker"][m], ref["per_marker"][m]) for m in ref["per_marker"]]:
+            for k, v in theirs.items():
+                if k != "per_marker":
+                    assert mine[k] == pytest.approx(v, rel=1e-12, abs=1e-15), k
