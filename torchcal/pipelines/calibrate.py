@@ -230,6 +230,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
     if len(data) == 0:
         raise ValueError("no training rows")
+    plausible = check_plausible(plausible)
     for d, what in ((data, "training"), (test, "held-out")):
         if d is not None and (d.distances or (d.planes is not None and bool((d.planes >= 0).any()))):
             raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
@@ -289,7 +290,6 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     # a parameter the data pin down worse than its plausible size is fixed (fit_identified), judged
     # at the noise the fit's own position residuals show; a swarm's search box bounds it already
     noise = "residuals" if kind == "position" and not swarm else None
-    plausible = check_plausible(plausible)
     # robust losses: the scale is re-estimated from the residuals until it settles (IRLS-style);
     # the first estimate comes from a start millimetres off, so it shrinks over several rounds
     report = None
