@@ -66,14 +66,16 @@ def sibling_z(x: np.ndarray, se: np.ndarray, floor: float = 0.0, screen: float =
     """Each robot's distance from its siblings in their standard deviations.
 
     Args:
-        x: ``(n,)`` one parameter over the robots that fitted it; ``se``: ``(n,)`` their standard
-            errors (0 where unknown); ``floor``: the least standard deviation the siblings are given
-            (the measurement precision), in the parameter's unit.
+        x: ``(n,)`` one parameter over the ``n ≥ 4`` robots that fitted it; ``se``: ``(n,)`` their
+            standard errors (0 where unknown); ``floor``: the least standard deviation the siblings
+            are given (the measurement precision), in the parameter's unit.
     Returns:
         ``(z, k)``: ``(n,)`` z-scores as the module docstring defines them, and how many siblings
         set each robot's yardstick (its Student-t bound has ``k − 1`` degrees of freedom).
     """
     n = x.size
+    if n < 4:
+        raise ValueError(f"sibling_z needs at least 4 robots (3 siblings to estimate a spread), got {n}")
     med = float(np.median(x))
     d = x - med  # centred: the sums below then lose no digits to the parameter's nominal size
     s0 = max(_MAD * float(np.median(np.abs(d))), floor)
