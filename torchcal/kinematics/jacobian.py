@@ -126,9 +126,8 @@ class Jacobians:
             ax = torch.stack([x_p, a_d, x_p, z_j], -2)
             axes.append(ax.reshape(P, N, -1, 3).permute(0, 3, 1, 2))
             is_rot.append(torch.tensor([False, False, True, True], device=self.device).repeat(len(D)))
-            Jn_ = len(self.joints)
             for j, c in zip(D, self._dh_classic.tolist()):
-                pidx += [j if c else Jn_ + j, j]
+                pidx += [j if c else Jn + j, j]
             masks.append(anc[D].repeat_interleave(4, 0))
         # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
         mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
@@ -145,7 +144,7 @@ class Jacobians:
             dirs = self._CmT @ dirs
         axes.append(self._turn(RFi[:, :, self._mk_frame], dirs))
         is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(M))
-        off = sum(x.shape[2] for x in pts)
+        off = sum(x.shape[2] for x in pts)  # where the markers start among the points
         pidx += [off + m for m in range(M) for _ in range(3)]
         pts.append(mt)
         masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
@@ -161,9 +160,9 @@ class Jacobians:
 
         # the axes in the instrument frame, (P, 3, N, V)
         a = (Rb @ torch.cat(axes, -1).reshape(P, 3, N * V)).reshape(P, 3, N, V)
-        Vp = sum(x.shape[2] for x in pts)
+        Vp = off + M
         pw = (Rb @ torch.cat([x.permute(0, 3, 1, 2) for x in pts], -1).reshape(P, 3, N * Vp)).reshape(P, 3, N, Vp)
-        mw = pw[..., Vp - M:]  # Rb·mt, (P, 3, N, M)
+        mw = pw[..., off:]  # Rb·mt, (P, 3, N, M)
         m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
         ri = torch.nonzero(rot).flatten()
         # lever arms from each rotational column's point to the markers: the translation tb cancels

@@ -215,5 +215,5 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
             if new_loose:  # the last round may not grow the set, but it leaves no noise in the model
                 p, res, _ = run(restart(p, new_loose))
             break
-        p = zeroed(restart(nxt, [n for n in loose if n in nxt.names]))
+        p = zeroed(restart(nxt, list(loose)))
     return p, res, rep

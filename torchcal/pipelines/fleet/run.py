@@ -123,10 +123,9 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
             drop = step >= 0
             nxt[:, cand] &= ~drop
             new_loose[:, cand] = drop
-            for j, b in enumerate(sub.tolist()):
-                for c in torch.nonzero(drop[j]).flatten().tolist():
-                    loose_why[b][names_c[c]] = imprecise_reason(names_c[c], units_c[c], float(se[j, c]),
-                                                                float(noise[j]))
+            for j, c in torch.nonzero(drop).tolist():
+                loose_why[int(sub[j])][names_c[c]] = imprecise_reason(names_c[c], units_c[c], float(se[j, c]),
+                                                                      float(noise[j]))
             loose[sub] |= new_loose
             new_loose &= free[sub]  # dropped now, fitted until now
         grew = (nxt & ~free[sub]).any(-1)
@@ -146,6 +145,7 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
                 fit(refit, None)
             break
         free[todo] = nxt[change]
+        # a robot whose values were reset starts away from the solution: its Jacobian is computed anew
         J = res.jacobian[change] if not bool(reset.any()) else None
     reasons: list[dict] = [{} for _ in range(R_)]
     last = torch.full((R_,), -1, dtype=torch.long, device=dev)
