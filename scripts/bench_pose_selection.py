@@ -161,7 +161,7 @@ def main() -> None:
     say(f"compliance plan: {plan_c} ({t_cmp:.1f} s)")
 
     def geometric(data):
-        p = calibrate(robot, data, method="lm").params.values
+        p = calibrate(robot, data, method="lm", prior=None).params.values
         return lambda q: robot.positions(q, p)
 
     def compliance(data):

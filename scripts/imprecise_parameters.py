@@ -40,7 +40,7 @@ def side(robot, cases, plausible) -> dict:
     t0 = time.perf_counter()
     bad, worst, held, iters, fixed = 0, 0.0, [], [], {}
     for d, t in cases:
-        res = calibrate(robot, d, test=t, method="lm", plausible=plausible)
+        res = calibrate(robot, d, test=t, method="lm", plausible=plausible, prior=None)
         se = [v for v in res.std_errors.values()]
         limit = [PLAUSIBLE.get(res.params.units[res.params.index(n)], float("inf")) for n in res.std_errors]
         bad += any(v > lim for v, lim in zip(se, limit))

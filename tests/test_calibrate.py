@@ -433,13 +433,14 @@ def test_calibrate_fixes_what_the_data_cannot_pin_down():
     """A reflector about 0.5 mm off the flange axis makes joint 6's offset and roll full-rank but
     determined only to tens of mrad: calibrate fixes them (with the reason) instead of exporting
     noise, so no fitted parameter is worse determined than a plausible error (10 mm / 10 mrad), and
-    the held-out error does not suffer."""
+    the held-out error does not suffer. (Without a prior: with one, chosen by CV on such small
+    sets by default, the prior holds them instead.)"""
     robot = shipped("kuka_kr5_arc")
     dropped, worst, held = {}, 0.0, []
     for seed in range(6):
         d, truth = simulate(robot, SimConfig(n=30, seed=seed))
         t, _ = simulate(robot, SimConfig(n=100, seed=1000 + seed), true_params=truth)
-        res = calibrate(robot, d, test=t)
+        res = calibrate(robot, d, test=t, prior=None)
         worst = max(worst, max(res.std_errors.values()))
         for n, why in res.unidentifiable.items():
             if "is determined only to" in why:

@@ -122,7 +122,7 @@ def test_batched_identifiability_equals_analyse_jacobian(kr5):
 def test_fleet_equals_per_robot_calibrate(kr5, ragged):
     fr = calibrate_fleet(kr5, ragged)
     for a, d in zip(fr.results, ragged):
-        b = calibrate(kr5, d, method="lm")
+        b = calibrate(kr5, d, method="lm", prior=None)
         assert a.params.free_names == b.params.free_names
         assert sorted(a.unidentifiable) == sorted(b.unidentifiable)
         for n in b.std_errors:
@@ -141,7 +141,7 @@ def test_fleet_exact_mode_follows_calibrate(kr5, ragged):
     fr = calibrate_fleet(kr5, ragged[:3], options={"reuse": None})
     accepted = lambda s: s.n_iter - s.extra["n_rejected"]  # noqa: E731
     for a, d in zip(fr.results, ragged[:3]):
-        b = calibrate(kr5, d, method="lm")
+        b = calibrate(kr5, d, method="lm", prior=None)
         assert accepted(a.solver) == accepted(b.solver)
         assert torch.allclose(a.params.values, b.params.values, atol=1e-9, rtol=0)
 

@@ -12,14 +12,16 @@ from torchcal.effects.compliance import JointCompliance
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
 from torchcal.effects.registry import EFFECTS, effect_class, effect_type, register_effect
+from torchcal.effects.terms import JointTerms
 from torchcal.effects.thermal import ThermalDrift, thermal_covariate
 from torchcal.params import ParamSet
 
-for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation):
+for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation, JointTerms):
     register_effect(_cls)
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "GravityDeformation", "Backlash",
-           "CyclicJointError", "JointScale", "ThermalDrift", "thermal_covariate", "effect_params", "build_effect",
+           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "thermal_covariate", "effect_params",
+           "build_effect",
            "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]
 
 

@@ -79,6 +79,7 @@ class Effect:
     description = ""
     selectable = True             # the loop chooses its modes (joints, links, directions) one by one
     supersedes: tuple[str, ...] = ()  # accepted effects whose modes this one takes over
+    fallback = False              # a general family, tried in a round only when no physical effect passes
 
     def __init__(self, robot, joints: list[str] | None = None, geometry: Tensor | None = None):
         self.robot = robot

@@ -212,15 +212,18 @@ class ForwardKinematics:
             T = homogeneous(*self._fk_rt(q, slots))
         return self._unbatch(T, pop, q1, 3)
 
-    def fk_rt(self, q, params=None, *, check: bool = True) -> tuple[Tensor, Tensor]:
+    def fk_rt(self, q, params=None, *, check: bool = True, base: bool = True) -> tuple[Tensor, Tensor]:
         """Like :meth:`fk` but returns rotations ``(..., M, 3, 3)`` and positions ``(..., M, 3)``
-        (m) separately, which is cheaper when only positions are needed."""
-        q, slots, pop, q1 = self._prepare(q, params, check)
-        if q.shape[0] * (1 if slots is None else slots.shape[0]) <= self.SMALL_BATCH:
+        (m) separately, which is cheaper when only positions are needed. ``q`` may be
+        ``(P, N, dof)`` paired with a ``(P, K)`` population, as in :meth:`positions`; ``base``:
+        apply the instrument frame (``False``: the robot's own base frame)."""
+        paired = isinstance(q, Tensor) and q.ndim == 3
+        q, slots, pop, q1 = (self._prepare_paired if paired else self._prepare)(q, params, check)
+        if base and not paired and q.shape[0] * (1 if slots is None else slots.shape[0]) <= self.SMALL_BATCH:
             T = self._fk4(q, slots)
             R, t = T[..., :3, :3], T[..., :3, 3]
         else:
-            R, t = self._fk_rt(q, slots)
+            R, t = self._fk_rt(q, slots, base)
         return self._unbatch(R, pop, q1, 3), self._unbatch(t, pop, q1, 2)
 
     def positions(self, q, params=None, *, check: bool = True, base: bool = True) -> Tensor:
@@ -317,10 +320,10 @@ class ForwardKinematics:
             x = x.select(x.ndim - tail - 1, 0)
         return x
 
-    def _fk_rt(self, q: Tensor, slots: Tensor | None) -> tuple[Tensor, Tensor]:
+    def _fk_rt(self, q: Tensor, slots: Tensor | None, with_base: bool = True) -> tuple[Tensor, Tensor]:
         Rs, ts, *_ = self._chain(q, slots)
         R, t = self._marker_frames(Rs, ts, slots)
-        base = self._base(slots)
+        base = self._base(slots) if with_base else None
         if base is not None:
             Rb, tb = base
             R = Rb[:, None, None] @ R

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix",
-           "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "homogeneous", "kabsch"]
+           "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv", "homogeneous", "kabsch"]
 
 
 def skew(v: Tensor) -> Tensor:
@@ -104,6 +104,19 @@ def so3_left_jacobian(r: Tensor) -> Tensor:
     K = skew(r)
     eye = torch.eye(3, dtype=r.dtype, device=r.device).expand_as(K)
     return eye + b[..., None, None] * K + c[..., None, None] * (K @ K)
+
+
+def so3_left_jacobian_inv(phi: Tensor) -> Tensor:
+    """``(..., 3) -> (..., 3, 3)`` inverse left Jacobian of SO(3): ``d log(E) = J_l⁻¹(log E) ω`` for
+    ``dE = skew(ω) E``."""
+    th2 = (phi * phi).sum(-1)
+    small = th2 < 1e-8
+    th = torch.sqrt(torch.where(small, torch.ones_like(th2), th2))
+    coef = torch.where(small, 1.0 / 12 + th2 / 720,
+                       (1 - th * torch.sin(th) / (2 * (1 - torch.cos(th)))) / torch.where(small, torch.ones_like(th2), th2))
+    K = skew(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(K)
+    return eye - 0.5 * K + coef[..., None, None] * (K @ K)
 
 
 def so3_log(R: Tensor) -> Tensor:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcal.kinematics.transforms import quat_to_matrix, skew, so3_log
+from torchcal.kinematics.transforms import quat_to_matrix, so3_left_jacobian_inv, so3_log
 from torchcal.measure.data import Measurements
 
 __all__ = ["Loss", "PositionResidual", "PoseResidual", "DistanceResidual", "ResidualBlock"]
@@ -166,18 +166,6 @@ class PositionResidual(ResidualBlock):
         return (p[self._rows, self._cols] - self._meas) * self._mask, J[self._rows, self._cols] * self._mask[..., None]
 
 
-def _so3_left_jacobian_inv(phi: Tensor) -> Tensor:
-    """Inverse left Jacobian of SO(3): ``d log(E) = J_l⁻¹(log E) ω`` for ``dE = skew(ω) E``."""
-    th2 = (phi * phi).sum(-1)
-    small = th2 < 1e-8
-    th = torch.sqrt(torch.where(small, torch.ones_like(th2), th2))
-    coef = torch.where(small, 1.0 / 12 + th2 / 720,
-                       (1 - th * torch.sin(th) / (2 * (1 - torch.cos(th)))) / torch.where(small, torch.ones_like(th2), th2))
-    K = skew(phi)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand_as(K)
-    return eye - 0.5 * K + coef[..., None, None] * (K @ K)
-
-
 class PoseResidual(ResidualBlock):
     """Full pose of each seen marker: position error (m) and ``rot_weight · log(R R_meas^T)``
     (rotation vector, rad, times ``rot_weight`` in m/rad; default 0.1 m/rad: 1 mrad counts like
@@ -218,7 +206,7 @@ class PoseResidual(ResidualBlock):
     def _raw_jacobian(self, params: Tensor) -> tuple[Tensor, Tensor]:
         J = self.robot.param_jacobian(self.data.q, params, kind="pose", check=False)[self._rows, self._cols]
         r = self._raw(params[None])[0]
-        Jinv = _so3_left_jacobian_inv(r[:, 3:] / self.rot_weight)
+        Jinv = so3_left_jacobian_inv(r[:, 3:] / self.rot_weight)
         J = torch.cat([J[:, :3], self.rot_weight * (Jinv @ J[:, 3:])], 1)
         return r, J
 

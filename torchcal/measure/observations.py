@@ -9,7 +9,10 @@ fit, score and cross-validation works on ``(n_obs, 3)`` arrays whatever was meas
 * position: the measured axes of ``p − p_measured`` (a marker seen in one axis has one);
 * plane contact: ``(nᵀp − d, 0, 0)``, the signed distance of the marker from the plane ``(n, d)``;
 * distance between markers ``a`` and ``b`` of one row: ``(|p_a − p_b| − d_measured, 0, 0)``;
-* distance to a fixed point ``c``: ``(|p_a − c| − d_measured, 0, 0)``.
+* distance to a fixed point ``c``: ``(|p_a − c| − d_measured, 0, 0)``;
+* orientation of a marker frame: ``w · log(R R_measuredᵀ)``, its rotation vector (rad) times the
+  weight ``w`` (m/rad) that makes a rotation error count like a position error of the same
+  noise (``w = σ_position / σ_rotation``).
 
 **What a plane cannot see.** A contact measures only the marker's displacement along the
 plane's normal: whatever moves every contact within its plane is invisible, and the plane's own
@@ -25,14 +28,16 @@ import math
 import torch
 from torch import Tensor
 
+from torchcal.kinematics.transforms import quat_to_matrix, so3_left_jacobian_inv, so3_log
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
-__all__ = ["Setup", "Observations", "POSITION", "PLANE", "DISTANCE", "PIVOT", "KIND_NAMES", "SETUP_PREFIXES",
+__all__ = ["Setup", "Observations", "POSITION", "PLANE", "DISTANCE", "PIVOT", "ORIENTATION", "KIND_NAMES",
+           "SETUP_PREFIXES",
            "needs_setup", "setup_refs", "check_heldout"]
 
-POSITION, PLANE, DISTANCE, PIVOT = 0, 1, 2, 3
-KIND_NAMES = ("position", "plane contact", "distance between markers", "distance to a fixed point")
+POSITION, PLANE, DISTANCE, PIVOT, ORIENTATION = 0, 1, 2, 3, 4
+KIND_NAMES = ("position", "plane contact", "distance between markers", "distance to a fixed point", "orientation")
 SETUP_PREFIXES = ("plane.", "pivot.")
 
 
@@ -233,9 +238,11 @@ class Observations:
     Args:
         setup: the plane poses and fixed points; required when the data touches planes or
             measures distances to fixed points, and must know every one of them.
+        rot_weight: m/rad; with it, every measured marker orientation (finite quaternion) is an
+            observation too, after the positions' and set-up's (None: orientations unused).
     """
 
-    def __init__(self, robot, data: Measurements, setup: Setup | None = None):
+    def __init__(self, robot, data: Measurements, setup: Setup | None = None, rot_weight: float | None = None):
         mk = _marker_index(robot, data)
         dev, dt = robot.device, robot.dtype
         if needs_setup(data):
@@ -274,6 +281,14 @@ class Observations:
                 tgt[:, 0] = v[r]
                 parts.append((r, torch.full_like(r, data.marker_names.index(a)), kind, torch.full_like(r, o), tgt,
                               one.expand(r.numel(), 3)))
+        self.rot_weight = None if rot_weight is None else float(rot_weight)
+        self._meas_R = torch.zeros(0, 3, 3, dtype=dt, device=dev)
+        if self.rot_weight is not None and data.quaternions is not None:
+            idx = torch.nonzero(torch.isfinite(data.quaternions).all(-1))
+            self._meas_R = quat_to_matrix(data.quaternions[idx[:, 0], idx[:, 1]]).to(dt)
+            parts.append((idx[:, 0], idx[:, 1], ORIENTATION, torch.full_like(idx[:, 0], -1),
+                          torch.zeros(idx.shape[0], 3, dtype=dt, device=dev),
+                          torch.ones(idx.shape[0], 3, dtype=torch.bool, device=dev)))
         self.rows = torch.cat([p[0] for p in parts])
         self.data_marker = torch.cat([p[1] for p in parts])
         self.marker = mk[self.data_marker]
@@ -281,8 +296,33 @@ class Observations:
         self.other = torch.cat([p[3] for p in parts])
         self.target = torch.cat([p[4] for p in parts]).to(dt)
         self.mask = torch.cat([p[5] for p in parts])
-        self._sel = {k: torch.nonzero(self.kind == k).flatten() for k in (POSITION, PLANE, DISTANCE, PIVOT)}
+        self._sel = {k: torch.nonzero(self.kind == k).flatten() for k in range(len(KIND_NAMES))}
         self.n = int(self.rows.numel())
+
+    def view(self, where: Tensor) -> "Observations":
+        """The observations ``where (n,) bool`` as a light copy (rows, markers, kinds, masks)."""
+        out = object.__new__(Observations)
+        for a in ("rows", "data_marker", "marker", "kind", "other", "target", "mask"):
+            setattr(out, a, getattr(self, a)[where])
+        out.setup, out.rot_weight, out.n = self.setup, self.rot_weight, int(where.sum())
+        out._sel = {k: torch.nonzero(out.kind == k).flatten() for k in range(len(KIND_NAMES))}
+        out._meas_R = self._meas_R[where[self._sel[ORIENTATION]]] if self._sel[ORIENTATION].numel() else self._meas_R
+        return out
+
+    @property
+    def has_orientation(self) -> bool:
+        """Some observations are orientations: the model must give marker rotations too."""
+        return bool(self._sel[ORIENTATION].numel())
+
+    @property
+    def is_position(self) -> Tensor:
+        """``(n,)`` bool: the observation is about where a point is (not how a frame is turned)."""
+        return self.kind != ORIENTATION
+
+    def angle_errors(self, r: Tensor) -> Tensor:
+        """``(..., n, 3)`` residual vectors -> ``(..., n_orientation)`` angle errors (rad) of the
+        orientation observations."""
+        return r[..., self._sel[ORIENTATION], :].norm(dim=-1) / (self.rot_weight or 1.0)
 
     @property
     def dims(self) -> Tensor:
@@ -306,8 +346,9 @@ class Observations:
             return torch.zeros(P, 0, dtype=dt, device=dev)
         return s
 
-    def residuals(self, p: Tensor, s: Tensor | None = None) -> Tensor:
-        """``p (P, N, M, 3)`` marker positions (instrument frame, m) and ``s (P, S)`` set-up values
+    def residuals(self, p: Tensor, s: Tensor | None = None, R: Tensor | None = None) -> Tensor:
+        """``p (P, N, M, 3)`` marker positions (instrument frame, m), ``s (P, S)`` set-up values and,
+        with orientation observations, ``R (P, N, M, 3, 3)`` marker rotations (instrument frame)
         -> ``(P, n, 3)`` residual vectors (m), zero where nothing was measured."""
         P = p.shape[0]
         s = self._setup(s, P, p.dtype, p.device)
@@ -329,12 +370,25 @@ class Observations:
         if i.numel():
             c = self.setup.centres_of(s)[:, self.other[i]]
             r[:, i, 0] = (pa[:, i] - c).norm(dim=-1) - self.target[i, 0]
+        i = self._sel[ORIENTATION]
+        if i.numel():
+            r[:, i] = self.rot_weight * self._rotation_errors(R, i)
         return r
 
-    def project(self, p: Tensor, D: Tensor, s: Tensor | None = None) -> Tensor:
+    def _rotation_errors(self, R: Tensor | None, i: Tensor) -> Tensor:
+        """``log(R R_measuredᵀ)`` ``(P, n_i, 3)`` (rad) of the orientation observations ``i``."""
+        if R is None:
+            raise ValueError("these observations measure orientations: the model's marker rotations are needed")
+        Ra = R[:, self.rows[i], self.marker[i]]
+        return so3_log(Ra @ self._meas_R.transpose(-1, -2))
+
+    def project(self, p: Tensor, D: Tensor, s: Tensor | None = None, W: Tensor | None = None,
+                R: Tensor | None = None) -> Tensor:
         """How marker displacements change the residuals, to first order: ``p (N, M, 3)`` positions,
         ``D (N, M, 3, L)`` displacement of every marker per unit of ``L`` coordinates (instrument
-        frame), ``s (S,)`` set-up values -> ``(n, 3, L)``."""
+        frame), ``s (S,)`` set-up values -> ``(n, 3, L)``. With orientation observations also
+        ``W (N, M, 3, L)`` the markers' small rotations (rad, instrument frame, ``dR = skew(ω) R``)
+        per unit coordinate and ``R (N, M, 3, 3)`` their rotations (None W: they do not turn)."""
         s = self._setup(None if s is None else s[None], 1, p.dtype, p.device)
         Da = D[self.rows, self.marker]  # (n, 3, L)
         out = torch.zeros_like(Da)
@@ -356,6 +410,10 @@ class Observations:
                 pb, Db = self.setup.centres_of(s)[0, self.other[i]], torch.zeros_like(Da[i])
             u = (pa - pb) / (pa - pb).norm(dim=-1, keepdim=True).clamp(min=1e-300)
             out[i, 0] = (u[:, :, None] * (Da[i] - Db)).sum(1)
+        i = self._sel[ORIENTATION]
+        if i.numel() and W is not None:
+            Jinv = so3_left_jacobian_inv(self._rotation_errors(R[None], i)[0])
+            out[i] = self.rot_weight * (Jinv @ W[self.rows[i], self.marker[i]])
         return out
 
     def setup_jacobian(self, p: Tensor, s: Tensor) -> Tensor:

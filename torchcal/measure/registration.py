@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import torch
 
-from torchcal.kinematics.transforms import kabsch, so3_log
+from torchcal.kinematics.transforms import kabsch, matrix_to_rpy, quat_to_matrix, so3_log
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
-__all__ = ["register_base"]
+__all__ = ["register_base", "register_marker_rotations"]
 
 _BASE = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 
@@ -36,4 +36,32 @@ def register_base(robot, data: Measurements, params: ParamSet | None = None) -> 
     r = so3_log(R)
     for n, val in zip(_BASE, torch.cat([t, r]).tolist()):
         params[n] = val
+    return params
+
+
+def register_marker_rotations(robot, data: Measurements, params: ParamSet) -> ParamSet:
+    """Free the rotation (``<marker>.droll/dpitch/dyaw``, rad) of each marker whose orientation
+    ``data`` measured, started from the mean rotation between the model's marker frame (at
+    ``params``, its own rotation at zero) and the measured frames: a camera target's frame may
+    be turned any way on its link, as the instrument may stand anywhere."""
+    params = params.clone()
+    if data.quaternions is None:
+        return params
+    names = ("droll", "dpitch", "dyaw")
+    v = params.values.clone()
+    for m in data.marker_names:
+        for a in names:
+            v[params.index(f"{m}.{a}")] = 0.0
+    R, _ = robot.fk_rt(data.q, v, check=False)  # (N, M, 3, 3), instrument frame
+    for k, m in enumerate(data.marker_names):
+        ok = torch.isfinite(data.quaternions[:, k]).all(-1)
+        if not bool(ok.any()):
+            continue
+        A = (R[ok, robot.marker_names.index(m)].transpose(-1, -2) @ quat_to_matrix(data.quaternions[ok, k])).sum(0)
+        U, _, Vh = torch.linalg.svd(A)  # the chordal mean: the rotation nearest the summed ones
+        d = torch.ones(3, dtype=A.dtype, device=A.device)
+        d[2] = torch.sign(torch.linalg.det(U @ Vh))
+        for a, val in zip(names, matrix_to_rpy(U @ torch.diag(d) @ Vh).tolist()):
+            params[f"{m}.{a}"] = val
+        params.unfix(*[f"{m}.{a}" for a in names])
     return params

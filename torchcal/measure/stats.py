@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["error_stats", "errors_by_marker", "errors_by_marker_batched"]
+__all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched"]
 
 
 def error_stats(err_m: Tensor) -> dict:
@@ -16,6 +16,12 @@ def error_stats(err_m: Tensor) -> dict:
     return {"n": int(e.numel()), "mean_mm": float(e.mean()), "std_mm": float(e.std()) if e.numel() > 1 else 0.0,
             "max_mm": float(e.max()), "rmse_mm": float(torch.sqrt((e * e).mean())),
             "median_mm": float(e.median())}
+
+
+def angle_stats(err_rad: Tensor) -> dict:
+    """Statistics of orientation errors given in radians, reported in milliradians (the keys of
+    :func:`error_stats`, ``_mrad`` for ``_mm``)."""
+    return {k.replace("_mm", "_mrad"): v for k, v in error_stats(err_rad).items()}
 
 
 def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict:

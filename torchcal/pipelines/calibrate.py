@@ -12,12 +12,14 @@ from torch import Tensor
 from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
 from torchcal.measure.data import Measurements
-from torchcal.measure.registration import register_base
+from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import atomic_write_text, staged_dir
 from torchcal.params import ParamSet, display_unit
-from torchcal.pipelines.fitting import check_plausible, fit_identified
+from torchcal.pipelines.calibrate_prior import choose_prior, is_small
+from torchcal.pipelines.fitting import (PLAUSIBLE, check_plausible, fit_identified, implausible_reason,
+                                        implausible_values, reduce_free)
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
@@ -92,6 +94,11 @@ class CalibrationResult:
     loss: str = "l2"
     wall_time_s: float = 0.0
     errors: dict = field(default_factory=dict)  # stage -> {"train": Tensor, "test": Tensor} (m)
+    prior_mm: float | None = None  # Gaussian prior on the geometric errors (mm and mrad), None: none
+    prior_reason: str = ""         # why that prior (or none), in words
+    prior_tried: list = field(default_factory=list)
+    implausible: dict = field(default_factory=dict)  # joint errors beyond their plausible size: name -> value
+    plausible: dict = field(default_factory=dict)
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -101,8 +108,24 @@ class CalibrationResult:
 
     def problems(self) -> list[str]:
         """Reasons not to trust this calibration, in words (empty when none): worse than the
-        nominal model on its own training rows, or held-out rows that do not fit this robot."""
-        return stage_problems(self.stages)
+        nominal model on its own training rows, held-out rows that do not fit this robot, or joints
+        moved or turned by more than a plausible error."""
+        out = stage_problems(self.stages)
+        if self.implausible:
+            out.append(implausible_reason(self.implausible, dict(zip(self.params.names, self.params.units)),
+                                          self.plausible or PLAUSIBLE))
+        return out
+
+    def statuses(self) -> dict[str, tuple[str, str]]:
+        """Every candidate parameter's one status: ``"identified"``, ``"tied"`` (the data cannot
+        tell it from others) or ``"fixed"`` (not seen, or pinned down worse than a plausible
+        error), with the reason for the latter two."""
+        imp = set(getattr(self.identifiability, "imprecise", []) or [])
+        out = {n: ("identified", "") for n in self.params.free_names if n not in self.unidentifiable}
+        for n, why in self.unidentifiable.items():
+            fixed = n not in self.params.free_names and (n in imp or "does not move" in why or "not fitted" in why)
+            out[n] = ("fixed" if fixed else "tied", why)
+        return out
 
     def report(self) -> dict:
         """The JSON-serialisable report (shape shared with ``torchcal loop``)."""
@@ -120,6 +143,8 @@ class CalibrationResult:
                        "n_evals": self.solver.n_evals, "wall_time_s": self.solver.wall_time_s,
                        "converged": self.solver.converged, "message": self.solver.message},
             "wall_time_s": self.wall_time_s, "problems": self.problems(),
+            "prior_mm": self.prior_mm, "prior_reason": self.prior_reason, "prior_tried": self.prior_tried,
+            "status": {n: st for n, (st, _) in self.statuses().items()},
         }
 
     def markdown(self) -> str:
@@ -136,19 +161,31 @@ class CalibrationResult:
                          f"{f(tr, 'max_mm')} | {f(te, 'mean_mm')} | {f(te, 'std_mm')} | {f(te, 'max_mm')} |")
         if self.errors:
             lines += ["", "![error histograms](errors.png)"]
+        if self.prior_reason:
+            lines += ["", "## Prior", "", self.prior_reason + "."]
         lines += ["", "## Identified parameters", "",
                   "| parameter | value | std. error | unit |", "|---|---|---|---|"]
         for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
-            if n in self.std_errors:
+            if self.statuses().get(n, ("",))[0] == "identified":
                 sc, us = display_unit(u)
                 lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
-        if self.unidentifiable:
-            lines += ["", "## Not identifiable from these measurements", ""]
-            lines += [f"- `{n}`: {why}" for n, why in sorted(self.unidentifiable.items())]
+        st = self.statuses()
+        for kind, title in (("tied", "Tied to others: these measurements cannot tell them apart"),
+                            ("fixed", "Fixed at nominal: not seen, or pinned down worse than a plausible error")):
+            rows = sorted((n, why) for n, (k, why) in st.items() if k == kind)
+            if rows:
+                lines += ["", f"## {title}", ""] + [f"- `{n}`{self._value_words(n)}: {why}" for n, why in rows]
         s = self.solver
         lines += ["", f"Solver: {s.method}, {s.n_iter} iterations, {s.n_evals} evaluations, "
                       f"{s.wall_time_s:.3f} s; {s.message}", ""]
         return "\n".join(lines)
+
+    def _value_words(self, name: str) -> str:
+        """`` = value unit`` for a parameter fitted under the prior though tied; else empty."""
+        if name not in self.params.free_names:
+            return ""
+        f, u = display_unit(self.params.units[self.params.index(name)])
+        return f" = {float(self.params[name]) * f:.4g} {u}"
 
     def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
         """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
@@ -200,7 +237,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
               loss: str = "l2", loss_scale: float | None = None, register: bool = True,
               reduce: bool = True, prefer=None, fitness: str = "sse", search_radius: dict | None = None,
               options: dict | None = None, seed: int = 0, progress: bool = False,
-              polish: bool | None = None, plausible: dict | None = None) -> CalibrationResult:
+              polish: bool | None = None, plausible: dict | None = None,
+              prior: str | float | None = "auto") -> CalibrationResult:
     """Identify geometric errors from measurements.
 
     Steps: (1) base registration by Kabsch (when the base parameters are free and ``register``);
@@ -223,7 +261,13 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             :data:`~torchcal.pipelines.fitting.PLAUSIBLE`: 10 mm, 10 mrad). With position data and
             a gradient method, a parameter whose standard error (at the noise the fit's residuals
             show) exceeds it is fixed at its start and the fit repeated; ``{}`` keeps every
-            parameter of full rank.
+            parameter of full rank. A joint moved or turned by more than it in the final model
+            makes the result one :meth:`CalibrationResult.problems` refuses to save or deploy.
+        prior: a Gaussian prior on every geometric error (gradient methods, position data):
+            ``"auto"`` chooses its scale by cross-validation, against no prior, on small data
+            (:func:`~torchcal.pipelines.calibrate_prior.is_small`) and when the plain fit leaves a
+            joint error beyond its plausible size; ``"cv"`` always chooses it so; None: no prior
+            (the identifiable subset alone, as a fleet without a prior fits each robot).
     """
     t0 = time.perf_counter()
     if kind not in ("position", "pose"):
@@ -231,6 +275,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     if len(data) == 0:
         raise ValueError("no training rows")
     plausible = check_plausible(plausible)
+    if not (prior is None or prior in ("auto", "cv")):
+        raise ValueError(f"prior must be 'auto', 'cv' or None, got {prior!r}")
     for d, what in ((data, "training"), (test, "held-out")):
         if d is not None and (d.distances or (d.planes is not None and bool((d.planes >= 0).any()))):
             raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
@@ -249,6 +295,10 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     base_free = bool(p.free[[p.index(n) for n in ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")]].any())
     if register and base_free:
         p = register_base(robot, data, p)
+    if kind == "pose" and free is None:
+        # the measured frames' rotation on their links is as unknown as the points: free it,
+        # started from the mean measured rotation
+        p = register_marker_rotations(robot, data, p)
     start = p.clone()
 
     def p_cand(cur: ParamSet) -> ParamSet:
@@ -316,12 +366,40 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     se = standard_errors(J, r)
     std_errors = dict(zip(p.free_names, se.tolist()))
 
+    # on small data (or when the plain fit moves a joint implausibly far) the loop's CV-chosen prior
+    choice, why = None, ""
+    gradient = not swarm and kind == "position" and reduce
+    wanted = prior == "cv" or (prior == "auto" and (is_small(data, len(start.free_names))
+                                                   or implausible_values(p, robot, plausible)))
+    if gradient and wanted:
+        choice = choose_prior(robot, data, start, p, None if loss_obj is None else loss_obj.scale, seed=seed)
+        why = choice.reason
+        if choice.prior_mm is not None:
+            p, std_errors = choice.params, {n: choice.std_errors.get(n, float("nan")) for n in choice.params.free_names}
+            # what the data alone cannot tell apart is held by the prior: tied, with the value the prior gives it
+            cand = start.clone()
+            cand.values = p.values.clone()
+            _, rank = reduce_free(lambda q: make_problem(q, loss_obj), cand, markers=robot.marker_names, kind=kind,
+                                  prefer=prefer)
+            unident = {n: rank.reasons[n] for n in rank.dropped}
+    elif prior is not None and gradient:
+        why = (f"no prior: {data.n_values} measured values for {len(start.free_names)} candidate parameters are "
+               "enough to fit the identifiable ones alone")
+    elif prior is not None:
+        why = (f"no prior: method {method!r} keeps its search box" if swarm else
+               "no prior: pose data are fitted without one")
+
     geo = {"name": "geometric", "n_params": int(p.free.sum()), "train": stage_stats(robot, p.values, data)}
     if test is not None:
         geo["test"] = stage_stats(robot, p.values, test)
     stages.append(geo)
     errors = {"nominal": _errors(robot, nominal, data, test), "geometric": _errors(robot, p.values, data, test)}
+    if choice is None or choice.prior_mm is None:
+        unident = {n: why_ for n, why_ in unident.items() if n not in p.free_names}  # one status per parameter
     return CalibrationResult(robot=robot, params=p, std_errors=std_errors, unidentifiable=unident, stages=stages,
                              solver=s, method=method, n_train=len(data), n_test=0 if test is None else len(test),
                              start=start, identifiability=report, loss=loss if loss_obj is None else repr(loss_obj),
-                             wall_time_s=time.perf_counter() - t0, errors=errors)
+                             wall_time_s=time.perf_counter() - t0, errors=errors,
+                             prior_mm=None if choice is None else choice.prior_mm, prior_reason=why,
+                             prior_tried=[] if choice is None else choice.tried,
+                             implausible=implausible_values(p, robot, plausible), plausible=plausible)

@@ -15,7 +15,7 @@ from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.problems.uncertainty import residual_noise, unit_variances
 
 __all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
-           "imprecise_reason"]
+           "imprecise_reason", "implausible_values", "implausible_reason"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
 # than this (one standard error) is not identified by them, whatever its numerical rank. A marker
@@ -100,7 +100,9 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
 
     Returns (a copy of ``params`` with them fixed, the identifiability report)."""
     prob = make_problem(params)
-    J = prob.jacobian(prob.x0)
+    # what the measurements themselves can tell apart: a prior's rows would make every column
+    # independent, and would then split an exact tie between its parameters
+    J = prob.data_jacobian(prob.x0) if hasattr(prob, "data_jacobian") else prob.jacobian(prob.x0)
     units = [params.units[i] for i in params.free_index.tolist()]
     rep = analyse_jacobian(J, params.free_names, units, markers=markers, kind=kind, prefer=prefer)
     out = params.clone()
@@ -129,27 +131,68 @@ def imprecise_reason(name: str, unit: str, se: float, noise: float) -> str:
             "than such an error can plausibly be")
 
 
+def implausible_values(params: ParamSet, robot, plausible: dict | None = None) -> dict[str, float]:
+    """Fitted errors of the robot's joints (origin shifts, turns, zero offsets, DH errors) larger than
+    their plausible size: name -> value (its unit). The instrument frame and the marker points are
+    unknowns of the set-up, not errors of the robot, and are never judged here."""
+    plausible = PLAUSIBLE if plausible is None else plausible
+    joints = set(robot.joint_names)
+    out = {}
+    for n, v, u, f in zip(params.names, params.values.tolist(), params.units, params.free.tolist()):
+        if f and n.split(".")[0] in joints and abs(v) > plausible.get(u, float("inf")):
+            out[n] = v
+    return out
+
+
+def implausible_reason(values: dict[str, float], units: dict[str, str], plausible: dict) -> str:
+    """Why a model with ``values`` (name -> value) is refused, in words, with the way out."""
+    def one(n):
+        f, u = display_unit(units[n])
+        return f"{n} = {values[n] * f:+.4g} {u}"
+    lim = ", ".join(f"{plausible[u] * display_unit(u)[0]:g} {display_unit(u)[1]}" for u in sorted(plausible))
+    return (f"the fit moves or turns joints by more than a plausible error ({lim}): "
+            + ", ".join(one(n) for n in list(values)[:6]) + (" …" if len(values) > 6 else "")
+            + ". The data cannot support this model: measure more poses spread over the joint ranges, fit fewer "
+              "parameters, or, if errors this large are real, raise the limit (plausible=..., CLI --plausible-mm)")
+
+
+def _nominal(start: ParamSet, names) -> ParamSet:
+    """``start`` with ``names`` fixed at their nominal value: 0 for every error, the start for
+    the instrument frame (its registration is no error of the robot)."""
+    p = start.clone()
+    for n in names:
+        p[n] = float(start[n]) if n.startswith("base.") else 0.0
+    if names:
+        p.fix(*names)
+    return p
+
+
 def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, method: str = "lm",
                    options: dict | None = None, seed: int = 0, progress: bool = False, markers=(),
                    kind: str = "position", prefer=None, reduce: bool = True, rounds: int = 3,
-                   solve: Callable | None = None, noise: float | str | None = None,
+                   solve: Callable | None = None, noise: float | str | Callable | None = None,
                    plausible: dict | None = None, zero_dropped: tuple[str, ...] = ()
                    ) -> tuple[ParamSet, Result, object]:
     """Fit the identifiable subset of ``params``' free entries.
 
     Identifiability depends on where it is judged (a marker guessed on a joint axis hides that
     joint's offset), so it is judged at the start, then again at each solution; while the
-    identifiable set grows the fit is repeated from the current values. A parameter judged too
-    imprecise (see ``noise``) is fixed at its start value for good and the fit repeated without it:
-    a value the data cannot pin down is noise, and leaving it in the model would export it.
+    identifiable set grows the fit is repeated from the current values (nothing is reset, so the
+    state stays consistent). Only once the set has stopped growing is each parameter's precision
+    judged, at the noise the model *with* it reaches (a parameter judged at the misfit of a model
+    that lacked it would look imprecise). A parameter judged too imprecise is fixed at its
+    nominal value for good and the whole fit restarts from the start values: the other values had
+    compensated for it, and continuing from them would keep that compensation.
 
     Args:
         make_problem: builds a problem for a ParamSet (its free flags choose the unknowns).
         solve: optional ``(problem) -> Result`` replacing the plain solver call.
         noise: the per-axis measurement noise (m) that judges imprecision (:func:`reduce_free`);
             ``"residuals"``: each fit's own (:func:`~torchcal.problems.uncertainty.residual_noise`,
-            the σ its standard errors are reported with), from the first solution on; None: rank
-            alone.
+            the σ its standard errors are reported with); a callable ``(problem, x) -> float``: the
+            noise it says the fit at ``x`` shows (a robust estimate, say); None: rank alone.
+        rounds: fits while the identifiable set grows (restarts for imprecision come on top:
+            each fixes at least one parameter, so they end).
         plausible: see :func:`reduce_free`.
         zero_dropped: name prefixes of parameters set to 0 when identifiability drops them (a
             model's optional parts, whose start may hold meaningless values along the directions
@@ -158,12 +201,16 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
         (fitted ParamSet, the solver's Result, the last identifiability report or None).
     """
     candidates = params.clone()
-    from_fit = isinstance(noise, str)
-    if from_fit and noise != "residuals":
-        raise ValueError(f"noise must be metres, 'residuals' or None, got {noise!r}")
+    if isinstance(noise, str) and noise != "residuals":
+        raise ValueError(f"noise must be metres, 'residuals', a callable or None, got {noise!r}")
+    judged = noise is not None and not isinstance(noise, (int, float))
 
     def run(p: ParamSet):
         prob = make_problem(p)
+        m, k = getattr(prob, "m", None), len(p.free_names)
+        if m is not None and m < k:
+            raise ValueError(f"{m} residuals for {k} free parameters{'' if reduce else ' (no reduction asked)'}: "
+                             "measure more poses, or fix parameters")
         res = solve(prob) if solve is not None else \
             get_solver(method, seed=seed, progress=progress, **dict(options or {})).minimize(prob)
         out = p.clone()
@@ -173,6 +220,7 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
     if not reduce:
         p, res, _ = run(params)
         return p, res, None
+
     def zeroed(p: ParamSet) -> ParamSet:
         if zero_dropped:
             for i, (n, f) in enumerate(zip(p.names, p.free.tolist())):
@@ -180,40 +228,61 @@ def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet
                     p.values[i] = 0.0
         return p
 
-    def restart(p: ParamSet, names) -> ParamSet:
-        """``p`` with ``names`` fixed back at their start values."""
-        p = p.clone()
-        for n in names:
-            p[n] = float(candidates[n])
-        if names:
-            p.fix(*names)
-        return p
+    def noise_of(prob, res) -> float:
+        if noise == "residuals":
+            return float(residual_noise(prob.residuals(res.x[None])[0], res.x.numel()))
+        return float(noise(prob, res.x))
 
-    p, rep = reduce_free(make_problem, candidates, markers=markers, kind=kind, prefer=prefer,
-                         noise=None if from_fit else noise, plausible=plausible)
-    p = zeroed(p)
-    loose: dict[str, str] = {}  # imprecise parameters, fixed from then on, and why
-    for i in range(rounds):
-        p, res, prob = run(p)
-        nz = float(residual_noise(prob.residuals(res.x[None])[0], res.x.numel())) if from_fit else noise
+    def judge(p: ParamSet, nz):
+        """Rank (and, with ``nz``, precision) at ``p``'s values over the candidates not fixed
+        for good."""
         nxt = candidates.clone()
         nxt.values = p.values.clone()
         if loose:
             nxt.fix(*loose)
-        nxt, rep2 = reduce_free(make_problem, nxt, markers=markers, kind=kind, prefer=prefer, noise=nz,
-                                plausible=plausible)
-        new_loose = [n for n in rep2.imprecise if n in p.free_names]
-        loose.update({n: rep2.reasons[n] for n in rep2.imprecise})
+        return reduce_free(make_problem, nxt, markers=markers, kind=kind, prefer=prefer, noise=nz,
+                           plausible=plausible)
+
+    def keep_reasons(rep_):
         for n, why in loose.items():
-            if n not in rep2.reasons:
+            if n not in rep_.reasons:
+                rep_.dropped.append(n)
+                rep_.reasons[n] = why
+        return rep_
+
+    fixed_nz = None if judged else noise
+    loose: dict[str, str] = {}  # fixed at nominal for good (imprecise, or tied at a solution), and why
+    p, rep = reduce_free(make_problem, candidates, markers=markers, kind=kind, prefer=prefer, noise=fixed_nz,
+                         plausible=plausible)
+    p = zeroed(p)
+    grown = 0
+    while True:
+        p, res, prob = run(p)
+        nxt, rep2 = judge(p, fixed_nz)
+        grew = not set(nxt.free_names) <= set(p.free_names)
+        if grew and grown < rounds - 1:
+            grown += 1  # the set grew at the solution: fit it from here before judging precision
+            rep, p = keep_reasons(rep2), zeroed(nxt)
+            continue
+        late = [n for n in nxt.free_names if n not in p.free_names]
+        if judged:  # precision at the noise of the model as fitted
+            nxt, rep2 = judge(p, noise_of(prob, res))
+        for n in late:  # seen only now, after the last round: never fitted, so never judged either
+            if n in rep2.identifiable:
+                rep2.identifiable.remove(n)
                 rep2.dropped.append(n)
-                rep2.reasons[n] = why
-        if set(nxt.free_names) <= set(p.free_names) and not new_loose:
+                rep2.reasons[n] = f"{n} became identifiable only at the last solution, after {rounds} rounds: not fitted"
+            if n in nxt.free_names:
+                nxt.fix(n)
+        imp = [n for n in rep2.imprecise if n not in loose]
+        tied = [n for n in p.free_names if n not in nxt.free_names and n not in imp]
+        loose.update({n: rep2.reasons[n] for n in imp})
+        loose.update({n: rep2.reasons.get(n, f"{n} depends on other parameters at the solution") for n in tied})
+        rep = keep_reasons(rep2)
+        if not [n for n in imp if n in p.free_names] and not tied:
             break
-        rep = rep2
-        if i == rounds - 1:
-            if new_loose:  # the last round may not grow the set, but it leaves no noise in the model
-                p, res, _ = run(restart(p, new_loose))
-            break
-        p = zeroed(restart(nxt, list(loose)))
+        # restart from a consistent state: every value from its start, the dropped at nominal
+        p, rep = reduce_free(make_problem, _nominal(candidates, list(loose)), markers=markers, kind=kind,
+                             prefer=prefer, noise=fixed_nz, plausible=plausible)
+        p, rep, grown = zeroed(p), keep_reasons(rep), 0
     return p, res, rep

@@ -2,7 +2,6 @@
 :class:`~torchcal.optim.Problem` over the free parameters."""
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import Tensor
@@ -45,10 +44,10 @@ class CalibrationProblem(Problem):
         self.compact = compact
         self.fitness_is_sse = fitness == "sse"  # lets LM reuse its own sum of squares
         super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
+        # residuals are counted against the free parameters where a fit starts, after the
+        # identifiability reduction (pipelines.fitting), never here: the Jacobian of a problem with
+        # more unknowns than residuals is what that reduction reads
         self.m = sum(b.n_obs * b.obs_dim for b in blocks)
-        if self.m < idx.numel():
-            raise ValueError(f"{self.m} residuals for {idx.numel()} free parameters: measure more poses "
-                             "or fix parameters")
 
     def full(self, X: Tensor) -> Tensor:
         """Free values ``(P, k)`` or ``(k,)`` -> full parameter vectors."""
@@ -122,6 +121,9 @@ class EffectCalibrationProblem(Problem):
             prior ``x_i ~ N(0, (σ_noise / w_i)²)`` enters as the residual ``w_i x_i`` of every free
             parameter with ``w_i > 0`` (MAP); 0 = no prior.
         setup: the set-up whose unknowns follow the geometry in ``params``.
+        rot_weight: m/rad; with it, measured marker orientations are observations too
+            (:class:`~torchcal.measure.observations.Observations`). Effects that displace points
+            (bending, growth) turn no frame: only joint deflections and the geometry do.
 
     Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values, carried
     through each observation; position effects do not depend on the geometry, whose features are
@@ -130,7 +132,7 @@ class EffectCalibrationProblem(Problem):
     """
 
     def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6,
-                 prior: Tensor | None = None, setup: Setup | None = None):
+                 prior: Tensor | None = None, setup: Setup | None = None, rot_weight: float | None = None):
         idx = params.free_index
         if idx.numel() == 0:
             raise ValueError("no free parameter")
@@ -145,7 +147,7 @@ class EffectCalibrationProblem(Problem):
         if self.S and params.names[self.K:self.K + self.S] != setup.names:
             raise ValueError("params must hold the set-up's unknowns (setup.params()) right after the geometry")
         self.loss = loss or Loss("l2")
-        self.obs = Observations(robot, data, setup)
+        self.obs = Observations(robot, data, setup, rot_weight)
         self.rows, self.cols = self.obs.rows, self.obs.marker  # (n_obs,) row and robot marker of each observation
         self.n_obs = self.obs.n
         self.m = 3 * self.n_obs
@@ -202,8 +204,23 @@ class EffectCalibrationProblem(Problem):
         Rb, tb = self.robot.base_transform(geo)
         return tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
 
+    def marker_frames(self, full: Tensor) -> tuple[Tensor, Tensor]:
+        """``(P, N, M, 3, 3)`` marker rotations and ``(P, N, M, 3)`` positions (m), instrument frame;
+        the effects' point displacements move the positions only."""
+        geo = full[:, : self.K]
+        R, p = self.robot.fk_rt(self.joint_values(full), geo, check=False, base=False)
+        for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+            d = e.position_delta(full[:, a:b], prep)
+            if d is not None:
+                p = p + d
+        Rb, tb = self.robot.base_transform(geo)
+        return Rb[:, None, None] @ R, tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
+
     def residual_vectors(self, full: Tensor) -> Tensor:
         """``(P, n_obs, 3)`` model − measured per observation (m; zero where nothing was measured)."""
+        if self.obs.has_orientation:
+            R, p = self.marker_frames(full)
+            return self.obs.residuals(p, full[:, self.K:self.K + self.S], R)
         return self.obs.residuals(self.marker_positions(full), full[:, self.K:self.K + self.S])
 
     def errors(self, full: Tensor) -> Tensor:
@@ -231,13 +248,17 @@ class EffectCalibrationProblem(Problem):
         J = torch.zeros(3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         K, S = self.K, self.S
+        turns = self.obs.has_orientation
         if self._geo_free.numel() or self._set_free.numel():
-            p = self.marker_positions(full)[0]
+            R, p = (self.marker_frames(full) if turns else (None, self.marker_positions(full)))
+            R, p = (None if R is None else R[0]), p[0]
             s = full[0, K:K + S]
         if self._geo_free.numel():
             q = self.joint_values(full)[0]
-            Jg = self.robot.param_jacobian(q, full[0, :K], kind="position", check=False)[..., self._geo_free]
-            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = self.obs.project(p, Jg, s).reshape(
+            Jg = self.robot.param_jacobian(q, full[0, :K], kind="pose" if turns else "position",
+                                           check=False)[..., self._geo_free]
+            D, W = (Jg[..., :3, :], Jg[..., 3:, :]) if turns else (Jg, None)
+            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = self.obs.project(p, D, s, W, R).reshape(
                 -1, self._geo_free.numel())
         if self._set_free.numel():
             Js = self.obs.setup_jacobian(p, s)[..., self._set_free - K]

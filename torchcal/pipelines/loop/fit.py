@@ -23,15 +23,15 @@ from torch import Tensor
 from torchcal.measure.blocks import Loss
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import Setup
-from torchcal.measure.registration import register_base
+from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import fit_identified
-from torchcal.pipelines.loop.selection import (HUBER_K, LinearCV, effective_params, penalised, rmse_mm,
-                                               robust_sigma, row_scores)
+from torchcal.pipelines.loop.selection import effective_params, penalised, rmse_mm, robust_sigma, row_scores
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights",
-           "evaluate", "evaluate_prior", "folds_of", "split_params", "assemble", "PRIOR_SCALES_MM"]
+           "evaluate", "evaluate_prior", "fit_params", "fit_noise", "folds_of", "duplicate_groups", "split_params",
+           "assemble", "PRIOR_SCALES_MM"]
 
 # Prior σ of every geometric error when the data cannot carry the full set: mm for lengths, mrad
 # for angles (equal at a 1 m lever), strongest first.
@@ -41,8 +41,9 @@ PRIOR_SCALES_MM = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0)
 @dataclass
 class Context:
     """What every fit of a loop run shares: robot, training rows, folds, the Huber threshold
-    ``c`` (m), the per-axis noise estimate ``sigma`` (m) the priors are scaled by, and the
-    set-up's unknowns (planes, fixed points; None for position data)."""
+    ``c`` (m), the per-axis noise estimate ``sigma`` (m) the priors are scaled by, the
+    set-up's unknowns (planes, fixed points; None for position data) and the weight ``rot_weight``
+    (m/rad) of measured orientations (None: orientations unused)."""
 
     robot: object
     data: Measurements
@@ -50,12 +51,13 @@ class Context:
     c: float | None
     sigma: float
     setup: Setup | None = None
+    rot_weight: float | None = None
 
     @property
     def n_obs(self) -> float:
         """Observations in 3-D equivalents (measured scalars / 3): a plane contact counts a third
-        of a position, so penalties weigh what was measured."""
-        return self.data.n_values / 3
+        of a position, a measured orientation one, so penalties weigh what was measured."""
+        return (self.data.n_values + 3 * orientation_count(self.data, self.rot_weight)) / 3
 
     @property
     def n_geo(self) -> int:
@@ -64,7 +66,8 @@ class Context:
 
     def at(self, c: float | None, sigma: float | None = None) -> "Context":
         """The same context with another Huber threshold (and noise estimate)."""
-        return Context(self.robot, self.data, self.folds, c, self.sigma if sigma is None else sigma, self.setup)
+        return Context(self.robot, self.data, self.folds, c, self.sigma if sigma is None else sigma, self.setup,
+                       self.rot_weight)
 
     def loss(self) -> Loss:
         return Loss("l2") if self.c is None else Loss("huber", self.c)
@@ -104,9 +107,25 @@ def folds_of(n: int, k: int, seed: int, groups: Tensor | None = None) -> list[Te
     return [torch.nonzero(torch.isin(groups, perm[i::k])).flatten() for i in range(k)]
 
 
-def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = None) -> ParamSet:
-    """The robot's parameters registered to the instrument, free: markers' positions, and the
-    errors matching ``patterns`` (None: the robot's default free set); then the set-up's unknowns.
+def orientation_count(data: Measurements, rot_weight: float | None) -> int:
+    """Measured marker orientations the fits use (finite quaternions; none without a weight)."""
+    if rot_weight is None or data.quaternions is None:
+        return 0
+    return int(torch.isfinite(data.quaternions).all(-1).sum())
+
+
+def duplicate_groups(data: Measurements) -> Tensor:
+    """A group id per row: rows with identical commands share one (they must share a fold)."""
+    _, inv = torch.unique(data.q, dim=0, return_inverse=True)
+    return inv
+
+
+def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = None,
+                    turns: bool = False) -> ParamSet:
+    """The robot's parameters registered to the instrument, free: markers' positions (and, with
+    ``turns``, the rotations of markers whose orientation was measured, started from the mean
+    measured one), and the errors matching ``patterns`` (None: the robot's default free set);
+    then the set-up's unknowns.
 
     Without three full positions there is nothing to register: with no position at all (planes,
     distances) the instrument frame is fixed at the robot base, since the planes and fixed points
@@ -131,6 +150,8 @@ def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = N
         p = register_base(robot, data, p)
     elif not bool(data.observed.any()):
         p.fix("base.*")
+    if turns and orientation_count(data, 1.0):
+        p = register_marker_rotations(robot, data, p)
     return p if setup is None else ParamSet.concat(p, setup.params())
 
 
@@ -153,15 +174,22 @@ def effect_problem(ctx: Context, params: ParamSet, effects: list, data: Measurem
     """The loop's problem for ``params`` and ``effects`` on ``data``: the context's robust loss
     (``loss=False``: plain least squares), set-up unknowns and an optional ``prior`` (row weights)."""
     return EffectCalibrationProblem(ctx.robot, params, effects, data, loss=ctx.loss() if loss else None, prior=prior,
-                                    setup=ctx.setup)
+                                    setup=ctx.setup, rot_weight=ctx.rot_weight)
 
 
-def _fit(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
+def fit_noise(prob: EffectCalibrationProblem, x: Tensor) -> float:
+    """The per-axis noise (m) a fit at ``x`` shows: robust (blind to outliers) over the measured
+    components of its residuals, for its number of free values."""
+    r = prob.residual_vectors(prob.full(x[None]))[0]
+    return robust_sigma(r[prob.obs.mask], x.numel())
+
+
+def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
     make = lambda p: effect_problem(ctx, p, effects, data, prior)  # noqa: E731
     opts = {"max_iter": 200 if reduce else 100, "tau": 1e-6}
     # under a prior nothing is dropped for imprecision: the prior holds what the data barely see;
-    # otherwise the current model's noise says how well a parameter is seen
-    noise = ctx.c / HUBER_K if prior is None and ctx.c is not None else None
+    # otherwise the noise the candidate itself reaches says how well a parameter is seen
+    noise = fit_noise if prior is None else None
     optional = tuple(f"{e.name}." for e in effects)
     ps, _, _ = fit_identified(make, params, reduce=reduce, markers=ctx.robot.marker_names, options=opts, noise=noise,
                               zero_dropped=optional)
@@ -196,7 +224,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     """Fit ``start`` on all training rows (identifiable subset, judged at the start and again
     at the solution), then K-fold cross-validate it from that fit."""
     prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma)
-    full = _fit(ctx, start, effects, ctx.data, prior, reduce)
+    full = fit_params(ctx, start, effects, ctx.data, prior, reduce)
     prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma)
     prob = effect_problem(ctx, full, effects, ctx.data, prior)
     x = prob.x0
@@ -211,7 +239,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     for f in ctx.folds:
         mask = torch.ones(len(ctx.data), dtype=torch.bool)
         mask[f] = False
-        p = _fit(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
+        p = fit_params(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
         e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))
         scores[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
         sq[f] = row_scores(e.norm(dim=-1), rows, len(f), None)

@@ -27,19 +27,20 @@ import math
 import time
 
 import torch
-from torch import Tensor
 
 from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
 from torchcal.pipelines.loop.evidence import evidence_for
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, evaluate, evaluate_prior, folds_of,
-                                         geometric_start, noise_sigma, observation_model, split_params)
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, folds_of,
+                                         geometric_start, noise_sigma, observation_model, orientation_count,
+                                         split_params)
+from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, choose_geometry, estimate_noise, orientation_weight
 from torchcal.pipelines.loop.result import LoopResult
 from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
 from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_matrix, stage_details
-from torchcal.pipelines.loop.steps import (clipped, compare_at, elm_cv, parameter_table, progress_bar, refit,
+from torchcal.pipelines.loop.steps import (clipped, elm_cv, parameter_table, progress_bar, refit,
                                            refresh, test_gain, try_candidate)
 from torchcal.report.calibration import stage_problems
 
@@ -47,13 +48,6 @@ __all__ = ["run_loop", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "derive_
 
 logger = logging.getLogger("torchcal.loop")
 
-# Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
-# default free set: every origin / DH error). Markers' positions are always free.
-GEOMETRIC_SETS = [
-    ("base+markers", ["base.*"]),
-    ("+joint offsets", ["base.*", "*.offset", "*.dtheta"]),
-    ("+joint origins", None),
-]
 
 
 # ----------------------------------------------------------------------------- covariates
@@ -103,10 +97,24 @@ def extrapolation(eff, test: Measurements | None) -> list[dict]:
 
 
 # ----------------------------------------------------------------------------- the loop
-def duplicate_groups(data: Measurements) -> Tensor:
-    """A group id per row: rows with identical commands share one (they must share a fold)."""
-    _, inv = torch.unique(data.q, dim=0, return_inverse=True)
-    return inv
+def orientation_weight_of(ctx: Context, robot, train: Measurements, setup, given: float | None, say) -> float | None:
+    """The orientation weight (m/rad) the fits use: ``given``, or estimated from the residuals
+    (:func:`~torchcal.pipelines.loop.geometry.orientation_weight`) when the rows measure
+    orientations; None when they do not or ``given`` is 0."""
+    n = orientation_count(train, 1.0)
+    if given is not None and not (math.isfinite(given) and given >= 0):
+        raise ValueError(f"orientation_weight must be a finite number of m/rad, 0 or more, got {given!r}")
+    if n == 0:
+        if given:
+            say("orientation weight given, but the training rows measure no orientation (<marker>.qw/.qx/.qy/.qz)")
+        return None
+    if given == 0:
+        say(f"{n} measured orientations ignored (orientation weight 0)")
+        return None
+    w = given if given is not None else orientation_weight(ctx, robot, train, setup)
+    say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {w:.4g} mm"
+        + (" (given)" if given is not None else " (σ_position / σ_rotation of the residuals)"))
+    return w
 
 
 def say_fn(log):
@@ -119,7 +127,8 @@ def say_fn(log):
 
 def run_loop(robot, train: Measurements, test: Measurements | None = None, *, candidates: list[str] | None = None,
              folds: int = 5, seed: int = 0, elm: bool = True, elm_hidden: int | None = None,
-             noise_mm: float | None = None, progress: bool = False, log=print) -> LoopResult:
+             noise_mm: float | None = None, orientation_weight: float | None = None, progress: bool = False,
+             log=print) -> LoopResult:
     """Registration → noise estimate → geometry (sets and priors chosen by CV) → diagnosis and
     effects → residual ELM (kept only when it helps in CV) → report.
 
@@ -133,6 +142,9 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         folds: K of the K-fold cross-validation (≥ 2); rows with identical commands share a fold.
         seed: seed of the fold assignment and the ELM.
         elm: try the residual ELM stage; ``elm_hidden``: its hidden units (default N/4, 8–64).
+        orientation_weight: m/rad: how a measured orientation error counts against a position error
+            (``σ_position / σ_rotation`` of the instruments). Default: estimated from the residuals
+            when the rows measure orientations (``<marker>.qw…``); 0: orientations ignored.
         noise_mm: instrument noise (mean Euclidean error a perfect model would leave, mm) for the
             report; default: the median of a ``marker_std_mm`` covariate when the data has one.
         progress: a progress bar over the diagnosis candidates (tqdm).
@@ -156,7 +168,6 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             derive_directions(test)
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     timings: dict[str, float] = {}
-    n_obs = train.n_values / 3
     fl = folds_of(len(train), min(folds, len(train)), seed, duplicate_groups(train))
 
     # 1. nominal: base registration only; the planes and fixed points located from it
@@ -169,12 +180,15 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
                "robot base"))
-    geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup)
+    ctx = Context(robot, train, fl, None, 1.0, setup)
+    rot_w = ctx.rot_weight = orientation_weight_of(ctx, robot, train, setup, orientation_weight, say)
+    n_obs = ctx.n_obs
+    geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup, rot_w is not None)
     stages, errors = [], {}
 
     def add_stage(name: str, k: float, params, effects, elm_model=None, cv=None, extra=None):
-        st_tr, e_tr = stage_details(robot, params, effects, train, elm_model, setup)
-        st_te, e_te = stage_details(robot, params, effects, test, elm_model, setup)
+        st_tr, e_tr = stage_details(robot, params, effects, train, elm_model, setup, rot_w)
+        st_te, e_te = stage_details(robot, params, effects, test, elm_model, setup, rot_w)
         s = {"name": name, "n_params": int(round(k)), "train": st_tr}
         if st_te is not None:
             s["test"] = st_te
@@ -190,50 +204,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
-    ctx = Context(robot, train, fl, None, 1.0, setup)
-    probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
-    for _ in range(3):
-        sigma = noise_sigma(ctx, probe)
-        ctx = ctx.at(HUBER_K * sigma, sigma)
-        probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
+    ctx, probe, found = estimate_noise(ctx, robot, train, setup)
     say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")
 
-    # 3. geometry: nested sets, then priors when the full set is rejected
-    geo_choice, geo_fits = [], {}
-    best: Model | None = None
-    for name, pats in GEOMETRIC_SETS:
-        m = probe if pats is None else evaluate(ctx, name, geometric_start(robot, train, pats, setup), [], None)
-        m.label = name
-        geo_fits[name] = m.params
-        entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
-        if best is None:
-            entry["accepted"] = True
-            best = m
-        else:
-            t, _, ok = compare_at(ctx, best, m, n_obs)
-            entry.update({"t": t, "accepted": ok})
-            if ok:
-                best = m
-        geo_choice.append(entry)
-        say(f"geometric set {name:<24} {m.k:>5.1f} params  CV {entry['cv_rmse_mm']:.4f} mm"
-            + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
-    if best.label != GEOMETRIC_SETS[-1][0]:
-        full_start = geometric_start(robot, train, None, setup)  # every error, held by the prior
-        tried: list[Model] = []
-        m = evaluate_prior(ctx, "prior", full_start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
-        for mt in sorted(tried, key=lambda x: x.prior_mm):
-            name = f"prior {mt.prior_mm:g} mm/mrad"
-            geo_fits[name] = mt.params
-            geo_choice.append({"name": name, "n_params": int(mt.params.free.sum()), "k_eff": mt.k,
-                               "prior_mm": mt.prior_mm, "cv_rmse_mm": mt.cv_rmse_mm(n_obs),
-                               "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
-        t, _, ok = compare_at(ctx, best, m, n_obs)
-        m.label = f"prior {m.prior_mm:g} mm/mrad"
-        next(g for g in geo_choice if g["name"] == m.label).update({"t": t, "accepted": ok})
-        say(f"geometric {m.label:<26} (scale chosen by CV among {sorted(x.prior_mm for x in tried)})  k_eff "
-            f"{m.k:>5.1f}  CV {m.cv_rmse_mm(n_obs):.4f} mm  t = {t:.1f}  {'accepted' if ok else 'rejected'}")
-        if ok:
-            best = m
+    # 3. geometry: nested sets, each from the one before, then the full set under priors
+    geo = choose_geometry(ctx, robot, train, setup, probe, found, say)
+    best, geo_choice, geo_fits = geo.best, geo.sets, geo.fits
     timings["geometric"] = time.perf_counter() - t1
 
     # 4. diagnosis
@@ -266,15 +242,19 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             if accepted_steps:
                 accepted_steps[-1] = accepted_steps[-1][:1] + (current,) + accepted_steps[-1][2:]
         results = []
-        for n in list(pool):
-            if bar is not None:
-                bar.set_description(f"round {rnd}: {n}")
-            res = try_candidate(ctx, current, n, robot, train, test, n_obs, say, rnd)
-            if bar is not None:
-                bar.update(1)
-            if res.get("covered"):
-                pool.remove(n)
-            results.append(res)
+        # the general families only when no physical effect passes: they take what the catalogue leaves
+        for tier in ([n for n in pool if not EFFECTS[n].fallback], [n for n in pool if EFFECTS[n].fallback]):
+            if any(r.get("ok") for r in results):
+                break
+            for n in tier:
+                if bar is not None:
+                    bar.set_description(f"round {rnd}: {n}")
+                res = try_candidate(ctx, current, n, robot, train, test, n_obs, say, rnd)
+                if bar is not None:
+                    bar.update(1)
+                if res.get("covered"):
+                    pool.remove(n)
+                results.append(res)
         passing = [r for r in results if r.get("ok")]
         winner = min(passing, key=lambda r: penalised(r["model"].scores, r["model"].k, n_obs)) if passing else None
         if winner is not None:
@@ -286,7 +266,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         for r in results:
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
-                entry["test_gain_mm"] = test_gain(robot, current, r["model"], test, setup)
+                entry["test_gain_mm"] = test_gain(robot, current, r["model"], test, setup, rot_w)
             cand_report.append(entry)
         if winner is None:
             break

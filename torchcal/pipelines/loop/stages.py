@@ -5,10 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcal.deploy.elm import ELM
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Setup
-from torchcal.measure.stats import error_stats, errors_by_marker
+from torchcal.measure.stats import angle_stats, error_stats, errors_by_marker
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import Context, observation_model
 from torchcal.report.calibration import error_details
@@ -18,33 +17,38 @@ __all__ = ["elm_covariates", "elm_inputs", "residual_matrix", "stage_details", "
 
 # ----------------------------------------------------------------------------- statistics
 def stage_stats(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
-                setup: Setup | None = None) -> tuple[dict | None, Tensor]:
+                setup: Setup | None = None, rot_weight: float | None = None) -> tuple[dict | None, Tensor]:
     """Error statistics (mm), overall and per marker, and the per-observation errors (m) of a
     model on ``data`` (``setup``: the planes and fixed points, ``LoopResult.setup``). An
     observation's error is the Euclidean norm of what it measured: a plane contact's signed
-    distance, a partial position's measured axes."""
-    st, d = stage_details(robot, params, effects, data, elm, setup)
+    distance, a partial position's measured axes. With ``rot_weight`` (m/rad) the measured
+    orientations' angle errors (mrad) are under ``"orientation"``, apart from the positions'."""
+    st, d = stage_details(robot, params, effects, data, elm, setup, rot_weight)
     return st, d["e"]
 
 
 def stage_details(robot, params: ParamSet, effects: list, data: Measurements | None, elm=None,
-           setup: Setup | None = None) -> tuple[dict | None, dict]:
+                  setup: Setup | None = None, rot_weight: float | None = None) -> tuple[dict | None, dict]:
     """:func:`stage_stats` and the error details a figure needs (:func:`torchcal.report.calibration.error_details`)."""
     if data is None or len(data) == 0:
         z = torch.zeros(0)
         return None, {"e": z, "xyz": z.reshape(0, 3), "dist": z}
-    prob = observation_model(Context(robot, data, [], None, 1.0, setup), params, effects, data)
-    e3 = prob.residual_vectors(params.values[None])[0]
+    prob = observation_model(Context(robot, data, [], None, 1.0, setup, rot_weight), params, effects, data)
+    r = prob.residual_vectors(params.values[None])[0]
+    where = prob.obs.is_position
+    e3 = r[where]
     if elm is not None:  # the ELM is only fitted on full positions, whose order is data.seen's
-        r = residual_matrix(robot, params, effects, data, setup)
-        left = (r - elm.predict(elm_inputs(data))).reshape(len(data), -1, 3)
-        e3 = -left[data.seen]
-    d = error_details(robot, params.values[: robot.n_params], data, e3, prob.obs)
+        left = (residual_matrix(robot, params, effects, data, setup) - elm.predict(elm_inputs(data)))
+        e3 = -left.reshape(len(data), -1, 3)[data.seen]
+    obs = prob.obs.view(where)
+    d = error_details(robot, params.values[: robot.n_params], data, e3, obs)
     e = d["e"]
-    out = errors_by_marker(e, prob.obs.data_marker, data.marker_names)
-    kinds = torch.unique(prob.obs.kind).tolist()
-    if len(kinds) > 1 or kinds != [0] or not bool(prob.obs.mask.all()):
-        out["per_kind"] = {KIND_NAMES[k]: error_stats(e[prob.obs.kind == k]) for k in kinds}
+    out = errors_by_marker(e, obs.data_marker, data.marker_names)
+    kinds = torch.unique(obs.kind).tolist()
+    if len(kinds) > 1 or kinds != [0] or not bool(obs.mask.all()):
+        out["per_kind"] = {KIND_NAMES[k]: error_stats(e[obs.kind == k]) for k in kinds}
+    if prob.obs.has_orientation:
+        out["orientation"] = angle_stats(prob.obs.angle_errors(r))
     return out, d
 
 

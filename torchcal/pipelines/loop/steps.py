@@ -112,12 +112,13 @@ def refresh(ctx: Context, m: Model, n_obs: int) -> Model:
     return again if penalised(again.scores, again.k, n_obs) <= penalised(m.scores, m.k, n_obs) else m
 
 
-def test_gain(robot, current: Model, cand: Model, test, setup: Setup | None = None) -> float | None:
+def test_gain(robot, current: Model, cand: Model, test, setup: Setup | None = None,
+              rot_weight: float | None = None) -> float | None:
     """Held-out mean gain of a candidate over the current model (measured after the decision)."""
     if test is None:
         return None
-    a, _ = stage_stats(robot, current.params, current.effects, test, setup=setup)
-    b, _ = stage_stats(robot, cand.params, cand.effects, test, setup=setup)
+    a, _ = stage_stats(robot, current.params, current.effects, test, setup=setup, rot_weight=rot_weight)
+    b, _ = stage_stats(robot, cand.params, cand.effects, test, setup=setup, rot_weight=rot_weight)
     return a["mean_mm"] - b["mean_mm"]
 
 

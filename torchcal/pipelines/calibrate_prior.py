@@ -1,0 +1,76 @@
+"""``calibrate``'s Gaussian prior on small data, chosen as the loop chooses it.
+
+With few measured values per parameter, the all-or-nothing choice (fit a parameter or fix it)
+is a poor one: a parameter the data see weakly is either left at zero or fitted to whatever the
+noise says. A Gaussian prior on every geometric error (σ in mm for lengths and mrad for angles,
+:func:`~torchcal.pipelines.loop.fit.prior_weights`) holds such parameters near zero by as much as
+the data ask. Its scale is chosen by the penalised cross-validated error over
+:data:`~torchcal.pipelines.loop.fit.PRIOR_SCALES_MM`, against the same parameters without a
+prior, with the loop's folds (rows with identical commands share a fold) and scores.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torchcal.measure.data import Measurements
+from torchcal.params import ParamSet
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, effect_problem,
+                                         evaluate, evaluate_prior, fit_noise, folds_of)
+from torchcal.pipelines.loop.selection import penalised
+
+__all__ = ["SMALL_DATA", "PriorChoice", "is_small", "choose_prior"]
+
+# Measured values per candidate parameter below which a data set is small: the prior is chosen by CV
+SMALL_DATA = 10
+PRIOR_MARGIN = 0.01
+EXACT_M = 1e-9  # a fit leaving less noise than this (m) is exact: simulated data without noise
+
+
+@dataclass
+class PriorChoice:
+    """The prior ``calibrate`` chose: its scale (mm and mrad; None = no prior), the fit on all
+    rows with it, its standard errors (m or rad), why, and every scale tried with its CV error."""
+
+    prior_mm: float | None
+    params: ParamSet
+    std_errors: dict[str, float]
+    reason: str
+    tried: list[dict] = field(default_factory=list)
+
+
+def is_small(data: Measurements, n_candidates: int) -> bool:
+    """Fewer than :data:`SMALL_DATA` measured values per candidate parameter."""
+    return data.n_values < SMALL_DATA * max(n_candidates, 1)
+
+
+def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c: float | None, *, seed: int = 0,
+                 folds: int = 5) -> PriorChoice:
+    """The penalised-CV choice between ``start``'s free parameters without a prior and under each
+    prior scale. ``fitted``: the plain fit, whose robust noise scales the priors; ``c``: the Huber
+    threshold of the fits and scores (m; None: squared errors)."""
+    fl = folds_of(len(data), min(folds, len(data)), seed, duplicate_groups(data))
+    ctx = Context(robot, data, fl, c, 1.0)
+    prob = effect_problem(ctx, fitted, [], data, loss=False)
+    ctx = ctx.at(c, fit_noise(prob, prob.x0))
+    if ctx.sigma < EXACT_M:
+        return PriorChoice(None, fitted, {}, f"no prior: the plain fit leaves {1e3 * ctx.sigma:.2g} mm of noise, "
+                                             "an exact fit that no prior can improve")
+    n_obs = ctx.n_obs
+    plain = evaluate(ctx, "no prior", start, [], None)
+    tried: list[Model] = []
+    best = evaluate_prior(ctx, "prior", start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
+    table = [{"prior_mm": None, "k_eff": plain.k, "cv_rmse_mm": plain.cv_rmse_mm(n_obs),
+              "penalised_mm2": 1e6 * penalised(plain.scores, plain.k, n_obs)}]
+    table += [{"prior_mm": m.prior_mm, "k_eff": m.k, "cv_rmse_mm": m.cv_rmse_mm(n_obs),
+               "penalised_mm2": 1e6 * penalised(m.scores, m.k, n_obs)} for m in sorted(tried, key=lambda m: m.prior_mm)]
+    pen_plain, pen_prior = penalised(plain.scores, plain.k, n_obs), penalised(best.scores, best.k, n_obs)
+    # a prior that changes nothing measurable must not change the model: it must lower the
+    # penalised CV error by PRIOR_MARGIN (noise-free data score every scale alike)
+    chosen = best if pen_prior < (1 - PRIOR_MARGIN) * pen_plain else plain
+    why = (f"{data.n_values} measured values for {len(start.free_names)} candidate parameters (fewer than "
+           f"{SMALL_DATA} each): the prior was chosen by {len(fl)}-fold cross-validation; ")
+    why += (f"{best.prior_mm:g} mm/mrad (k_eff {best.k:.1f}, CV {best.cv_rmse_mm(n_obs):.4f} mm) beat no prior "
+            f"(k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm)" if chosen is best else
+            f"no prior (k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm) beat every scale (best "
+            f"{best.prior_mm:g} mm/mrad, CV {best.cv_rmse_mm(n_obs):.4f} mm)")
+    return PriorChoice(chosen.prior_mm, chosen.params, dict(chosen.info.get("se", {})), why, table)

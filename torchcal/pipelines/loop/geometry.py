@@ -1,0 +1,151 @@
+"""The loop's geometric stages: the noise estimate, then the geometric model chosen among nested
+parameter sets and Gaussian priors by cross-validation.
+
+**Starts.** Every set starts where the smaller one before it ended: the marker points and the
+instrument frame are found first (base + markers), and a bigger set starts from them. A marker
+guessed on a joint axis hides that joint's offset at the guess, so a set judged from the guess
+would lose to a smaller one for a reason that has nothing to do with the robot.
+
+**Priors.** The full set is also fitted with a Gaussian prior on every geometric error (scale in
+mm and mrad chosen by the penalised CV error, :func:`~torchcal.pipelines.loop.fit.evaluate_prior`).
+When the full set itself was accepted, the prior is a setting of the same model and replaces it
+when its penalised CV error is lower; otherwise it must pass the rule against the best set.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torchcal.measure.data import Measurements
+from torchcal.params import ParamSet
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_problem, evaluate, evaluate_prior,
+                                         fit_params, geometric_start, noise_sigma, orientation_count)
+from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
+from torchcal.pipelines.loop.steps import compare_at
+
+__all__ = ["GEOMETRIC_SETS", "GeometryChoice", "warm_start", "estimate_noise", "choose_geometry", "orientation_weight"]
+
+# Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
+# default free set: every origin / DH error). Markers' positions are always free.
+GEOMETRIC_SETS = [
+    ("base+markers", ["base.*"]),
+    ("+joint offsets", ["base.*", "*.offset", "*.dtheta"]),
+    ("+joint origins", None),
+]
+
+
+@dataclass
+class GeometryChoice:
+    """The geometric model chosen (``best``), every set and prior tried with its CV figures
+    (``sets``: what report.json's ``geometric_set.sets`` holds) and each fit (``fits``)."""
+
+    best: Model
+    sets: list[dict] = field(default_factory=list)
+    fits: dict[str, ParamSet] = field(default_factory=dict)
+
+
+def warm_start(start: ParamSet, fitted: ParamSet) -> ParamSet:
+    """``start``'s free flags with the values of an earlier fit (same layout): its marker points,
+    instrument frame and errors, where a bigger model begins."""
+    p = start.clone()
+    p.values = fitted.values.clone()
+    return p
+
+
+def _markers_found(ctx: Context, robot, data: Measurements, setup) -> ParamSet:
+    """The instrument frame and the marker points (and frames, when turned ones are measured)
+    fitted alone, from the registration."""
+    start = geometric_start(robot, data, GEOMETRIC_SETS[0][1], setup, turns=ctx.rot_weight is not None)
+    return fit_params(ctx, start, [], data, None, reduce=True)
+
+
+def orientation_weight(ctx: Context, robot, data: Measurements, setup, rounds: int = 4) -> float | None:
+    """The weight (m/rad) that makes measured orientations count like positions of the same noise:
+    ``σ_position / σ_rotation`` of the full geometric model fitted with both, iterated until it
+    settles (each fit's robust noise of its position and of its orientation residuals). None when
+    no orientation was measured."""
+    if orientation_count(data, 1.0) == 0:
+        return None
+    at = ctx.at(ctx.c)
+    at.rot_weight = 1.0
+    w = None
+    for _ in range(rounds):
+        found = _markers_found(at, robot, data, setup)
+        p = fit_params(at, warm_start(geometric_start(robot, data, None, setup, turns=True), found), [], data, None,
+                       reduce=True)
+        prob = effect_problem(at, p, [], data, loss=False)
+        r = prob.residual_vectors(p.values[None])[0]
+        pos, rot = prob.obs.is_position, ~prob.obs.is_position
+        s_pos = robust_sigma(r[pos][prob.obs.mask[pos]], 0)
+        s_rot = robust_sigma(r[rot], 0) / at.rot_weight
+        if not (s_pos > 0 and s_rot > 0):
+            return at.rot_weight
+        w_new = s_pos / s_rot
+        if w is not None and abs(w_new / w - 1) < 0.1:
+            return w_new
+        w = at.rot_weight = w_new
+    return w
+
+
+def estimate_noise(ctx: Context, robot, data: Measurements, setup, rounds: int = 3) -> tuple[Context, Model, ParamSet]:
+    """The largest identifiable set refitted under Huber until the robust noise estimate
+    settles. Returns (the context at that threshold, the full-set model, the markers' fit)."""
+    found = _markers_found(ctx, robot, data, setup)
+    turns = ctx.rot_weight is not None
+    full = lambda: warm_start(geometric_start(robot, data, None, setup, turns), found)  # noqa: E731
+    probe = evaluate(ctx, "noise probe", full(), [], None)
+    for _ in range(rounds):
+        sigma = noise_sigma(ctx, probe)
+        ctx = ctx.at(HUBER_K * sigma, sigma)
+        probe = evaluate(ctx, "noise probe", full(), [], None)
+    return ctx, probe, found
+
+
+def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model, found: ParamSet, say) -> GeometryChoice:
+    """Nested sets (each from the best before it), then the full set under priors."""
+    n_obs = ctx.n_obs
+    out = GeometryChoice(best=None)
+    for name, pats in GEOMETRIC_SETS:
+        prev = found if out.best is None else out.best.params
+        start = geometric_start(robot, data, pats, setup, ctx.rot_weight is not None)
+        m = probe if pats is None else evaluate(ctx, name, warm_start(start, prev), [], None)
+        m.label = name
+        out.fits[name] = m.params
+        entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
+        if out.best is None:
+            entry["accepted"] = True
+            out.best = m
+        else:
+            t, _, ok = compare_at(ctx, out.best, m, n_obs)
+            entry.update({"t": t, "accepted": ok})
+            if ok:
+                out.best = m
+        out.sets.append(entry)
+        say(f"geometric set {name:<24} {m.k:>5.1f} params  CV {entry['cv_rmse_mm']:.4f} mm"
+            + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
+    full_won = out.best.label == GEOMETRIC_SETS[-1][0]
+    tried: list[Model] = []
+    # every error, under the prior
+    start = warm_start(geometric_start(robot, data, None, setup, ctx.rot_weight is not None), out.best.params)
+    m = evaluate_prior(ctx, "prior", start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
+    for mt in sorted(tried, key=lambda x: x.prior_mm):
+        name = f"prior {mt.prior_mm:g} mm/mrad"
+        out.fits[name] = mt.params
+        out.sets.append({"name": name, "n_params": int(mt.params.free.sum()), "k_eff": mt.k,
+                         "prior_mm": mt.prior_mm, "cv_rmse_mm": mt.cv_rmse_mm(n_obs),
+                         "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
+    m.label = f"prior {m.prior_mm:g} mm/mrad"
+    entry = next(g for g in out.sets if g["name"] == m.label)
+    if full_won:
+        # the same parameters: the prior is a setting of the model, chosen by the penalised CV error
+        ok = penalised(m.scores, m.k, n_obs) < penalised(out.best.scores, out.best.k, n_obs)
+        entry.update({"accepted": ok, "rule": "same set as the accepted full set: lower penalised CV error"})
+        how = "penalised CV error against the full set without a prior"
+    else:
+        t, _, ok = compare_at(ctx, out.best, m, n_obs)
+        entry.update({"t": t, "accepted": ok})
+        how = f"t = {t:.1f}"
+    say(f"geometric {m.label:<26} (scale chosen by CV among {sorted(x.prior_mm for x in tried)})  k_eff "
+        f"{m.k:>5.1f}  CV {m.cv_rmse_mm(n_obs):.4f} mm  {how}  {'accepted' if ok else 'rejected'}")
+    if ok:
+        out.best = m
+    return out
