@@ -9,12 +9,13 @@ STAMP  := $(VENV)/.installed
 setup: $(STAMP)
 
 # torch first, pinned to the CPU wheel that is on disk here; the package itself only asks torch>=2.2.
-# Ray (an optional extra for users) is installed here so that the fleet's Ray test runs
+# Ray and rosbags (optional extras for users) are installed here so that the fleet's Ray test and
+# the ROS bag tests run
 $(STAMP): pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[dev,ray]'
+	$(BIN)/python -m pip install -q -e '.[dev,ray,ros]'
 	touch $(STAMP)
 
 demo: setup

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.cli.bag import add_bag_parser
 from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, nonnegative_float,
                                  robot_and_data, run_record, setup_logging)
 from torchcal.cli.correct import add_correct_parser
@@ -195,6 +196,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     add_correct_parser(sub)
     add_plan_parser(sub)
     add_fleet_parser(sub)
+    add_bag_parser(sub)
     return ap, sub.choices
 
 
