@@ -14,6 +14,7 @@ from torch import Tensor
 
 from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.gravity import kinematic_frames
+from torchcal.effects.terms import driver_columns
 
 __all__ = ["ThermalDrift", "thermal_covariate"]
 
@@ -32,24 +33,37 @@ def thermal_covariate(covariates: dict) -> str | None:
     return None
 
 
+def _unit_of(column: str) -> str:
+    """The unit a driver column is read in: K for a temperature, s for a time, else its own."""
+    if column in TIME_COVARIATES:
+        return "s"
+    return "K" if "temp" in column.lower() else "unit"
+
+
 class ThermalDrift(Effect):
-    """Links growing with a temperature (or time) covariate, per link or all alike.
+    """Links growing with a covariate (a temperature, a time, any numeric column), per link or all
+    alike, each mode driven by one column.
 
     Args:
-        covariate: the column read (default: found in the data by :meth:`bind`).
-        t0: reference value of the covariate (default: the training mean).
+        covariate: the one column read (default: every driver column of the data, found by
+            :meth:`bind`: :func:`~torchcal.effects.terms.driver_columns`).
+        t0: reference value of ``covariate`` (default: the training mean).
         modes: ``"uniform"``, ``"<joint>.growth"`` (the origin vector of that joint, in its
-            parent link), ``"<marker>.growth"`` (the marker's offset on its link); default all.
+            parent link), ``"<marker>.growth"`` (the marker's offset on its link), each followed by
+            ``@<column>`` when several columns drive modes; default all.
+        drivers: the columns modes may read (default ``[covariate]``); ``t0s``: their references.
     """
 
     name = "thermal_drift"
-    description = "link lengths growing with a temperature (or time) covariate"
+    description = "link lengths growing with a temperature, a time or another covariate"
     selectable = True
 
     def __init__(self, robot, joints=None, geometry=None, covariate: str | None = None, t0: float | None = None,
-                 modes: list[str] | None = None):
+                 modes: list[str] | None = None, drivers: list[str] | None = None, t0s: dict | None = None):
         self.covariate, self.t0 = covariate, t0
-        cat = self._catalog(robot)
+        self.drivers = list(drivers) if drivers is not None else ([covariate] if covariate else [])
+        self.t0s = dict(t0s or ({covariate: t0} if covariate and t0 is not None else {}))
+        cat = self._catalog(robot, self.drivers)
         self._mode_labels = list(cat) if modes is None else list(modes)
         bad = [m for m in self._mode_labels if m not in cat]
         if bad:
@@ -57,59 +71,75 @@ class ThermalDrift(Effect):
         super().__init__(robot, joints, geometry)
 
     @staticmethod
-    def _catalog(robot) -> list[str]:
+    def _catalog(robot, drivers: list[str]) -> list[str]:
         # fixed joints count: a flange or a tool holder grows like any link
         grow = [f"{jt.name}.growth" for jt in robot.joints if float(abs(jt.origin[:3, 3]).max()) > 1e-6]
-        return ["uniform"] + grow + [f"{mk.name}.growth" for mk in robot.markers]
+        base = ["uniform"] + grow + [f"{mk.name}.growth" for mk in robot.markers]
+        if len(drivers) <= 1:
+            return base
+        return [f"{m}@{c}" for c in drivers for m in base]
+
+    def _split(self, label: str) -> tuple[str, str]:
+        """A mode label -> (what grows, the column that drives it)."""
+        if "@" in label:
+            what, col = label.rsplit("@", 1)
+            return what, col
+        return label, self.drivers[0] if self.drivers else (self.covariate or "")
 
     def default_joints(self):
         return []
 
     def config(self) -> dict:
-        return {"covariate": self.covariate, "t0": self.t0, "modes": list(self._mode_labels)}
+        return {"covariate": self.covariate, "t0": self.t0, "modes": list(self._mode_labels),
+                "drivers": list(self.drivers), "t0s": dict(self.t0s)}
 
     @property
     def covariates(self) -> list[str]:
-        return [self.covariate] if self.covariate else []
+        return list(dict.fromkeys(self._split(m)[1] for m in self._mode_labels if self._split(m)[1]))
 
     @property
     def unit(self) -> str:
-        return "s" if self.covariate in TIME_COVARIATES else "K"
+        return _unit_of(self.drivers[0]) if len(self.drivers) == 1 else "unit"
 
     def param_info(self):
-        return [(m, f"1/{self.unit}") for m in self._mode_labels]
+        return [(m, f"1/{_unit_of(self._split(m)[1])}") for m in self._mode_labels]
 
     def modes(self):
         return [(m, [i]) for i, m in enumerate(self._mode_labels)]
 
     def with_modes(self, labels: list[str]) -> "ThermalDrift":
         keep = set(labels)
-        return self._copy(modes=[m for m in self._catalog(self.robot) if m in keep])
+        return self._copy(modes=[m for m in self._catalog(self.robot, self.drivers) if m in keep])
 
     def applicable(self, data):
-        c = self.covariate or thermal_covariate(data.covariates)
-        if c is None:
-            return False, "no temperature or time covariate in the data"
-        return True, ""
+        if self.covariate or driver_columns(data.covariates):
+            return True, ""
+        return False, "no temperature, time or other numeric covariate in the data"
 
     def bind(self, data, min_lever_m: float = 5e-3) -> "ThermalDrift":
-        """A copy tied to the covariate found in ``data``, its training mean as reference, and
-        its training range recorded (a time covariate is never extrapolated beyond it)."""
-        c = self.covariate or thermal_covariate(data.covariates)
-        t0 = float(data.covariates[c].mean()) if self.t0 is None else self.t0
-        out = self._copy(covariate=c, t0=t0)
-        out.covariate_range = {c: (float(data.covariates[c].min()), float(data.covariates[c].max()))}
+        """A copy driven by ``covariate``, or by every driver column of ``data``, each referred to
+        its training mean, with the training ranges recorded (a time covariate is never
+        extrapolated beyond its own)."""
+        cols = [self.covariate] if self.covariate else driver_columns(data.covariates)
+        t0s = {c: (self.t0 if c == self.covariate and self.t0 is not None else float(data.covariates[c].mean()))
+               for c in cols}
+        one = cols[0] if len(cols) == 1 else None
+        out = type(self)(self.robot, None, geometry=self.geometry, covariate=one, t0=t0s.get(one), drivers=cols,
+                         t0s=t0s)
+        out.covariate_range = {c: (float(data.covariates[c].min()), float(data.covariates[c].max())) for c in cols}
         return out
 
     def prepare(self, q, covariates):
-        if self.covariate not in covariates:
-            raise ValueError(f"thermal_drift needs the covariate {self.covariate!r}")
+        missing = [c for c in self.covariates if c not in covariates]
+        if missing:
+            raise ValueError(f"thermal_drift needs the covariate(s) {missing}")
         fr = kinematic_frames(self.robot, q, self.geometry)
         N, M = fr.markers.shape[:2]
         mk_frame = [self.robot.link_frame[mk.link] for mk in self.robot.markers]
         jidx = {jt.name: j for j, jt in enumerate(self.robot.joints)}
-        cols = []
-        for m in self._mode_labels:
+        cols, dts = [], []
+        for label in self._mode_labels:
+            m, c = self._split(label)
             if m == "uniform":
                 v = fr.markers  # all translations scale: p -> (1 + αΔT) p about the base origin
             elif m.endswith(".growth") and m[:-7] in jidx:
@@ -121,28 +151,31 @@ class ThermalDrift(Effect):
                 v = torch.zeros(N, M, 3, dtype=q.dtype, device=q.device)
                 v[:, k] = fr.markers[:, k] - fr.o[:, mk_frame[k]]
             cols.append(v)
-        dT = covariates[self.covariate].to(q) - (self.t0 or 0.0)
-        return Prepared({"dT": dT, "V": torch.stack(cols, 2)})  # (N,), (N, M, K, 3)
+            dts.append(covariates[c].to(q) - self.t0s.get(c, self.t0 or 0.0))
+        V = torch.stack(cols, 2) if cols else q.new_zeros(N, M, 0, 3)
+        dT = torch.stack(dts, 1) if dts else q.new_zeros(N, 0)
+        return Prepared({"dT": dT, "V": V})  # (N, K), (N, M, K, 3)
 
     def position_delta(self, theta, prep):
-        return torch.einsum("pk,n,nmkd->pnmd", theta, prep.features["dT"], prep.features["V"])
+        return torch.einsum("pk,nk,nmkd->pnmd", theta, prep.features["dT"], prep.features["V"])
 
     def signature(self, prep, label, theta):
         k = self._mode_labels.index(label)
-        dT = prep.features["dT"]
-        return {"x": dT, "xlabel": f"{self.covariate} − reference [{self.unit}]", "fitted": theta[k] * dT,
+        dT = prep.features["dT"][:, k]
+        c = self._split(label)[1]
+        return {"x": dT, "xlabel": f"{c} − reference [{_unit_of(c)}]", "fitted": theta[k] * dT,
                 "ylabel": "relative growth [1]", "G": prep.features["V"][:, :, k]}
 
     def mode_words(self, label: str) -> str:
-        cov = self.covariate or "the covariate"
-        if label == "uniform":
+        m, cov = self._split(label)
+        if m == "uniform":
             return f"every link grows alike with {cov}"
-        what = label[:-7]
+        what = m[:-7]
         if what in self.robot.marker_names:
             return f"the offset of marker {what} on its link grows with {cov}"
         return f"the link carrying {what} (its origin vector) grows with {cov}"
 
     def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
-        return [f"{self.mode_words(m)} by {float(th[i]) * 1e6:.3g} µm/m per {self.unit}"
+        return [f"{self.mode_words(m)} by {float(th[i]) * 1e6:.3g} µm/m per {_unit_of(self._split(m)[1])}"
                 for i, m in enumerate(self._mode_labels) if free is None or bool(free[i])]

@@ -111,6 +111,40 @@ def _num(v, fmt: str = ".4f") -> str:
     return "–" if v is None else format(v, fmt)
 
 
+def _leftover_plot(left, path: Path) -> bool:
+    """The residual component each of the strongest remaining signals explains best, against it."""
+    if left is None or not left.associations:
+        return False
+    plt = pyplot()
+    ass = left.associations
+    fig, axes = plt.subplots(1, len(ass), figsize=(3.4 * len(ass), 3.2), dpi=110, squeeze=False)
+    for ax, a in zip(axes[0], ass):
+        ax.scatter(a.x, [v * 1e3 for v in a.y], s=6, alpha=0.6)
+        ax.set_xlabel(a.signal, fontsize=8)
+        ax.set_ylabel(f"residual {a.axis} [mm]", fontsize=8)
+        ax.set_title(f"R² = {a.r2:.3f}", fontsize=9)
+    fig.suptitle("what the residual still follows", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def _leftover_section(res: LoopResult, out: Path) -> list[str]:
+    left = res.leftover
+    if left is None:
+        return []
+    L = ["## What is left", ""] + [f"- {w}" for w in left.words()]
+    if left.associations:
+        L += ["", "Strongest associations of the final training residual (share of its variance a signal explains, "
+              "fitted with an intercept to each component):", "", "| signal | kind | R² | best component |",
+              "|---|---|---|---|"]
+        L += [f"| {a.signal} | {a.kind} | {a.r2:.3f} | {a.axis} |" for a in left.associations]
+        if _leftover_plot(left, out / "leftover.png"):
+            L += ["", "![what the residual still follows](leftover.png)"]
+    return L + [""]
+
+
 def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> Path:
     """Write ``report.json``, ``report.md``, ``errors_test.png`` / ``errors_train.png`` and one
     ``evidence_<stage>.png`` per accepted effect into ``out_dir``."""
@@ -137,6 +171,14 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
         tr, te = s.get("train"), s.get("test")
         L.append(f"| {s['name']} | {s['n_params']} | {_cell(tr, 'mean_mm')} | {_cell(tr, 'std_mm')} | "
                  f"{_cell(tr, 'max_mm')} | {_cell(te, 'mean_mm')} | {_cell(te, 'std_mm')} | {_cell(te, 'max_mm')} |")
+    turned = [s for s in res.stages if (s.get("train") or {}).get("orientation")]
+    if turned:
+        L += ["", "Measured orientations, angle error per stage (mrad):", "",
+              "| stage | train mean | train max | test mean | test max |", "|---|---|---|---|---|"]
+        for s in turned:
+            tr, te = s["train"]["orientation"], (s.get("test") or {}).get("orientation")
+            L.append(f"| {s['name']} | {_cell(tr, 'mean_mrad')} | {_cell(tr, 'max_mrad')} | {_cell(te, 'mean_mrad')} | "
+                     f"{_cell(te, 'max_mrad')} |")
     kinds = (res.stages[-1].get("train") or {}).get("per_kind")
     if kinds:
         L += ["", "An observation's error is the Euclidean norm of what it measured: a partial position's measured "
@@ -200,6 +242,7 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
     else:
         L += ["No effect passed the rule: the geometric model explains the data to within what the "
               "cross-validation can tell from noise.", ""]
+    L += _leftover_section(res, out)
     L += _parameter_section(res)
     if res.flags:
         L += ["## Flags", ""]

@@ -30,7 +30,7 @@ from torchcal.pipelines.loop.selection import effective_params, penalised, rmse_
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights",
-           "evaluate", "evaluate_prior", "fit_params", "fit_noise", "folds_of", "duplicate_groups", "split_params",
+           "evaluate", "evaluate_prior", "fit_params", "fit_noise", "cv_mean_mm", "folds_of", "duplicate_groups", "split_params",
            "assemble", "PRIOR_SCALES_MM"]
 
 # Prior σ of every geometric error when the data cannot carry the full set: mm for lengths, mrad
@@ -247,6 +247,18 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     # the free set before identifiability: later fits judge it again, with the noise they see then
     info.setdefault("candidates", start.free[: ctx.n_geo].clone())
     return Model(label, full, list(effects), prior_mm, k, scores, fits, info, sq)
+
+
+def cv_mean_mm(ctx: Context, m: Model) -> float | None:
+    """Cross-validated mean error (mm) of a model's position observations, from its fold fits."""
+    if not m.fold_fits:
+        return None
+    errs = []
+    for f, p in zip(ctx.folds, m.fold_fits):
+        prob = effect_problem(ctx, p, m.effects, ctx.data.subset(f), loss=False)
+        e = prob.residual_vectors(p.values[None])[0].norm(dim=-1)
+        errs.append(e[prob.obs.is_position])
+    return 1e3 * float(torch.cat(errs).mean())
 
 
 def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm: float,

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
+from torchcal.pipelines.fitting import implausible_values
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_problem, evaluate, evaluate_prior,
                                          fit_params, geometric_start, noise_sigma, orientation_count)
 from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
@@ -111,7 +112,10 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
         m.label = name
         out.fits[name] = m.params
         entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
-        if out.best is None:
+        bad = implausible_values(m.params, robot)
+        if bad:  # a set that needs a joint moved implausibly far is no model of this robot
+            entry.update({"accepted": False, "implausible": bad})
+        elif out.best is None:
             entry["accepted"] = True
             out.best = m
         else:
@@ -135,7 +139,10 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
                          "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
     m.label = f"prior {m.prior_mm:g} mm/mrad"
     entry = next(g for g in out.sets if g["name"] == m.label)
-    if full_won:
+    if implausible_values(m.params, robot):
+        entry.update({"accepted": False, "implausible": implausible_values(m.params, robot)})
+        how, ok = "moves a joint implausibly far", False
+    elif full_won:
         # the same parameters: the prior is a setting of the model, chosen by the penalised CV error
         ok = penalised(m.scores, m.k, n_obs) < penalised(out.best.scores, out.best.k, n_obs)
         entry.update({"accepted": ok, "rule": "same set as the accepted full set: lower penalised CV error"})

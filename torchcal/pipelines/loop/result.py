@@ -9,6 +9,7 @@ from torchcal.measure.observations import Setup
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.selection import OUTLIER_K, T_ACCEPT
 from torchcal.pipelines.loop.stages import elm_covariates
+from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
 from torchcal.report.calibration import stage_problems
 
 __all__ = ["LoopResult"]
@@ -55,6 +56,7 @@ class LoopResult:
     parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
     observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
     setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
+    leftover: object = None     # Leftover: the final model against the noise floor, what the residual follows
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -64,8 +66,13 @@ class LoopResult:
 
     def problems(self) -> list[str]:
         """Reasons not to trust this model, in words: a final model worse than the nominal one on
-        its own training rows, or held-out rows that do not belong to this robot. Empty when none."""
-        return stage_problems(self.stages)
+        its own training rows, held-out rows that do not belong to this robot, or joints moved or
+        turned by more than a plausible error. Empty when none."""
+        out = stage_problems(self.stages)
+        bad = implausible_values(self.params, self.robot)
+        if bad:
+            out.append(implausible_reason(bad, dict(zip(self.params.names, self.params.units)), PLAUSIBLE))
+        return out
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
@@ -80,7 +87,8 @@ class LoopResult:
                         f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
                         f"parameters); a family's modes are added one by one under the same rule with the "
                         f"threshold raised for the number of modes tried",
-                "residual_elm": self.elm is not None, "timings_s": self.timings}
+                "residual_elm": self.elm is not None, "timings_s": self.timings,
+                "leftover": None if self.leftover is None else self.leftover.report()}
 
     def model(self, *, force: bool = False):
         """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when

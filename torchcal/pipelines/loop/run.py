@@ -33,9 +33,10 @@ from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
 from torchcal.pipelines.loop.evidence import evidence_for
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, folds_of,
+from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mean_mm, duplicate_groups, folds_of,
                                          geometric_start, noise_sigma, observation_model, orientation_count,
                                          split_params)
+from torchcal.pipelines.loop.leftover import leftover
 from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, choose_geometry, estimate_noise, orientation_weight
 from torchcal.pipelines.loop.result import LoopResult
 from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
@@ -146,7 +147,9 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             (``σ_position / σ_rotation`` of the instruments). Default: estimated from the residuals
             when the rows measure orientations (``<marker>.qw…``); 0: orientations ignored.
         noise_mm: instrument noise (mean Euclidean error a perfect model would leave, mm) for the
-            report; default: the median of a ``marker_std_mm`` covariate when the data has one.
+            report; used when no command was measured twice (whose pure error comes first), else
+            the median of a ``marker_std_mm`` covariate when the data has one
+            (:mod:`~torchcal.pipelines.loop.leftover`).
         progress: a progress bar over the diagnosis candidates (tqdm).
         log: a print-like function for progress lines (``None`` to stay quiet); lines also go
             to the ``torchcal.pipelines.loop.run`` logger.
@@ -312,7 +315,10 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                          "modes": [lab for lab, _ in eff.modes()], "added_modes": entry.get("added_modes", []),
                          "extends": entry.get("extends", []), "cv_gain_mm": entry["cv_gain_mm"],
                          "test_gain_mm": gain, "evidence": ev_text,
-                         "found": eff.describe(free=m.params.free[len(m.params) - eff.n_params:]),
+                         "found": eff.describe(free=m.params.free[len(m.params) - eff.n_params:])
+                         + [f"{a} cannot be told from {', '.join(b)} by these data: one finding, either of them"
+                            for a, b in entry.get("aliases", {}).items()],
+                         "aliases": entry.get("aliases", {}),
                          "params": {n: float(v) for n, v, f in zip(m.params.names, m.params.values.tolist(),
                                                                      m.params.free.tolist())
                                     if n.startswith(eff.name + ".") and f},
@@ -357,8 +363,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             + ", ".join(str(s["row"]) for s in suspects[:10]) + (" …" if len(suspects) > 10 else ""))
     timings["total"] = time.perf_counter() - t0
 
-    if noise_mm is None and "marker_std_mm" in train.covariates:
-        noise_mm = float(train.covariates["marker_std_mm"].median())
+    left = leftover(train, residual_matrix(robot, current.params, current.effects, train, setup),
+                    duplicate_groups(train), cv_mean_mm(ctx, current), noise_mm)
+    for line in left.words() + [f"the residual still follows {a.words()}" for a in left.associations[:3]
+                                if left.missing]:
+        say(line)
+    noise_mm = left.floor_mm
     for p in stage_problems(stages):
         say("warning: " + p)
     parameters, observability = parameter_table(ctx, current)
@@ -369,6 +379,6 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
-                      observability=observability, setup=setup)
+                      observability=observability, setup=setup, leftover=left)
 
 

@@ -9,7 +9,8 @@ from torchcal.effects import effect_params
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
                                          prior_weights, split_params)
-from torchcal.pipelines.loop.selection import LinearCV, penalised
+from torchcal.pipelines.loop.linear_cv import LinearCV
+from torchcal.pipelines.loop.selection import penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["effect_start"]
@@ -53,6 +54,18 @@ def _bilinear_starts(lin: Tensor) -> list[Tensor]:
         if abs(lam) > 1e-300:
             out.append(v / lam)
     return out
+
+
+def _step_words(h: dict, labels: list[str]) -> dict:
+    """One selection step for the report: what was tried (each mode's t) and added, or which mode
+    left or was exchanged for which, and the threshold."""
+    if "removed" in h:
+        return {"threshold": h["threshold"], "removed": [labels[g] for g in h["removed"]], "t": h["t"]}
+    if "exchanged" in h:
+        return {"threshold": h["threshold"], "exchanged": [labels[g] for g in h["exchanged"]], "t": h["t"]}
+    name = lambda g: "all modes at once" if g == -1 else labels[g]  # noqa: E731
+    return {"threshold": h["threshold"], "added": None if h["added"] is None else [labels[g] for g in h["added"]],
+            "t": {name(g): t for g, t in h["tried"].items()}}
 
 
 def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
@@ -113,13 +126,12 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
         lcv.set_prior(None if w_ is None else w_[base.free_index])
         chosen, hist = best["chosen"], best["hist"]
         out["prior_mm"] = best["prior_mm"]
-        name = lambda g: "all modes at once" if g == -1 else labels[g]  # noqa: E731
-        out["selection"] = [{"threshold": h["threshold"],
-                             "added": None if h["added"] is None else [labels[g] for g in h["added"]],
-                             "t": {name(g): t for g, t in h["tried"].items()}} for h in hist]
+        out["selection"] = [_step_words(h, labels) for h in hist]
         if not best["new"]:
             out.update(effect=None, reason="no mode passed the selection")
             return out
+        out["aliases"] = {labels[g]: [labels[h] for h in hs] for g, hs in lcv.aliases(chosen).items()
+                          if g in best["new"]}
         ok, why = eff.proposes([labels[g] for g in chosen])
         if not ok:
             out.update(effect=None, reason=why)
