@@ -6,7 +6,9 @@ per stage, and the noise floor. Two simulators:
    error, scale, uniform thermal drift, none);
 2. an independent one (:mod:`torchcal.sim.physsim`, no torchcal kinematics or effect code), with the
    cases of the held-back data (:mod:`torchcal.sim.cases`): an undeclared 0 / 12 / 20 kg tool, one
-   warm link, sideways bending, a tilting base, 5 % outliers, a clean arm, a humanoid upper body.
+   warm link, sideways bending, a tilting base, 5 % outliers, a clean arm, a humanoid upper body;
+   on a 7-joint arm, a coupled wrist with backlash, a link warmed by the motor of the second
+   temperature column, twist with bent seats, harmonics with twist, a clean arm with irrelevant logs.
 
 Prints markdown tables and one JSON line. The noise floor is the mean Euclidean norm of the
 simulated noise on the held-out rows.
@@ -42,7 +44,12 @@ PUT_IN = {"payload_12kg": "12 kg tool, joints 2-4 compliant", "payload_0kg": "no
           "lateral": "joints 2 and 3 bend sideways", "lateral_seat": "the same, bent before the joints turn",
           "tilting_base": "base tilts 3 µrad/(N·m)",
           "clean": "geometry only", "outliers": "compliance, 5 % rows moved 5-20 mm",
-          "humanoid": "19 joints: twists + torso bends"}
+          "humanoid": "19 joints: twists + torso bends",
+          "wrist_coupling": "7 joints: a7 turns 2 mrad per rad of a6, joint 1 backlash 50 µrad",
+          "thermal_second_column": "7 joints: one link grows with the 2nd temperature column, 1st irrelevant",
+          "twist_seat_7dof": "7 joints: twist + 2 bearing seats bend, 8 kg tool",
+          "harmonics_twist": "7 joints: 1st + 2nd harmonic on joint 4, twist",
+          "clean_covariates": "7 joints: geometry only, 4 irrelevant covariates"}
 
 
 def _row(res, floor: float, dt: float) -> dict:

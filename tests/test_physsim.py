@@ -303,3 +303,240 @@ def test_many_poses_are_fast():
     t = time.perf_counter()
     s = r.measure(q, temperature=warmup_temperature(3000, 5.0, 0), outlier_fraction=0.02)
     assert time.perf_counter() - t < 2.0 and isinstance(s, Sample) and s.positions.shape == (3000, 3, 3)
+
+
+# ---------------------------------------------------------------- joint-space terms, covariates, poses
+IIWA = Path(__file__).resolve().parents[1] / "urdf" / "kuka_iiwa14.urdf"
+TOOL = ["tool@flange=0.06,0.0,0.08"]
+
+
+def test_iiwa_has_inertials():
+    from torchcal.sim.physsim_urdf import parse_urdf
+    _, _, bodies = parse_urdf(IIWA.read_text())
+    assert [ln for ln, b in bodies.items() if b and b[0][0] > 0] == [f"link{i}" for i in range(1, 8)]
+
+
+def test_coupling_is_the_rigid_robot_with_the_joint_shifted():
+    """a7 turns c rad per rad of a6: the sim's own rigid FK, yourdfpy and pytorch-kinematics at
+    the shifted angles."""
+    c = 2e-3
+    r = _ideal(IIWA, TOOL, joint_terms={"iiwa_joint_7": [("iiwa_joint_6", "linear", c)]})
+    q = r.sample_q(20)
+    shifted = q.copy()
+    shifted[:, 6] += c * q[:, 5]
+    got = r.reach(q)
+    np.testing.assert_allclose(got, _ideal(IIWA, TOOL).reach(shifted), atol=1e-15, rtol=0)
+    ref = _ref_points(_udf(IIWA), r.joint_names, shifted, [("flange", (0.06, 0.0, 0.08))])
+    np.testing.assert_allclose(got, ref, atol=1e-10, rtol=0)
+    assert np.abs(got - _ideal(IIWA, TOOL).reach(q)).max() > 1e-4  # 2 mrad x up to 2 rad x 6 cm
+    pk = pytest.importorskip("pytorch_kinematics")
+    import torch
+    chain = pk.build_chain_from_urdf(IIWA.read_text()).to(dtype=torch.float64)
+    assert chain.get_joint_parameter_names() == r.joint_names
+    T = chain.forward_kinematics(torch.from_numpy(shifted[:1]))["flange"].get_matrix()[0].numpy()
+    # pytorch-kinematics reads origin rpy in float32: ~4e-8 m (see test_fk_reference)
+    np.testing.assert_allclose(got[0, 0], T[:3, :3] @ [0.06, 0.0, 0.08] + T[:3, 3], atol=1e-7, rtol=0)
+
+
+def test_harmonic_and_covariate_terms():
+    r0 = _ideal(IIWA, TOOL)
+    q = r0.sample_q(15)
+    # an own-angle harmonic as a joint term is the existing cyclic error
+    term = _ideal(IIWA, TOOL, joint_terms={"iiwa_joint_4": [("iiwa_joint_4", "sin", 1e-4, 2, -1.0)]})
+    cyc = _ideal(IIWA, TOOL, cyclic={"iiwa_joint_4": [(2, 1e-4, -1.0)]})
+    np.testing.assert_allclose(term.reach(q), cyc.reach(q), atol=1e-15, rtol=0)
+    # cos of another joint, and a covariate column read linearly from its reference
+    T = 20.0 + 10 * np.linspace(0, 1, len(q))
+    r = _ideal(IIWA, TOOL, joint_terms={"iiwa_joint_2": [("iiwa_joint_1", "cos", 3e-4, 1, 0.2),
+                                                          ("temp_motor_a2", "linear", 2e-5, 1, 0.0, 20.0)]})
+    shifted = q.copy()
+    shifted[:, 1] += 3e-4 * np.cos(q[:, 0] + 0.2) + 2e-5 * (T - 20.0)
+    np.testing.assert_allclose(r.reach(q, covariates={"temp_motor_a2": T}), r0.reach(shifted), atol=1e-15, rtol=0)
+    s = r.measure(q, covariates={"temp_motor_a2": T, "temp_ambient": np.full(len(q), 21.0)})
+    assert list(s.covariates) == ["temp_motor_a2", "temp_ambient"]
+    with pytest.raises(ValueError, match="temp_motor_a2"):
+        r.measure(q)
+    with pytest.raises(ValueError, match="sin/cos terms need a joint"):
+        _ideal(IIWA, TOOL, joint_terms={"iiwa_joint_2": [("temp", "sin", 1e-4)]})
+    with pytest.raises(ValueError, match="not a commanded joint"):
+        _ideal(IIWA, TOOL, joint_terms={"nope": [("iiwa_joint_1", "linear", 1e-4)]})
+    words = r.truth()["joint_terms_in_words"]
+    assert words[1] == "iiwa_joint_2 turns 0.02 mrad per K of temp_motor_a2 from 20 (covariate)"
+
+
+def test_thermal_reads_only_its_named_column():
+    alpha = 2.3e-5
+    kw = dict(thermal={"elbow_joint": (alpha, "temp_motor_a3")})
+    r = _ideal(UR5E, ["link2", "link3"], **kw)
+    q = r.sample_q(8)
+    motor = 25.0 + np.arange(len(q), dtype=float)
+    amb = [np.full(len(q), 21.0), np.linspace(15, 30, len(q))]
+    runs = [_ideal(UR5E, ["link2", "link3"], **kw).measure(q, temperature=a + 3, covariates={"temp_ambient": a,
+                                                                                              "temp_motor_a3": motor})
+            for a in amb]
+    np.testing.assert_array_equal(runs[0].positions, runs[1].positions)  # the irrelevant columns change nothing
+    assert list(runs[0].covariates) == ["temperature", "temp_ambient", "temp_motor_a3"]
+    L = np.linalg.norm(runs[0].positions[:, 1] - runs[0].positions[:, 0], axis=1)
+    np.testing.assert_allclose(L, 0.425 * (1 + alpha * (motor - r.t_ref_c)), atol=1e-13, rtol=0)
+    s = r.measure(q, covariates={"temp_motor_a3": motor})
+    assert "temperature" not in s.covariates  # only recorded when something reads it or it is given
+    assert r.truth()["thermal_column"] == {"elbow_joint": "temp_motor_a3"}
+
+
+def _angles(qa, qb):
+    return 2 * np.arccos(np.clip(np.abs(np.sum(qa * qb, -1)), 0, 1))
+
+
+def test_orientation_is_the_link_frame_times_the_marker_rotation_in_the_instrument_frame():
+    rpy = (0.1, -0.2, 0.3)
+    mk = ["tool@flange=0.01,0.02,0.05", "elbow@link3"]
+    r = PhysicalRobot(UR5E, mk, seed=4, geometric_errors=False, noise_m=0.0, marker_rpy={"tool": rpy},
+                      pose_markers=["tool"])
+    q = r.sample_q(12)
+    s = r.measure(q)
+    u = _udf(UR5E)
+    Ti = r.instrument_in_base
+    ref = []
+    for row in q:
+        u.update_cfg(dict(zip(r.joint_names, row)))
+        R = Ti[:3, :3].T @ u.get_transform("flange", u.base_link)[:3, :3] @ Rotation.from_euler("xyz", rpy).as_matrix()
+        ref.append(Rotation.from_matrix(R).as_quat()[[3, 0, 1, 2]])
+    ref = np.array(ref)
+    assert np.all(np.isnan(s.quaternions[:, 1])) and s.quaternions.shape == (12, 2, 4)
+    assert np.all(s.quaternions[:, 0, 0] >= 0)
+    np.testing.assert_allclose(_angles(s.quaternions[:, 0], ref), 0, atol=1e-7)  # rad
+    np.testing.assert_allclose(s.quaternions[:, 0], s.true_quaternions[:, 0], atol=0)
+
+
+def test_orientation_noise_fraction_and_unchanged_positions():
+    kw = dict(seed=5, marker_rotation_error_rad=5e-3)
+    plain = PhysicalRobot(UR5E, ["t@flange"], **kw)
+    posed = PhysicalRobot(UR5E, ["t@flange"], pose_markers=True, rot_noise_rad=2e-3, **kw)
+    q = plain.sample_q(400)
+    posed.sample_q(400)
+    a, b = plain.measure(q), posed.measure(q, orientation_fraction=0.3)
+    np.testing.assert_array_equal(a.positions, b.positions)  # orientation draws come last
+    assert a.quaternions is None
+    seen = ~np.isnan(b.quaternions[:, 0, 0])
+    assert seen.sum() == 120 and np.isnan(b.quaternions[~seen]).all()
+    ang = _angles(b.quaternions[seen, 0], b.true_quaternions[seen, 0])
+    assert abs(ang.mean() / (2e-3 * 1.596) - 1) < 0.1  # mean |n| of a 3-D Gaussian: 1.596 sigma
+    R_true = np.array(posed.truth()["marker_rotation_true_3x3"]["t"])
+    assert 1e-3 < Rotation.from_matrix(R_true).magnitude() < 2e-2 and posed.error_support()["marker_rotations"] == ["t"]
+    with pytest.raises(ValueError, match="orientation_fraction"):
+        posed.measure(q[:3], orientation_fraction=1.5)
+
+
+def test_true_marker_point_apart_from_a_guess_on_the_last_axis():
+    from torchcal.sim.humanoid import arm9_urdf
+    true = (0.05, 0.03, -0.02)
+    guess = _ideal(arm9_urdf(), ["grip@gripper_link"])
+    real = _ideal(arm9_urdf(), ["grip@gripper_link"], marker_true_m={"grip": true})
+    q = guess.sample_q(6)
+    q2 = q.copy()
+    q2[:, -1] += 1.0  # turn the last joint alone
+    np.testing.assert_allclose(guess.reach(q2), guess.reach(q), atol=1e-14)  # the guess is on its axis
+    moved = np.linalg.norm(real.reach(q2) - real.reach(q), axis=-1)
+    np.testing.assert_allclose(moved, 2 * np.hypot(0.05, 0.03) * np.sin(0.5), atol=1e-12)  # chord at 5.8 cm
+    t = real.truth()
+    assert t["marker_offset_declared_m"]["grip"] == [0.0, 0.0, 0.0] and t["marker_offset_true_m"]["grip"] == list(true)
+    assert real.error_support()["marker_offsets"] == ["grip"]
+
+
+def test_ur10_description():
+    from torchcal.sim.ur10 import UR10_DH, ur10_urdf
+    text = ur10_urdf()
+    r = _ideal(text, ["flange"])
+    d = UR10_DH
+    np.testing.assert_allclose(r.reach(np.zeros((1, 6)))[0, 0], [d["a2"] + d["a3"], -(d["d4"] + d["d6"]),
+                                                                  d["d1"] - d["d5"]], atol=1e-12)
+    q = r.sample_q(10)
+    np.testing.assert_allclose(r.reach(q), _ref_points(_udf(text), r.joint_names, q, [("flange", (0, 0, 0))]),
+                               atol=1e-10, rtol=0)
+    masses = [ln.inertial.mass for ln in _udf(text).robot.links if ln.inertial is not None]
+    assert masses == [7.1, 12.7, 4.27, 2.0, 2.0, 0.365]
+
+
+def test_covariate_series():
+    from torchcal.sim.covariates import campaign_time, covariate_columns, motor_temperature
+    m = motor_temperature(500, 1, ambient_c=22.0, rise_k=18.0, noise_k=0.0)
+    assert 22.0 <= m.min() and m.max() <= 40.0 and m.std() > 2.0
+    t = campaign_time(200, 2)
+    assert t[0] == 0 and np.all(np.diff(t) > 0) and np.diff(t).max() > 500  # a pause
+    spec = {"temp_ambient": ("ambient", {}), "time": ("time", {})}
+    a = covariate_columns(spec, 50, 3)
+    b = covariate_columns({**spec, "temp_skin": ("skin", {})}, 50, 3)
+    assert all(np.array_equal(a[k], b[k]) for k in a)  # adding a column leaves the others
+    with pytest.raises(ValueError, match="unknown series"):
+        covariate_columns({"x": ("nope", {})}, 5, 0)
+
+
+NEW_CASES = ["wrist_coupling", "thermal_second_column", "twist_seat_7dof", "harmonics_twist", "clean_covariates",
+             "arm9_mocap", "pose6d", "pose6d_partial"]
+
+
+@pytest.mark.parametrize("name", NEW_CASES)
+def test_new_cases_are_reproducible_from_the_seed(name):
+    from torchcal.sim.cases import make_case
+    a, b, c = make_case(name, 2), make_case(name, 2), make_case(name, 3)
+    for part in ("train", "test"):
+        sa, sb = getattr(a, part), getattr(b, part)
+        for f in ("q", "positions", "true_positions", "quaternions"):
+            x, y = getattr(sa, f), getattr(sb, f)
+            assert (x is None and y is None) or np.array_equal(x, y, equal_nan=True), (part, f)
+        assert list(sa.covariates) == list(sb.covariates)
+        assert all(np.array_equal(sa.covariates[k], sb.covariates[k]) for k in sa.covariates)
+    assert json.dumps(a.real.truth(), sort_keys=True) == json.dumps(b.real.truth(), sort_keys=True)
+    assert not np.allclose(a.train.positions, c.train.positions)
+
+
+def test_geometry_cases_as_the_issue_sets_them():
+    from torchcal.sim.cases import make_case
+    arm = make_case("arm9_mocap")
+    assert (arm.real.dof, len(arm.train), len(arm.test), arm.markers) == (9, 45, 16, ["grip@gripper_link"])
+    sup = arm.error_support
+    assert len(sup["joint_origins"]) == 10 and len(sup["zero_offsets"]) == 9 and sup["marker_offsets"] == ["grip"]
+    assert 0.4 < arm.floor_mm < 0.6  # 0.3 mm per axis
+    pose = make_case("pose6d")
+    assert (pose.real.dof, len(pose.train), len(pose.test)) == (6, 17, 6) and pose.error_support["marker_rotations"]
+    assert not np.isnan(pose.train.quaternions).any() and 2.0 < pose.rot_floor_mrad < 4.5
+    half = make_case("pose6d_partial")
+    assert np.isnan(half.train.quaternions[:, 0, 0]).sum() == 9
+
+
+def test_csv_round_trip_with_quaternions_and_covariates(tmp_path):
+    from torchcal import Robot
+    from torchcal.measure.io import load_measurements
+    from torchcal.sim.cases import make_case
+    for name in ("pose6d_partial", "clean_covariates", "wrist_coupling"):
+        c = make_case(name)
+        path = tmp_path / f"{name}.csv"
+        c.train.save_csv(path)
+        m = load_measurements(path, Robot.from_urdf(c.urdf, markers=c.markers))
+        np.testing.assert_array_equal(m.q.numpy(), c.train.q)
+        np.testing.assert_array_equal(m.positions.numpy(), c.train.positions)
+        assert list(m.covariates) == list(c.train.covariates)
+        for k, v in c.train.covariates.items():
+            np.testing.assert_array_equal(m.covariates[k].numpy(), v)
+        if c.train.quaternions is None:
+            assert m.quaternions is None
+            continue
+        got, want = m.quaternions.numpy(), c.train.quaternions
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))  # rows without orientation stay NaN
+        seen = ~np.isnan(want[..., 0])
+        np.testing.assert_allclose(got[seen], want[seen], atol=1e-15)
+
+
+def test_effect_beyond_geometry_of_a_constant_offset_is_nil():
+    """A constant 1 mrad on joint 2 (a term on a constant column) is a zero offset: the geometric
+    fit absorbs it to first order, whereas the cyclic error stays."""
+    from torchcal.sim.effect_size import displacement_um
+    base = PhysicalRobot(IIWA, TOOL, seed=1)
+    const = PhysicalRobot(IIWA, TOOL, seed=1, joint_terms={"iiwa_joint_2": [("c", "linear", 1e-3)]})
+    cyc = PhysicalRobot(IIWA, TOOL, seed=1, cyclic={"iiwa_joint_4": [(2, 1e-4, 0.0)]})
+    q = base.sample_q(60)
+    st = dict(covariates={"c": 1.0})
+    d = displacement_um(const, base, q[30:], st, q[:30], st)
+    assert d["rms_um"] > 300 and d["beyond_geometry_rms_um"] < 1.0
+    d = displacement_um(cyc, base, q[30:], {}, q[:30], {})
+    assert d["beyond_geometry_rms_um"] > 0.2 * d["rms_um"] > 5

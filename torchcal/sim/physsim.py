@@ -9,29 +9,29 @@ Units: m, rad, kg, N, N m, degC.  ``q: (N, dof)`` rad (m for prismatic joints), 
 Compliance uses the gravity wrench of the rigid true robot at the commanded pose, with no
 fixed-point iteration: the deflections are micro-radians and change the wrench only to second
 order.  Gravity is not re-tilted with the base for the same reason.
+
+A marker can also be measured as a full pose (a camera's or tracker's 6-D target): its frame is
+its link frame times the marker's rotation, expressed in the instrument frame, as unit
+quaternions ``(N, M, 4)`` (w, x, y, z).
 """
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 
 import numpy as np
 
 from torchcal.sim.base import Simulated
-from torchcal.sim.physsim_urdf import (MOVING_TYPES, UrdfJoint, homogeneous, parse_floats, parse_urdf,
-                                       rotation_exp, rpy_matrix)
+from torchcal.sim.covariates import warmup_temperature
+from torchcal.sim.instrument import orientation_readings, outlier_shifts
+from torchcal.sim.joint_terms import JointTerm, as_joint_terms
+from torchcal.sim.physsim_gravity import subtree_wrenches
+from torchcal.sim.physsim_truth import error_support, robot_truth
+from torchcal.sim.physsim_urdf import (MOVING_TYPES, homogeneous, joints_above, parse_marker, parse_urdf,
+                                       rotation_exp, rpy_matrix, tree_order)
 from torchcal.sim.sample import Sample
 
-__all__ = ["PhysicalRobot", "warmup_temperature"]
-
-_MARKER_RE = re.compile(r"^\s*([^@=\s]+)\s*(?:@\s*([^=\s]+))?\s*(?:=\s*(.+?))?\s*$")
-def warmup_temperature(n: int, span_k: float = 8.0, seed: int = 0, *, start_c: float = 20.0,
-                       noise_k: float = 0.1) -> np.ndarray:
-    """``(n,)`` degC, rows in visiting order: ``start_c + span_k (1 - exp(-i / (n/4)))`` plus
-    Gaussian noise of ``noise_k``: a robot warming up over the campaign."""
-    warm = span_k * (1 - np.exp(-np.arange(n) / max(n / 4, 1.0)))
-    return start_c + warm + np.random.default_rng(seed).normal(0, noise_k, n)
+__all__ = ["JointTerm", "PhysicalRobot", "warmup_temperature"]
 
 
 class PhysicalRobot:
@@ -42,7 +42,12 @@ class PhysicalRobot:
         markers: ``"link"`` (its origin) or ``"name@link=x,y,z"`` (m, link frame).
         seed: one ``numpy.random.Generator`` draws the robot, then every ``sample_q``/``measure``.
         length_error_m, angle_error_rad: std of the joint origin errors and zero offsets.
-        marker_error_m: std per axis of the true marker offset around the declared one.
+        marker_error_m: std per axis of the true marker offset around the declared one;
+            marker_true_m: marker -> its true offset (m, link frame) instead, set apart from the
+            declared guess (e.g. a guess on a joint axis, the real point cm off it).
+        marker_rpy: marker -> declared rotation (roll, pitch, yaw) rad of its frame in the link
+            frame (default identity); marker_rotation_error_rad: std per axis of the true frame's
+            rotation around it (drawn from a second generator, so the data stream is unchanged).
         base_distance_m: distance instrument origin <-> base origin.
         instrument_frame: ``(4, 4)`` pose of the instrument frame in the base frame, replacing
             the drawn one (``np.eye(4)``: measure in the base frame).
@@ -50,9 +55,16 @@ class PhysicalRobot:
             default link: the first marker's).
         torsion: joint -> k rad/(N m); lateral: joint -> (cx, cy, cz) rad/(N m) about the child
             frame axes (``lateral_frame="parent"``: about the joint frame's axes before the joint
-            turns, applied before the motion, as a bearing seat in the parent link); base_tilt: (cx, cy) rad/(N m); thermal: joint -> alpha 1/K on that joint
-            origin's translation; backlash: joint -> half play rad (m); cyclic: joint ->
-            [(harmonic, amplitude rad, phase rad), ...]; noise_m: instrument noise std per axis.
+            turns, applied before the motion, as a bearing seat in the parent link); base_tilt:
+            (cx, cy) rad/(N m); thermal: joint -> alpha 1/K on that joint origin's translation,
+            driven by the covariate ``temperature``, or -> (alpha, column) driven by the named
+            covariate column (degC); backlash: joint -> half play rad (m); cyclic: joint ->
+            [(harmonic, amplitude rad, phase rad), ...] of its own commanded angle; joint_terms:
+            joint -> [:class:`JointTerm` or (source, kind, coef[, harmonic[, phase[, ref]]]), ...]
+            added to its true value, the source another joint's command or a covariate column;
+            noise_m: instrument noise std per axis.
+        pose_markers: markers also measured in orientation (names, or True: all), with
+            ``rot_noise_rad`` std per axis of a small random rotation (in the marker frame).
         geometric_errors: False: nominal geometry (the random draws still happen, so the
             instrument frame and later data are the same as with errors).
 
@@ -66,48 +78,17 @@ class PhysicalRobot:
                  payload_link: str | None = None, torsion=None, lateral=None, lateral_frame: str = "child",
                  base_tilt=None, thermal=None,
                  t_ref_c: float = 20.0, backlash=None, cyclic=None, noise_m: float = 0.02e-3,
-                 gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True):
+                 gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True, joint_terms=None, marker_rpy=None,
+                 marker_rotation_error_rad: float = 0.0, pose_markers=None, rot_noise_rad: float = 0.0,
+                 marker_true_m=None):
         text = str(urdf) if str(urdf).lstrip().startswith("<") else Path(urdf).read_text()
         self.name, joints, self._bodies = parse_urdf(text)
         self._j = {j.name: j for j in joints}
-        by_child = {j.child: j for j in joints}
-        roots = sorted({j.parent for j in joints} - set(by_child))
-        if len(roots) != 1:
-            raise ValueError(f"the URDF needs exactly one root link, found {roots}")
-        self.root = roots[0]
-        kids: dict[str, list[UrdfJoint]] = {}
-        for j in joints:
-            kids.setdefault(j.parent, []).append(j)
-        self._order, stack = [], [self.root]  # parent before child
-        while stack:
-            for j in kids.get(stack.pop(0), []):
-                self._order.append(j)
-                stack.append(j.child)
-        self._below: dict[str, list[str]] = {}  # link -> links of its subtree
-        for j in reversed(self._order):
-            self._below.setdefault(j.child, [j.child])
-            self._below.setdefault(j.parent, [j.parent]).extend(self._below[j.child])
-        self._below.setdefault(self.root, [self.root])
+        self.root, self._order, self._below = tree_order(joints)
 
-        self.markers = []  # (name, link, declared offset (3,) m)
-        for spec in markers:
-            m = _MARKER_RE.match(spec)
-            if not m or (m.group(2) or m.group(1)) not in self._below:
-                raise ValueError(f"marker {spec!r}: write 'link' or 'name@link=x,y,z' with a link of the URDF")
-            self.markers.append((m.group(1), m.group(2) or m.group(1), parse_floats(m.group(3), [0, 0, 0], ",")))
+        self.markers = [parse_marker(spec, self._below) for spec in markers]  # (name, link, declared offset (3,) m)
         self.marker_names = [m[0] for m in self.markers]
-        needed: set[str] = set()
-
-        def climb(link: str) -> None:
-            while link in by_child:
-                j = by_child[link]
-                needed.add(j.name)
-                if j.mimic and j.mimic[0] not in needed:
-                    climb(self._j[j.mimic[0]].child)
-                link = j.parent
-
-        for m in self.markers:
-            climb(m[1])
+        needed = joints_above(joints, [m[1] for m in self.markers])
         self.joint_names = [j.name for j in joints if j.name in needed and j.type in MOVING_TYPES and not j.mimic]
         self.dof = len(self.joint_names)
         act = [self._j[n] for n in self.joint_names]
@@ -121,7 +102,10 @@ class PhysicalRobot:
             raise ValueError(f"lateral_frame must be 'child' or 'parent', got {lateral_frame!r}")
         self.lateral_frame = lateral_frame
         self.base_tilt = None if base_tilt is None else np.asarray(base_tilt, dtype=float)
-        self.thermal, self.t_ref_c = dict(thermal or {}), float(t_ref_c)
+        self.thermal = {k: float(v[0] if isinstance(v, (tuple, list)) else v) for k, v in (thermal or {}).items()}
+        self.thermal_column = {k: str(v[1]) if isinstance(v, (tuple, list)) else "temperature"
+                               for k, v in (thermal or {}).items()}
+        self.t_ref_c = float(t_ref_c)
         self.backlash = dict(backlash or {})
         self.cyclic = {k: [tuple(map(float, h)) for h in v] for k, v in (cyclic or {}).items()}
         for what, d, ok in (("torsion", self.torsion, ("revolute", "continuous")),
@@ -131,6 +115,14 @@ class PhysicalRobot:
             bad = [k for k in d if k not in self._j or (self._j[k].type not in ok and k not in ok)]
             if bad:
                 raise ValueError(f"{what}: {bad} are not suitable joints of this URDF")
+        self.joint_terms = as_joint_terms(joint_terms, self.joint_names)
+        self.pose_markers = list(self.marker_names) if pose_markers is True else list(pose_markers or [])
+        unknown = [m for m in self.pose_markers + list(marker_rpy or {}) + list(marker_true_m or {})
+                   if m not in self.marker_names]
+        if unknown:
+            raise ValueError(f"pose_markers / marker_rpy / marker_true_m: {unknown} are not markers "
+                             f"({self.marker_names})")
+        self.rot_noise_rad = float(rot_noise_rad)
         self.noise_m, self.gravity = float(noise_m), np.asarray(gravity, dtype=float)
         self.payload_kg, self.payload_com_m = float(payload_kg), np.asarray(payload_com_m, dtype=float)
         self.payload_link = payload_link or self.markers[0][1]
@@ -149,17 +141,20 @@ class PhysicalRobot:
             self._origin[j.name] = j.origin @ homogeneous(rpy_matrix(e[5], e[4], e[3]), e[:3])  # Rz(dyaw) Ry(dpitch) Rx(droll)
         self._offset = {j.name: ge * rng.normal(0, length_error_m if j.type == "prismatic" else angle_error_rad)
                         for j in act}
-        self._marker_true = [m[2] + ge * rng.normal(0, marker_error_m, 3) for m in self.markers]
+        drawn = [m[2] + ge * rng.normal(0, marker_error_m, 3) for m in self.markers]  # also where set: same stream
+        self._marker_true = [np.asarray((marker_true_m or {}).get(m[0], x), dtype=float)
+                             for m, x in zip(self.markers, drawn)]
         ax, d = rng.normal(size=3), rng.normal(size=3)
         T_bi = homogeneous(rotation_exp(ax / np.linalg.norm(ax) * rng.uniform(0, 0.9 * math.pi)),
                      d / np.linalg.norm(d) * base_distance_m)
         self.instrument_in_base = T_bi if instrument_frame is None else np.asarray(instrument_frame, dtype=float)
         self._first_dir = np.where(rng.random(self.dof) < 0.5, -1.0, 1.0)
+        rng2 = np.random.default_rng([seed, 1])
+        self._marker_rpy = {m: tuple(map(float, (marker_rpy or {}).get(m, (0, 0, 0)))) for m in self.marker_names}
+        self._marker_rot = [rpy_matrix(*self._marker_rpy[m]) @ rotation_exp(
+            ge * rng2.normal(0, marker_rotation_error_rad, 3)) for m in self.marker_names]
 
     # ------------------------------------------------------------------ kinematics
-    def _unit(self, name: str) -> str:
-        return "m" if self._j[name].type == "prismatic" else "rad"
-
     def directions(self, q: np.ndarray) -> np.ndarray:
         """``(N, dof)`` +-1: sign of the last motion of each joint along the visiting order (no
         motion: the previous direction; first pose: the drawn ``first_direction``)."""
@@ -174,10 +169,11 @@ class PhysicalRobot:
             raise ValueError(f"q must be (N, {self.dof}) in the order {self.joint_names}, got {q.shape}")
         return q
 
-    def _angles(self, q: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
+    def _angles(self, q: np.ndarray, dirs: np.ndarray, cov: dict) -> dict[str, np.ndarray]:
         """Real joint values before compliance: name -> ``(N,)`` rad (m).  A mimic joint follows
         its source's true angle (command + zero offset), like the linkage it models; the source's
-        backlash, cyclic error and compliance stay in the source's drive and are not passed on."""
+        backlash, cyclic error, joint terms and compliance stay in the source's drive and are not
+        passed on."""
         cmd = {n: q[:, k] for k, n in enumerate(self.joint_names)}
         cmd.update({n: np.full(len(q), v) for n, v in self._parked.items()})
         true = {n: v + self._offset.get(n, 0.0) for n, v in cmd.items()}
@@ -195,18 +191,19 @@ class PhysicalRobot:
                 th = th + a * np.sin(h * cmd.get(j.name, th) + ph)
             if j.name in self.backlash:
                 th = th + self.backlash[j.name] * dirs[:, self.joint_names.index(j.name)]
+            for t in self.joint_terms.get(j.name, []):  # commands, as the drive sees them, or logged columns
+                th = th + t.coef * t.basis(cmd[t.source] if t.source in cmd else cov[t.source])
             out[j.name] = th
         return out
 
-    def _fk(self, th: dict, temp: np.ndarray, bend: dict | None = None) -> dict[str, np.ndarray]:
-        """Link poses in the base frame: link -> ``(N, 4, 4)``."""
-        N = len(temp)
+    def _fk(self, th: dict, cov: dict, N: int, bend: dict | None = None) -> dict[str, np.ndarray]:
+        """Link poses in the base frame: link -> ``(N, 4, 4)``; ``cov``: column -> ``(N,)``."""
         T = {self.root: np.broadcast_to(np.eye(4), (N, 4, 4))}
         for j in self._order:
             O = self._origin[j.name]
             if j.name in self.thermal:
                 O = np.repeat(O[None], N, 0)
-                O[:, :3, 3] *= (1 + self.thermal[j.name] * (temp - self.t_ref_c))[:, None]
+                O[:, :3, 3] *= (1 + self.thermal[j.name] * (cov[self.thermal_column[j.name]] - self.t_ref_c))[:, None]
             A = T[j.parent] @ O
             seat = bend is not None and j.name in bend and self.lateral_frame == "parent"
             if seat:  # a bearing seat in the parent link: bent before the joint turns
@@ -222,50 +219,49 @@ class PhysicalRobot:
 
     def _wrenches(self, T: dict) -> dict:
         """Gravity wrenches, see :meth:`gravity_wrenches`."""
-        N = len(T[self.root])
-        m_link, s_link = {}, {}  # mass and first mass moment sum(m c) per link
-        for link, bodies in self._bodies.items():
-            if link == self.payload_link and self.payload_kg:
-                bodies = bodies + [(self.payload_kg, self.payload_com_m)]
-            if link in T and bodies:
-                R, p = T[link][:, :3, :3], T[link][:, :3, 3]
-                m_link[link] = sum(b[0] for b in bodies)
-                s_link[link] = sum(b[0] * (R @ b[1] + p) for b in bodies)
-        out: dict = {"joints": {}}
-        for j in self._order + [None]:
-            sub = self._below[j.child if j else self.root]
-            m = sum(m_link.get(ln, 0.0) for ln in sub)
-            s = sum((s_link[ln] for ln in sub if ln in s_link), np.zeros((N, 3)))
-            o = T[j.child][:, :3, 3] if j else np.zeros((N, 3))
-            # sum (c - o) x m g = (sum m c - m_tot o) x g
-            w = {"F_N": np.tile(m * self.gravity, (N, 1)), "M_Nm": np.cross(s - m * o, self.gravity)}
-            if j is None:
-                out["base"] = w
-                continue
-            if j.type in ("revolute", "continuous"):
-                w["tau_Nm"] = np.einsum("ni,ni->n", w["M_Nm"], T[j.child][:, :3, :3] @ j.axis)
-            out["joints"][j.name] = w
-        return out
+        bodies = dict(self._bodies)
+        if self.payload_kg:
+            bodies[self.payload_link] = bodies.get(self.payload_link, []) + [(self.payload_kg, self.payload_com_m)]
+        return subtree_wrenches(T, self._order, self._below, self.root, bodies, self.gravity)
 
-    def _state(self, q, temperature, directions):
+    def _columns_read(self) -> dict[str, float]:
+        """Covariate columns the effects read -> the value meaning "no effect" (``t_ref_c`` for
+        thermal growth, ``ref`` for a joint term), used where a column is not given."""
+        cols = {t.source: t.ref for ts in self.joint_terms.values() for t in ts if t.source not in self.joint_names}
+        cols.update({c: self.t_ref_c for c in self.thermal_column.values()})
+        return cols
+
+    def _columns(self, N: int, temperature, covariates) -> dict[str, np.ndarray]:
+        """Covariate columns as ``(N,)`` arrays, see :meth:`_columns_read` for those not given."""
+        cov = {**self._columns_read(), "temperature": self.t_ref_c if temperature is None else temperature}
+        cov.update(covariates or {})
+        return {k: np.broadcast_to(np.asarray(v, dtype=float), (N,)) for k, v in cov.items()}
+
+    def _state(self, q, temperature, directions, covariates=None):
         q = self._check_q(q)
-        temp = np.broadcast_to(np.asarray(self.t_ref_c if temperature is None else temperature, dtype=float),
-                               (len(q),))
-        th = self._angles(q, self.directions(q) if directions is None else np.asarray(directions, dtype=float))
-        return th, temp, self._fk(th, temp)
+        cov = self._columns(len(q), temperature, covariates)
+        th = self._angles(q, self.directions(q) if directions is None else np.asarray(directions, dtype=float), cov)
+        return th, cov, self._fk(th, cov, len(q))
 
-    def gravity_wrenches(self, q, *, temperature=None, directions=None) -> dict:
+    def gravity_wrenches(self, q, *, temperature=None, directions=None, covariates=None) -> dict:
         """Gravity wrenches of the rigid true robot at the commanded ``q (N, dof)``, base frame:
         ``{"joints": {name: {"F_N": (N, 3), "M_Nm": (N, 3) about the joint's child frame origin,
         "tau_Nm": (N,) M . axis (revolute joints)}}, "base": {"F_N", "M_Nm" about the base origin}}``,
         each on everything downstream (the base: every body, payload included)."""
-        return self._wrenches(self._state(q, temperature, directions)[2])
+        return self._wrenches(self._state(q, temperature, directions, covariates)[2])
 
-    def reach(self, q, *, temperature=None, directions=None) -> np.ndarray:
+    def reach(self, q, *, temperature=None, directions=None, covariates=None) -> np.ndarray:
         """Noise-free marker positions ``(N, M, 3)`` m in the instrument frame for commanded
         ``q (N, dof)``; ``temperature`` degC (scalar or ``(N,)``, default ``t_ref_c``);
-        ``directions (N, dof)`` +-1 (default :meth:`directions`)."""
-        th, temp, T = self._state(q, temperature, directions)
+        ``directions (N, dof)`` +-1 (default :meth:`directions`); ``covariates``: column ->
+        scalar or ``(N,)`` read by thermal growth and joint terms."""
+        return self.reach_pose(q, temperature=temperature, directions=directions, covariates=covariates)[0]
+
+    def reach_pose(self, q, *, temperature=None, directions=None, covariates=None) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free marker frames in the instrument frame: positions ``(N, M, 3)`` m and
+        rotations ``(N, M, 3, 3)`` (link frame times the marker's true rotation); arguments as
+        :meth:`reach`."""
+        th, cov, T = self._state(q, temperature, directions, covariates)
         tilt = None
         if self.torsion or self.lateral or self.base_tilt is not None:
             W = self._wrenches(T)
@@ -280,42 +276,57 @@ class PhysicalRobot:
                     for n, c in self.lateral.items()}  # the moment in that frame's axes
             for n, k in self.torsion.items():
                 th[n] = th[n] + k * W["joints"][n]["tau_Nm"]
-            T = self._fk(th, temp, bend)
+            T = self._fk(th, cov, len(T[self.root]), bend)
             if self.base_tilt is not None:
                 M = W["base"]["M_Nm"]
                 tilt = rotation_exp(np.stack([self.base_tilt[0] * M[:, 0], self.base_tilt[1] * M[:, 1], 0 * M[:, 0]], -1))
         p = np.stack([T[ln][:, :3, :3] @ x + T[ln][:, :3, 3] for (_, ln, _), x in zip(self.markers, self._marker_true)],
                      1)
+        Rm = np.stack([T[ln][:, :3, :3] @ Rk for (_, ln, _), Rk in zip(self.markers, self._marker_rot)], 1)
         if tilt is not None:
             p = np.einsum("nij,nmj->nmi", tilt, p)
+            Rm = np.einsum("nij,nmjk->nmik", tilt, Rm)
         R, t = self.instrument_in_base[:3, :3], self.instrument_in_base[:3, 3]
-        return (p - t) @ R
+        return (p - t) @ R, np.einsum("ji,nmjk->nmik", R, Rm)
 
-    def measure(self, q, *, temperature=None, outlier_fraction: float = 0.0, outlier_mm=(5.0, 20.0)) -> Sample:
+    def measure(self, q, *, temperature=None, covariates=None, outlier_fraction: float = 0.0,
+                outlier_mm=(5.0, 20.0), orientation_fraction: float = 1.0) -> Sample:
         """Simulated measurement of ``q (N, dof)`` visited in row order: :meth:`reach` + noise
         ``noise_m`` per axis + outliers on ``round(outlier_fraction N)`` rows, each marker moved
         by a length uniform in ``outlier_mm`` (mm) in a random direction (per row, at random:
-        one vector for all markers, or one per marker).  Covariates: ``temperature`` (degC, when
-        given or thermal growth is simulated) and ``dir.<joint>`` for every joint when backlash is."""
+        one vector for all markers, or one per marker; orientations are not moved).
+
+        Covariates recorded, in this order: ``temperature`` (degC, when given or thermal growth
+        reads it), every column of ``covariates`` (name -> ``(N,)``: the logs of the cell, e.g.
+        several temperatures; those that thermal growth or joint terms read must be among them),
+        and ``dir.<joint>`` for every joint when backlash is simulated.  Pose markers carry
+        quaternions on ``round(orientation_fraction N)`` rows drawn at random (NaN elsewhere)."""
         q = self._check_q(q)
         N, M = len(q), len(self.markers)
+        covariates = {k: np.broadcast_to(np.asarray(v, dtype=float), (N,)).copy()
+                      for k, v in (covariates or {}).items()}
+        missing = [c for c in self._columns_read() if c != "temperature" and c not in covariates]
+        if missing:
+            raise ValueError(f"measure: the robot's thermal growth or joint terms read the covariate(s) {missing}; "
+                             "pass them in covariates={name: (N,) values}")
         dirs = self.directions(q)
-        true = self.reach(q, temperature=temperature, directions=dirs)
+        true, true_R = self.reach_pose(q, temperature=temperature, directions=dirs, covariates=covariates)
         pos = true + self._rng.normal(0, self.noise_m, true.shape)
-        K = int(round(outlier_fraction * N))
-        rows = np.sort(self._rng.choice(N, K, replace=False)).astype(int)
-        per_marker = self._rng.random(K) < 0.5
-        v = self._rng.normal(size=(K, M, 3))
-        v *= self._rng.uniform(*outlier_mm, size=(K, M, 1)) * 1e-3 / np.linalg.norm(v, axis=-1, keepdims=True)
-        v[~per_marker] = v[~per_marker][:, :1]
+        rows, v, per_marker = outlier_shifts(self._rng, N, M, outlier_fraction, outlier_mm)
         pos[rows] += v
         cov = {}
-        if temperature is not None or self.thermal:
+        if temperature is not None or "temperature" in self.thermal_column.values():
             cov["temperature"] = np.broadcast_to(np.asarray(self.t_ref_c if temperature is None else temperature,
                                                             dtype=float), (N,)).copy()
+        cov.update(covariates)
         if self.backlash:
             cov.update({f"dir.{n}": dirs[:, k] for k, n in enumerate(self.joint_names)})
-        return Sample(q.copy(), pos, list(self.joint_names), list(self.marker_names), cov, true, rows, v, per_marker)
+        quat = true_quat = None  # drawn last: without pose markers the position data stay what they were
+        if self.pose_markers:
+            quat, true_quat = orientation_readings(self._rng, true_R, self.rot_noise_rad, orientation_fraction,
+                                                   np.array([m in self.pose_markers for m in self.marker_names]))
+        return Sample(q.copy(), pos, list(self.joint_names), list(self.marker_names), cov, true, rows, v, per_marker,
+                      quat, true_quat)
 
     def sample_q(self, n: int, margin: float = 0.1) -> np.ndarray:
         """``(n, dof)`` uniform in the limits shrunk by ``margin`` x range at each end (+-pi
@@ -338,31 +349,8 @@ class PhysicalRobot:
 
     def truth(self) -> dict:
         """Every drawn value and effect setting, JSON-able, units in the key names."""
-        f = lambda a: np.asarray(a, dtype=float).tolist()  # noqa: E731
-        err = {n: dict(zip(("dx_m", "dy_m", "dz_m", "dyaw_rad", "dpitch_rad", "droll_rad"), f(e)))
-               for n, e in self._err.items()}
-        return {
-            "robot": self.name, "seed": self.seed, "root_link": self.root, "joint_names": list(self.joint_names),
-            "joint_origin_error": err,
-            "zero_offset_rad": {n: float(v) for n, v in self._offset.items() if self._unit(n) == "rad"},
-            "zero_offset_m": {n: float(v) for n, v in self._offset.items() if self._unit(n) == "m"},
-            "parked_joints_rad_or_m": dict(self._parked),
-            "marker_link": {m[0]: m[1] for m in self.markers},
-            "marker_offset_declared_m": {m[0]: f(m[2]) for m in self.markers},
-            "marker_offset_true_m": {m[0]: f(x) for m, x in zip(self.markers, self._marker_true)},
-            "instrument_in_base_4x4_m": f(self.instrument_in_base),
-            "base_in_instrument_4x4_m": f(np.linalg.inv(self.instrument_in_base)),
-            "payload_kg": self.payload_kg, "payload_com_m": f(self.payload_com_m), "payload_link": self.payload_link,
-            "gravity_m_per_s2": f(self.gravity),
-            "torsion_rad_per_Nm": {k: float(v) for k, v in self.torsion.items()},
-            "lateral_rad_per_Nm": {k: f(v) for k, v in self.lateral.items()},
-            "base_tilt_rad_per_Nm": None if self.base_tilt is None else f(self.base_tilt),
-            "thermal_per_K": {k: float(v) for k, v in self.thermal.items()}, "t_ref_c": self.t_ref_c,
-            "backlash_half_play": {k: {f"half_play_{self._unit(k)}": float(v)} for k, v in self.backlash.items()},
-            "backlash_first_direction": dict(zip(self.joint_names, f(self._first_dir))),
-            "cyclic": {k: [{"harmonic": h[0], f"amplitude_{self._unit(k)}": h[1], "phase_rad": h[2]} for h in v]
-                       for k, v in self.cyclic.items()},
-            "noise_m": self.noise_m,
-        }
+        return robot_truth(self)
 
-
+    def error_support(self) -> dict:
+        """Where the true geometry differs from the URDF, see :func:`~torchcal.sim.physsim_truth.error_support`."""
+        return error_support(self)
