@@ -14,9 +14,13 @@ import torch
 from scipy.optimize import least_squares
 from torch import Tensor
 
-from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised, row_scores, selection_threshold
+from torchcal.pipelines.loop.selection import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
 
-__all__ = ["LinearCV"]
+__all__ = ["LinearCV", "ALIAS_COS"]
+
+# Two modes whose columns, beyond what the rest of the model explains, have a cosine above this
+# are candidates for one finding (the rule then says whether the data can tell them apart)
+ALIAS_COS = 0.9
 
 
 class LinearCV:
@@ -251,7 +255,8 @@ class LinearCV:
     def _refine(self, blocks: list[list[int]], start: list[int], n_obs: float, cur: Tensor, k_cur: float, t_sel: float,
                 history: list) -> tuple[list[int], Tensor, float]:
         """Selection that can change its mind: after the forward steps, a mode (or a block added at
-        once) that no longer passes the rule against the set without it leaves, and a mode is
+        once) that no longer passes the rule against the set without it (at the exit threshold
+        :data:`~torchcal.pipelines.loop.selection.T_EXIT`) leaves, and a mode is
         exchanged for one outside when the rule prefers the set with the other; until neither
         applies. ``start`` stays."""
         for _ in range(4 * len(self.slices) + 4):
@@ -261,7 +266,7 @@ class LinearCV:
                 rest = [g for g in chosen if g not in b]
                 s, k = self.scores(rest), self.k_eff(rest)
                 t, pen_ok, _ = compare(s, cur, k, k_cur, n_obs)
-                if not (t > t_sel and pen_ok) and (drop is None or t < drop[0]):
+                if not (t > T_EXIT and pen_ok) and (drop is None or t < drop[0]):
                     drop = (t, b, s, k)
             if drop is not None:
                 blocks.remove(drop[1])
@@ -285,19 +290,27 @@ class LinearCV:
 
     def aliases(self, chosen: list[int], pool: list[int] | None = None) -> dict[int, list[int]]:
         """For each chosen single-column group, the other single-column groups the data cannot tell
-        from it: put in its place, the rule would not prefer the chosen set over the exchanged one
-        (paired t of the chosen set's gain below :data:`T_ACCEPT`)."""
+        from it: beyond what the base and the other chosen groups explain, their columns (weighted
+        as the fit weighs them) are nearly collinear (cosine above :data:`ALIAS_COS`), and put in
+        its place, the rule would not prefer the chosen set over the exchanged one (paired t of the
+        chosen set's gain below :data:`T_ACCEPT`)."""
         pool = [g for g in range(len(self.slices)) if g not in chosen and self.usable[g]] if pool is None else pool
         singles = [g for g in pool if len(self.slices[g]) == 1]
         cur = self.scores(chosen)
+        Aw = self.A * self._w3[:, None]
         out = {}
         for g in [g for g in chosen if len(self.slices[g]) == 1]:
             rest = [h for h in chosen if h != g]
-            near = []
-            for h, (s, _) in zip(singles, self._score_options(rest, [[h] for h in singles])):
-                t, _, _ = compare(s, cur, 0.0, 0.0, 1)
-                if t < T_ACCEPT:
-                    near.append(h)
-            if near:
-                out[g] = near
+            Q = torch.linalg.qr(Aw[:, self._cols(rest)]).Q
+            C = Aw[:, [self.slices[h][0] for h in [g] + singles]]
+            C = C - Q @ (Q.T @ C)
+            n = C.norm(dim=0).clamp(min=1e-300)
+            cos = ((C[:, 1:] * C[:, :1]).sum(0) / (n[1:] * n[0])).abs()
+            near = [h for h, c in zip(singles, cos.tolist()) if c > ALIAS_COS]
+            keep = []
+            for h, (sc, _) in zip(near, self._score_options(rest, [[h] for h in near])):
+                if compare(sc, cur, 0.0, 0.0, 1)[0] < T_ACCEPT:
+                    keep.append(h)
+            if keep:
+                out[g] = keep
         return out

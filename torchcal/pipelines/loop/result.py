@@ -57,6 +57,7 @@ class LoopResult:
     observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
     setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
     leftover: object = None     # Leftover: the final model against the noise floor, what the residual follows
+    removed: list = field(default_factory=list)  # modes accepted once, then explained by later findings
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -88,7 +89,7 @@ class LoopResult:
                         f"parameters); a family's modes are added one by one under the same rule with the "
                         f"threshold raised for the number of modes tried",
                 "residual_elm": self.elm is not None, "timings_s": self.timings,
-                "leftover": None if self.leftover is None else self.leftover.report()}
+                "leftover": None if self.leftover is None else self.leftover.report(), "removed_modes": self.removed}
 
     def model(self, *, force: bool = False):
         """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when

@@ -37,6 +37,7 @@ from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mea
                                          geometric_start, noise_sigma, observation_model, orientation_count,
                                          split_params)
 from torchcal.pipelines.loop.leftover import leftover
+from torchcal.pipelines.loop.prune import prune
 from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, choose_geometry, estimate_noise, orientation_weight
 from torchcal.pipelines.loop.result import LoopResult
 from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
@@ -48,6 +49,8 @@ from torchcal.report.calibration import stage_problems
 __all__ = ["run_loop", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "derive_directions"]
 
 logger = logging.getLogger("torchcal.loop")
+
+MAX_ROUNDS = 20  # diagnosis rounds at most: each accepts one effect (or modes of one family)
 
 
 
@@ -234,7 +237,8 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     accepted_steps: list[tuple[str, Model, dict]] = []
     bar = progress_bar(progress)
     rnd = 0
-    while pool:
+    tabu: dict[str, set[str]] = {}  # effect -> modes pruned in this run
+    while pool and rnd < MAX_ROUNDS:
         rnd += 1
         sigma = noise_sigma(ctx, current)
         if abs(HUBER_K * sigma - ctx.c) > 0.1 * ctx.c:
@@ -252,7 +256,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             for n in tier:
                 if bar is not None:
                     bar.set_description(f"round {rnd}: {n}")
-                res = try_candidate(ctx, current, n, robot, train, test, n_obs, say, rnd)
+                res = try_candidate(ctx, current, n, robot, train, test, n_obs, say, rnd, tabu.get(n, set()))
                 if bar is not None:
                     bar.update(1)
                 if res.get("covered"):
@@ -266,6 +270,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             gain = float(current.scores.mean() - winner["model"].scores.mean())
             ties = [r for r in passing if float(current.scores.mean() - r["model"].scores.mean()) >= 0.98 * gain]
             winner = min(ties, key=lambda r: (r["model"].k, names.index(r["name"])))
+            # an effect that extends another that passes too waits: the plainer one is named
+            # first, and the extension may add what it leaves in a later round
+            plain = [r for r in passing if r["name"] in EFFECTS[winner["name"]].supersedes]
+            if plain:
+                winner = min(plain, key=lambda r: penalised(r["model"].scores, r["model"].k, n_obs))
         for r in results:
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
@@ -274,6 +283,13 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         if winner is None:
             break
         current = refresh(ctx, winner["model"], n_obs)
+        new_modes = winner["entry"].get("added_modes") or [lab for lab, _ in current.effects[-1].modes()]
+        current, gone = prune(ctx, current, {(winner["name"], lab) for lab in new_modes}, say)
+        if gone:
+            winner["entry"]["pruned"] = gone
+            for g in gone:
+                tabu.setdefault(g["effect"], set()).add(g["mode"])
+            pool = list(dict.fromkeys(pool + [g["effect"] for g in gone]))  # its other modes may still come
         accepted_steps.append((winner["name"], current, winner["entry"]))
         if not current.effects[-1].selectable:  # a family stays a candidate: it may gain modes later
             pool.remove(winner["name"])
@@ -296,9 +312,10 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     add_stage("geometric", geo_model.k, geo_model.params, [], cv=best.cv_rmse_mm(n_obs),
               extra={"prior_mm": best.prior_mm, "k_eff": geo_model.k})
 
-    accepted = []
+    accepted, removed = [], []
     evidence = {}
     seen_names: set[str] = set()
+    final = {e.name: {lab for lab, _ in e.modes()} for e in current.effects}
     for name, m, entry in accepted_steps:
         eff = m.effects[-1]
         _, parts = split_params(m.params, robot, m.effects)
@@ -309,13 +326,21 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         s = add_stage(stage, m.k, m.params, m.effects, cv=m.cv_rmse_mm(n_obs))
         prev = stages[-2]
         gain = None if "test" not in s or "test" not in prev else prev["test"]["mean_mm"] - s["test"]["mean_mm"]
+        removed += entry.get("pruned", [])
+        if name not in final:  # a later round's findings explained it away
+            continue
         ev_text, ev_data = evidence_for(robot, m, train, setup)
         evidence[stage.lstrip("+")] = ev_data
+        kept = m.params.free[len(m.params) - eff.n_params:].clone()
+        for lab, idx in eff.modes():
+            if lab not in final[name] and eff.selectable:
+                kept[[i for i in idx if i not in set(eff.shared())]] = False
         accepted.append({"name": name, "stage": stage, "joints": list(eff.joints), "n_params": eff.n_params,
-                         "modes": [lab for lab, _ in eff.modes()], "added_modes": entry.get("added_modes", []),
+                         "modes": [lab for lab, _ in eff.modes() if lab in final[name] or not eff.selectable],
+                         "added_modes": [lab for lab in entry.get("added_modes", []) if lab in final[name]],
                          "extends": entry.get("extends", []), "cv_gain_mm": entry["cv_gain_mm"],
                          "test_gain_mm": gain, "evidence": ev_text,
-                         "found": eff.describe(free=m.params.free[len(m.params) - eff.n_params:])
+                         "found": eff.describe(free=kept)
                          + [f"{a} cannot be told from {', '.join(b)} by these data: one finding, either of them"
                             for a, b in entry.get("aliases", {}).items()],
                          "aliases": entry.get("aliases", {}),
@@ -379,6 +404,6 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
-                      observability=observability, setup=setup, leftover=left)
+                      observability=observability, setup=setup, leftover=left, removed=removed)
 
 

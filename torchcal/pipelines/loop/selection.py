@@ -28,10 +28,14 @@ from statistics import NormalDist
 import torch
 from torch import Tensor
 
-__all__ = ["T_ACCEPT", "HUBER_K", "OUTLIER_K", "robust_sigma", "row_scores", "compare", "rmse_mm",
+__all__ = ["T_ACCEPT", "T_EXIT", "HUBER_K", "OUTLIER_K", "robust_sigma", "row_scores", "compare", "rmse_mm",
            "effective_params", "selection_threshold"]
 
 T_ACCEPT = 3.0
+# A mode accepted earlier leaves when its t, judged as if added last, falls below this: lower than
+# the entry threshold, as stepwise selection has it, so that a mode near the threshold does not
+# cycle in and out from one round to the next
+T_EXIT = 2.0
 HUBER_K = 3.0    # Huber threshold on the 3-D error norm, in units of the per-axis noise σ̂
 OUTLIER_K = 5.0  # an observation further than this many σ̂ from the model is a suspect
 

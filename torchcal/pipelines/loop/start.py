@@ -68,14 +68,14 @@ def _step_words(h: dict, labels: list[str]) -> dict:
             "t": {name(g): t for g, t in h["tried"].items()}}
 
 
-def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
+def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=frozenset()) -> dict:
     """Where a candidate effect starts: modes chosen (for a family) and start values from the
     linear step around ``current`` without the ``superseded`` effects.
 
     Returns a dict: ``effect`` (restricted to the chosen modes), ``params`` (start values, free
     flags of the current model plus the effect's), ``effects`` (the trial's effect list),
     ``selection`` (per step: each mode's t and the threshold) and ``reason`` (why nothing is
-    proposed; then ``effect`` is None)."""
+    proposed; then ``effect`` is None). Modes in ``tabu`` (labels) are not offered."""
     robot = ctx.robot
     geo, parts = split_params(current.params, robot, current.effects)
     keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
@@ -96,6 +96,9 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list) -> dict:
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
         forced = [labels.index(lab) for lab in forced_labels if lab in labels]
+        for g, lab in enumerate(labels):  # modes a later finding explained away do not come back
+            if lab in tabu and g not in forced:
+                lcv.usable[g] = False
 
         # what to beat: the model as it is, at the prior its own CV chose (so a prior that moves
         # with the effect lends it nothing the current model could have had alone)

@@ -48,7 +48,8 @@ def progress_bar(progress: bool):
     return tqdm(desc="diagnosis", unit="candidate")
 
 
-def try_candidate(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int, say, rnd: int) -> dict:
+def try_candidate(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int, say, rnd: int,
+                  tabu=frozenset()) -> dict:
     """One candidate effect against ``current``: its start (modes chosen), fit, CV and the rule;
     under a geometric prior, the prior is re-chosen among its neighbours with the effect."""
     covering = [e.name for e in current.effects if name in getattr(e, "supersedes", ()) and e.name != name]
@@ -58,7 +59,7 @@ def try_candidate(ctx: Context, current: Model, name: str, robot, train, test, n
     eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params])
     # a family replaces what it extends: an effect it supersedes, or itself accepted with fewer modes
     superseded = [e for e in current.effects if e.name in eff.supersedes or (eff.selectable and e.name == name)]
-    start = effect_start(ctx, current, eff, superseded)
+    start = effect_start(ctx, current, eff, superseded, tabu)
     if start["effect"] is None:
         say(f"round {rnd}: {name:<20} {start['reason']}")
         return {"name": name, "entry": {"name": name, "reason": start["reason"], "selection": start["selection"]}}

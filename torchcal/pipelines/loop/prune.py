@@ -1,0 +1,94 @@
+"""Selection that can change its mind across rounds: a mode an earlier round accepted leaves when
+what was accepted since explains it.
+
+A cyclic error taken in round 1 may only have mimicked a joint's twist under gravity; once the
+twist is in, the cyclic mode adds nothing of its own. After each accepted round, every mode of
+every accepted family is judged again, as if it were being added last: around the current model
+the measurement model is linear, so the model without the mode is the current one with the mode's
+contribution taken back, and :class:`~torchcal.pipelines.loop.linear_cv.LinearCV` scores adding it
+to that model. A mode that no longer passes the rule at the exit threshold (``t > T_EXIT`` and a
+lower penalised error) is removed, the weakest first, and the model refitted without it; it is
+not tried again in that run.
+"""
+from __future__ import annotations
+
+from torchcal.effects import effect_params
+from torchcal.params import ParamSet
+from torchcal.pipelines.loop.fit import Context, Model, effect_problem, evaluate, prior_weights, split_params
+from torchcal.pipelines.loop.linear_cv import LinearCV
+from torchcal.pipelines.loop.selection import T_EXIT, compare
+
+__all__ = ["prune", "weakest_mode"]
+
+
+def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
+    """``(effect index, mode label, columns among the free parameters)`` of every mode of every
+    selectable accepted effect (modes with no free parameter left out)."""
+    col = {int(i): c for c, i in enumerate(m.params.free_index.tolist())}
+    out, o = [], ctx.n_geo
+    for k, e in enumerate(m.effects):
+        if e.selectable:
+            for label, idx in e.modes():
+                cols = [col[o + i] for i in idx if (o + i) in col and i not in set(e.shared())]
+                if cols:
+                    out.append((k, label, cols))
+        o += e.n_params
+    return out
+
+
+def weakest_mode(ctx: Context, m: Model, protect=frozenset()) -> tuple[int, str, float] | None:
+    """The accepted mode with the smallest t that no longer passes the rule (at :data:`T_EXIT`) when
+    added last to the current model without it: ``(effect index, label, t)``; None when every mode
+    passes.
+    Modes in ``protect`` (``(effect name, label)``) are not judged."""
+    modes = [(k, lab, c) for k, lab, c in _mode_columns(ctx, m) if (m.effects[k].name, lab) not in protect]
+    if len(modes) == 0:
+        return None
+    prior = prior_weights(ctx.robot, m.params, m.prior_mm, ctx.sigma)
+    prob = effect_problem(ctx, m.params, m.effects, ctx.data, prior)
+    x = prob.x0
+    r = prob.residual_vectors(m.params.values[None])[0]
+    J = prob.data_jacobian(x)
+    w = prob.observation_weights(x)
+    pf = None if prior is None else prior[m.params.free_index]
+    worst = None
+    for k, label, cols in modes:
+        base = [c for c in range(J.shape[1]) if c not in set(cols)]
+        # the model without the mode: its fitted contribution taken back, to first order
+        r0 = r - (J[:, cols] @ x[cols]).reshape(-1, 3)
+        lcv = LinearCV(r0, w, J[:, base], x[base], None if pf is None else pf[base], [J[:, cols]], prob.rows,
+                       len(ctx.data), ctx.folds, ctx.c)
+        t, pen_ok, _ = compare(lcv.scores([]), lcv.scores([0]), lcv.k_eff([]), lcv.k_eff([0]), ctx.n_obs)
+        if not (t > T_EXIT and pen_ok) and (worst is None or t < worst[2]):
+            worst = (k, label, t)
+    return worst
+
+
+def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model, list[dict]]:
+    """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
+    and what left, with its t when it left. The modes just accepted (``protect``: ``(effect name,
+    label)``) passed the rule against everything before them and are not judged again here."""
+    gone = []
+    for _ in range(sum(len(e.modes()) for e in m.effects)):
+        weak = weakest_mode(ctx, m, protect)
+        if weak is None:
+            break
+        k, label, t = weak
+        eff = m.effects[k]
+        keep = [lab for lab, _ in eff.modes() if lab != label]
+        geo, parts = split_params(m.params, ctx.robot, m.effects)
+        effects, kept_parts = list(m.effects), list(parts)
+        if keep:
+            new = eff.with_modes(keep)
+            old = dict(zip(eff.param_names, parts[k].values.tolist()))
+            new.theta = new.theta.new_tensor([old.get(n, 0.0) for n in new.param_names])
+            effects[k], kept_parts[k] = new, effect_params([new])
+        else:
+            del effects[k], kept_parts[k]
+        params = ParamSet.concat(geo, *kept_parts)
+        params.free[: ctx.n_geo] = m.info["candidates"]
+        gone.append({"effect": eff.name, "mode": label, "t": t})
+        if say is not None:
+            say(f"{eff.name}: mode {label} leaves (t = {t:.1f} once the later findings are in)")
+        m = evaluate(ctx, m.label, params, effects, m.prior_mm, info=m.info)
+    return m, gone
