@@ -31,6 +31,7 @@ from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrum
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
+from torchcal.threads import set_threads
 from torchcal.version import __version__
 
 __all__ = ["main", "build_parser"]
@@ -207,10 +208,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     a = ap.parse_args(join_negative_values(argv, sub))
     setup_logging(a)
+    # each command sets torch's threads from --threads; the library's own choice would override it
+    threads, choice = torch.get_num_threads(), set_threads("caller")
     try:
         return a.func(a, argv)
     except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
         return report_failure(a.cmd, e, getattr(a, "verbose", False))
+    finally:
+        set_threads(choice)
+        torch.set_num_threads(threads)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from torchcal.pipelines.fleet.identify import check_rank, decide, explain
 from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.problems.uncertainty import residual_noise
 from torchcal.report.fleet import FALSE_ALARM, parameter_spread
+from torchcal.threads import threads_by_size
 
 __all__ = ["calibrate_fleet", "FleetData", "fleet_template", "validate_fleet"]
 
@@ -224,6 +225,7 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
     return out
 
 
+@threads_by_size("data", "test")
 def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=None, params: ParamSet | None = None,
                     free=None, prior: str | None = None, prior_scale: dict | None = None, effects=None,
                     payload: str = "shared", identify: str | None = None, register: bool = True, prefer=None,
