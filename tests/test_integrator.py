@@ -304,24 +304,6 @@ def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys
     assert "failed" in capsys.readouterr().err
 
 
-def test_the_readme_python_example_runs_and_converges(tmp_path):
-    """The README's example, as written, after the demo has made its files."""
-    code = re.search(r"## Python API\n\n```python\n(.*?)```", (REPO / "README.md").read_text(), re.S).group(1)
-    subprocess.run([sys.executable, str(REPO / "scripts" / "demo.py"), "--out", str(tmp_path / "out" / "demo"),
-                    "--poses", "120", "--test-poses", "40", "--targets", "4"], check=True, capture_output=True,
-                   env={**os.environ, "PYTHONPATH": str(REPO)})
-    os.symlink(REPO / "urdf", tmp_path / "urdf")
-    cwd = os.getcwd()
-    os.chdir(tmp_path)
-    try:
-        ns: dict = {}
-        exec(compile(code, "README.md", "exec"), ns)
-    finally:
-        os.chdir(cwd)
-    assert bool(ns["corr"].converged.all())
-    assert ns["res"].stages[-1]["test"]["mean_mm"] < 0.1
-
-
 def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     md = (looped / "report.md").read_text()
     rep = json.loads((looped / "report.json").read_text())
