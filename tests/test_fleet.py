@@ -7,8 +7,11 @@ Simulated robots (``torchcal.sim.serial``), seeded; the truth is used only to sc
 from __future__ import annotations
 
 import json
+import re
+import shlex
 import statistics
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,6 +32,7 @@ from torchcal.sim.serial import SimConfig, random_configs, simulate, simulate_fl
 from torchcal.kinematics.transforms import kabsch, so3_exp
 
 MARKERS = ["smr@flange=0,0,0", "b@link6=0.06,0.02,0.03"]
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -132,6 +136,11 @@ def test_fleet_equals_per_robot_calibrate(kr5, ragged):
         for sa, sb in zip(a.stages, b.stages):
             assert sa["train"]["mean_mm"] == pytest.approx(sb["train"]["mean_mm"], rel=1e-6)
             assert sa["train"]["per_marker"].keys() == sb["train"]["per_marker"].keys()
+        # what the error figures plot (error vectors, norms, distance from the base), per stage
+        for name, e in b.errors.items():
+            da, db = a.errors[name]["train_details"], e["train_details"]
+            for k in ("e", "xyz", "dist"):
+                assert torch.allclose(da[k], db[k], atol=1e-8, rtol=0), (name, k)
 
 
 def test_fleet_exact_mode_follows_calibrate(kr5, ragged):
@@ -291,6 +300,25 @@ def test_cli_fleet(tmp_path, capsys):
     cal = Robot.from_urdf(out / "kr5_00" / "calibrated.urdf", markers=["marker_flange"])
     q = random_configs(robot, 5, torch.Generator().manual_seed(0))
     assert torch.allclose(cal.positions(q)[:, 0], robot.positions(q, res.values[0], base=False)[:, 0], atol=1e-9)
+
+
+def test_the_readme_fleet_command_writes_its_figures(tmp_path, monkeypatch, capsys):
+    """The README's command as written: figures on (the default), held-out files."""
+    line = re.search(r"^torchcal fleet .*$", (REPO / "README.md").read_text(), re.M).group(0)
+    robot = Robot.from_urdf(urdf_path("kuka_kr5_arc"), markers=MARKERS[:1])
+    train, test, _ = simulate_fleet(robot, 4, SimConfig(n=30, seed=9), spread=0.2, n_test=10)
+    _write_fleet(tmp_path / "cell_data", robot, train)
+    _write_fleet(tmp_path / "held_out", robot, test)
+    (tmp_path / "urdf").symlink_to(REPO / "urdf")
+    monkeypatch.chdir(tmp_path)
+    rc = main(shlex.split(line)[1:])
+    assert rc == 0, capsys.readouterr().err
+    out = tmp_path / shlex.split(line)[shlex.split(line).index("--out") + 1]
+    for i in range(4):
+        d = out / f"kr5_{i:02d}"
+        for png in ("errors.png", "errors_test.png"):
+            assert (d / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", d / png
+        assert "![error histograms](errors.png)" in (d / "report.md").read_text()
 
 
 def test_cli_fleet_refuses_bad_input(tmp_path, capsys):

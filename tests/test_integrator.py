@@ -18,12 +18,15 @@ import yaml
 import torchcal
 from torchcal import Robot, load, load_measurements, run_loop, save
 from torchcal.cli.app import main as cli
+from torchcal.cli.common import EXIT_BUG, EXIT_REFUSED, is_refusal
+from torchcal.params import NoSuchParameter
 from torchcal.measure.io import UnitsError
 from torchcal.pipelines.loop.fit import folds_of
 from torchcal.kinematics.robots import urdf_path
 from torchcal.kinematics.transforms import quat_to_matrix
 
 REPO = Path(__file__).resolve().parents[1]
+TIAGO = REPO.parent / "shared" / "data" / "tiago_mocap"
 UR5E = str(urdf_path("ur5e"))
 KR5 = str(urdf_path("kuka_kr5_arc"))
 
@@ -309,24 +312,6 @@ def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys
     assert "failed" in capsys.readouterr().err
 
 
-def test_the_readme_python_example_runs_and_converges(tmp_path):
-    """The README's example, as written, after the demo has made its files."""
-    code = re.search(r"## Python API\n\n```python\n(.*?)```", (REPO / "README.md").read_text(), re.S).group(1)
-    subprocess.run([sys.executable, str(REPO / "scripts" / "demo.py"), "--out", str(tmp_path / "out" / "demo"),
-                    "--poses", "120", "--test-poses", "40", "--targets", "4"], check=True, capture_output=True,
-                   env={**os.environ, "PYTHONPATH": str(REPO)})
-    os.symlink(REPO / "urdf", tmp_path / "urdf")
-    cwd = os.getcwd()
-    os.chdir(tmp_path)
-    try:
-        ns: dict = {}
-        exec(compile(code, "README.md", "exec"), ns)
-    finally:
-        os.chdir(cwd)
-    assert bool(ns["corr"].converged.all())
-    assert ns["res"].stages[-1]["test"]["mean_mm"] < 0.1
-
-
 def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     md = (looped / "report.md").read_text()
     rep = json.loads((looped / "report.json").read_text())
@@ -398,3 +383,108 @@ def test_reprs_are_short(files, looped):
     assert "q: (N, dof)" in run_loop.__doc__ or "rad" in run_loop.__doc__
     assert "Attributes" in torchcal.pipelines.loop.run.LoopResult.__doc__
     assert quat_to_matrix(torch.tensor([1.0, 0, 0, 0])).equal(torch.eye(3))
+
+
+# ----------------------------------------------------------------------------- refusals and bugs
+def _raised(module: str, body: str, **names):
+    """The exception a one-line function raises when it is defined in ``module``."""
+    g = {"__name__": module, **names}
+    exec(compile(f"def f():\n    {body}\n", f"<{module}>", "exec"), g)
+    with pytest.raises(Exception) as e:
+        g["f"]()
+    return e.value
+
+
+def test_refusals_are_raised_on_purpose_and_everything_else_is_a_bug(tmp_path):
+    assert is_refusal(_raised("torchcal.x", "raise ValueError('the file is empty: give one row per pose')"))
+    assert is_refusal(_raised("torchcal.x", "raise ImportError('pip install torchcal[ray]')"))
+    assert is_refusal(_raised("torchcal.x", "raise NoSuchParameter('no parameter matches')",
+                              NoSuchParameter=NoSuchParameter))
+    assert is_refusal(_raised("elsewhere", f"open({str(tmp_path / 'none.csv')!r})"))  # the system refuses
+    assert not is_refusal(_raised("torchcal.x", "return float('1,5')"))  # converted unchecked: a bug
+    assert not is_refusal(_raised("numpy.x", "raise ValueError('operands could not be broadcast')"))
+    assert not is_refusal(_raised("torchcal.x", "return {}['train_details']"))
+    assert not is_refusal(_raised("torchcal.x", "raise KeyError('train_details')"))
+    assert not is_refusal(_raised("torchcal.x", "raise RuntimeError('shape mismatch')"))
+
+
+def test_a_bug_says_so_and_shows_its_traceback_under_verbose(files, tmp_path, monkeypatch, capsys):
+    def broken(*a, **k):
+        return {}["train_details"]
+    monkeypatch.setattr("torchcal.cli.app.calibrate", broken)
+    args = ["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(tmp_path / "o")]
+    assert cli(args) == EXIT_BUG == 70
+    err = capsys.readouterr().err
+    assert "torchcal calibrate: internal error (a bug): KeyError: 'train_details'" in err
+    assert "Rerun with --verbose for the traceback and report it" in err and "Traceback" not in err
+    assert cli(args + ["--verbose"]) == EXIT_BUG
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err and "in broken" in err and "(a bug)" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_parameter_pattern_that_names_nothing_is_refused_not_a_bug(files, tmp_path, capsys):
+    rc = cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--free", "joint_9.*",
+              "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == EXIT_REFUSED and "error: no parameter matches ['joint_9.*']" in err and "(a bug)" not in err
+
+
+# ----------------------------------------------------------------------------- options as written
+def test_plan_takes_a_box_with_negative_bounds_as_written(tmp_path, capsys):
+    box = "-1.2,1.2,-1.2,1.2,0.2,1.6"
+    plan = ["plan", "--robot", KR5, "--marker", "smr@flange=0,0,0", "--candidates", "300", "--select", "12",
+            "--refine-steps", "0"]
+    assert cli(plan + ["--reachable", box, "--seed", "-3", "--out", str(tmp_path / "a.csv")]) == 0, \
+        capsys.readouterr().err
+    rep = json.loads((tmp_path / "a.plan.json").read_text())
+    assert rep["feasibility"]["box_m"] == [-1.2, 1.2, -1.2, 1.2, 0.2, 1.6]
+    (tmp_path / "plan.yaml").write_text(f"reachable: {box}\n")  # the same from a --config file
+    assert cli(plan + ["--config", str(tmp_path / "plan.yaml"), "--out", str(tmp_path / "b.csv")]) == 0
+    assert json.loads((tmp_path / "b.plan.json").read_text())["feasibility"]["box_m"][0] == -1.2
+
+
+# ----------------------------------------------------------------------------- markers a file has beyond those used
+def _left_out_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if "left out the columns of marker(s)" in line]
+
+
+def test_markers_not_declared_are_left_out_with_one_line(tmp_path, capsys, caplog):
+    csv = tmp_path / "two.csv"
+    assert cli(["simulate", "--robot", UR5E, "--marker", "a@flange=0,0,0.05", "--marker", "b@flange=0.04,0,0.02",
+                "--poses", "40", "--seed", "3", "--out", str(csv)]) == 0
+    assert cli(["calibrate", "--robot", UR5E, "--marker", "a@flange=0,0,0.05", "--data", str(csv), "--holdout", "0.25",
+                "--out", str(tmp_path / "o")]) == 0
+    lines = _left_out_lines(capsys.readouterr().err)
+    assert len(lines) == 1 and "['b']" in lines[0] and "--marker" in lines[0]
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["n_train"] + rep["n_test"] == 40 and list(rep["stages"][-1]["train"]["per_marker"]) == ["a"]
+    # the Python API: one warning through logging, and the data of a file without b's columns
+    robot = Robot.from_urdf(UR5E, markers=["a@flange=0,0,0.05"])
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="torchcal"):
+        got = load_measurements(csv, robot)
+    assert [r.levelno for r in caplog.records] == [logging.WARNING] and "['b']" in caplog.records[0].getMessage()
+    header, *rows = csv.read_text().splitlines()
+    keep = [i for i, c in enumerate(header.split(",")) if not c.startswith("b.")]
+    (tmp_path / "a_only.csv").write_text("\n".join(",".join(r.split(",")[i] for i in keep) for r in [header] + rows))
+    ref = load_measurements(tmp_path / "a_only.csv", robot)
+    assert got.marker_names == ["a"] and torch.allclose(got.positions, ref.positions, equal_nan=True)
+    assert torch.equal(got.q, ref.q)
+    # a declared marker that the file lacks is still refused, naming what the file has
+    assert cli(["calibrate", "--robot", UR5E, "--marker", "c@flange", "--data", str(csv), "--out",
+                str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err
+    assert "['c'] are declared but the file has no columns" in err and "'a', 'b'" in err
+
+
+@pytest.mark.skipif(not TIAGO.is_dir(), reason=f"the TIAGo motion-capture data is not in {TIAGO}")
+def test_the_tiago_file_of_four_markers_calibrates_with_the_one_declared(tmp_path, capsys):
+    rc = cli(["calibrate", "--robot", str(TIAGO / "tiago_48_hey5.urdf"), "--data", str(TIAGO / "train.csv"),
+              "--test", str(TIAGO / "test.csv"), "--marker", "hand_BL@wrist_ft_tool_link", "--out", str(tmp_path / "t")])
+    lines = _left_out_lines(capsys.readouterr().err)
+    assert rc == 0
+    assert len(lines) == 2 and all("['hand_BR', 'hand_TR', 'hand_TL']" in line for line in lines)  # train, test
+    rep = json.loads((tmp_path / "t" / "report.json").read_text())
+    assert (rep["n_train"], rep["n_test"]) == (37, 62)
+    assert list(rep["stages"][-1]["test"]["per_marker"]) == ["hand_BL"]

@@ -1,6 +1,7 @@
 """Bad input gives a clear error that names the problem and the fix."""
 from __future__ import annotations
 
+import logging
 import math
 import re
 import warnings
@@ -232,12 +233,24 @@ def test_missing_joint_column_suggests_close_name(tree_two, tmp_path):
 
 
 def test_unknown_marker_column(tree_two, tmp_path):
+    """m1 renamed m7 in the file: the declared m1 has no columns, and the message names m7."""
     header = [c.replace("m1.", "m7.") for c in GOOD_HEADER]
     with pytest.raises(ValueError) as e:
         load_measurements(_csv(tmp_path, header, _good_rows()), tree_two)
     msg = str(e.value)
-    assert "['m7']" in msg and "does not have" in msg
-    assert "m7@LINK" in msg  # how to declare it
+    assert "['m1'] are declared but the file has no columns" in msg and "['tool', 'm7']" in msg
+    assert "--marker tool@LINK" in msg  # how to declare what the file has
+
+
+def test_columns_of_undeclared_markers_are_left_out(tree_two, tmp_path, caplog):
+    header = GOOD_HEADER + ["m7.x", "m7.y", "m7.z", "m7.qw", "m7.qx", "m7.qy", "m7.qz", "tool.dist.m7"]
+    rows = [r + ["0.1", "0.2", "0.3", "1", "0", "0", "0", "0.25"] for r in _good_rows()]
+    with caplog.at_level(logging.WARNING, logger="torchcal"):
+        data = load_measurements(_csv(tmp_path, header, rows), tree_two)
+    ref = load_measurements(_csv(tmp_path, GOOD_HEADER, _good_rows(), name="ref.csv"), tree_two)
+    assert len(caplog.records) == 1 and "['m7']" in caplog.records[0].getMessage()
+    assert data.marker_names == ref.marker_names and torch.allclose(data.positions, ref.positions, equal_nan=True)
+    assert sorted(data.covariates) == sorted(ref.covariates) and not data.distances  # nothing of m7 is kept
 
 
 def test_non_numeric_cell_gives_line_and_column(tree_two, tmp_path):

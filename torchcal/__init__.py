@@ -20,7 +20,9 @@ from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.pipelines.plan.run import Plan, plan_poses
+from torchcal.threads import get_threads, set_threads
 from torchcal.version import __version__
 __all__ = ["Robot", "ParamSet", "Marker", "Measurements", "load_measurements", "calibrate",
            "CalibrationResult", "run_loop", "CalibratedModel", "ELM", "tune_elm", "Corrector", "save", "load",
-           "plan_poses", "Plan", "calibrate_fleet", "FleetResult", "robots", "__version__"]
+           "plan_poses", "Plan", "calibrate_fleet", "FleetResult", "robots", "set_threads", "get_threads",
+           "__version__"]

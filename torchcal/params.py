@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["ParamSet", "display_unit"]
+__all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
 
 # SI unit -> (factor, unit) in which people read it; m and rad share the factor, so ratios of the
 # two read unchanged
@@ -18,6 +18,14 @@ def display_unit(unit: str) -> tuple[float, str]:
     """``(factor, unit)`` to show a value given in ``unit``: m -> mm, rad -> mrad,
     rad/(N*m) -> µrad/(N·m), m/N -> µm/kN; anything else as it is."""
     return _DISPLAY.get(unit, (1.0, unit))
+
+
+class NoSuchParameter(KeyError, ValueError):
+    """A parameter pattern (``free=``, ``--free``) that names no parameter: a lookup that failed
+    (KeyError) on a value the user gave (ValueError, which the command line refuses)."""
+
+    def __str__(self) -> str:  # the message as written, not KeyError's repr of it
+        return str(self.args[0]) if self.args else ""
 
 
 @dataclass
@@ -67,7 +75,7 @@ class ParamSet:
             patterns = [patterns]
         idx = [i for i, n in enumerate(self.names) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
         if not idx:
-            raise KeyError(f"no parameter matches {list(patterns)}; names look like {self.names[:4]}")
+            raise NoSuchParameter(f"no parameter matches {list(patterns)}; names look like {self.names[:4]}")
         return idx
 
     def fix(self, *patterns: str) -> "ParamSet":

@@ -18,21 +18,21 @@ from pathlib import Path
 import torch
 
 from torchcal.cli.bag import add_bag_parser
-from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, nonnegative_float,
-                                 robot_and_data, run_record, setup_logging)
+from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, join_negative_values,
+                                 nonnegative_float, report_failure, robot_and_data, run_record, setup_logging)
 from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
 from torchcal.kinematics.robot import Robot
-from torchcal.measure.io import UnitsError
 from torchcal.outputs import check_out_dir, check_out_file
 from torchcal.outputs import staged_dir
 from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
+from torchcal.threads import set_threads
 from torchcal.version import __version__
 
 __all__ = ["main", "build_parser"]
@@ -208,14 +208,17 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:
         print(e, file=sys.stderr)
         return 2
-    a = ap.parse_args(argv)
+    a = ap.parse_args(join_negative_values(argv, sub))
     setup_logging(a)
+    # each command sets torch's threads from --threads; the library's own choice would override it
+    threads, choice = torch.get_num_threads(), set_threads("caller")
     try:
         return a.func(a, argv)
-    except (ValueError, UnitsError, FileNotFoundError, FileExistsError, IsADirectoryError, PermissionError,
-            KeyError) as e:
-        print(f"torchcal {a.cmd}: error: {e}", file=sys.stderr)
-        return 2
+    except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
+        return report_failure(a.cmd, e, getattr(a, "verbose", False))
+    finally:
+        set_threads(choice)
+        torch.set_num_threads(threads)
 
 
 if __name__ == "__main__":

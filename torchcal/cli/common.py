@@ -4,10 +4,13 @@ robot and data an integrator points the commands at."""
 from __future__ import annotations
 
 import argparse
+import dis
 import json
 import logging
 import math
+import re
 import sys
+import traceback
 from pathlib import Path
 
 import yaml
@@ -19,13 +22,90 @@ from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, rea
 from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",
-           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
+           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS",
+           "is_refusal", "report_failure", "join_negative_values", "EXIT_REFUSED", "EXIT_BUG"]
 
 logger = logging.getLogger("torchcal")
 
 # options holding paths: relative ones in a --config file are read from the file's folder
 PATH_OPTIONS = ("robot", "data", "test", "out", "model", "targets")
 _MAX_MARKER_GUESS_M = 2.0  # a marker point further than 2 m from its link is a guess in millimetres
+
+
+# ------------------------------------------------------------------ refusals and bugs
+# A command ends in one of three ways: it works (exit 0, or 3 when `correct` has failed targets),
+# it refuses (exit 2), or it meets a bug (exit 70, EX_SOFTWARE of sysexits.h).
+#
+# A refusal is deliberate: torchcal checked the options, the input or the place it writes to, and
+# says what is wrong and how to fix it. argparse refuses bad options. torchcal refuses by raising
+# ValueError (or its subclasses UnitsError, WorkspaceError, NoSuchParameter) or ImportError (an
+# optional extra is missing) from a `raise` statement in its own code, the package's convention
+# for input checked at the door, as in scikit-learn. The system refuses with OSError (a file
+# missing or in the way, a folder not writable, a full disk), whoever raised it.
+#
+# Any other exception is a bug: KeyError, IndexError, TypeError, RuntimeError, AttributeError…,
+# a ValueError that torch, numpy or the standard library raised inside torchcal's work (a shape
+# torchcal built wrongly), and one that a call such as float() raised in torchcal's code without
+# a check before it. A name the user gave that names nothing raises NoSuchParameter, a KeyError
+# that is also a ValueError; any other KeyError is a lookup torchcal got wrong. A bug's message
+# names the exception and asks for a report; --verbose prints its traceback.
+EXIT_REFUSED, EXIT_BUG = 2, 70
+_REFUSED_BY_TORCHCAL = (ValueError, ImportError)
+
+
+def _raised_by_torchcal(e: BaseException) -> bool:
+    """Whether ``e`` left a ``raise`` statement in a torchcal module (its innermost frame)."""
+    tb = e.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    if not str(tb.tb_frame.f_globals.get("__name__", "")).startswith("torchcal"):
+        return False
+    ops = {i.offset: i.opname for i in dis.get_instructions(tb.tb_frame.f_code)}
+    op = ops.get(tb.tb_lasti) or ops.get(2 * tb.tb_lasti)  # a byte offset, or (Python 3.10) a code unit
+    return op in ("RAISE_VARARGS", "RERAISE")
+
+
+def is_refusal(e: BaseException) -> bool:
+    """Whether ``e`` is a deliberate refusal (exit 2) rather than a bug (exit 70); see above."""
+    return isinstance(e, OSError) or (isinstance(e, _REFUSED_BY_TORCHCAL) and _raised_by_torchcal(e))
+
+
+def report_failure(cmd: str, e: Exception, verbose: bool) -> int:
+    """Print a refusal or a bug to stderr as the exit status says; return that status."""
+    if is_refusal(e):
+        print(f"torchcal {cmd}: error: {e}", file=sys.stderr)
+        return EXIT_REFUSED
+    if verbose:
+        traceback.print_exception(e, file=sys.stderr)
+    print(f"torchcal {cmd}: internal error (a bug): {type(e).__name__}: {e}. "
+          + ("The traceback is above; please report it with the command line"
+             if verbose else "Rerun with --verbose for the traceback and report it"), file=sys.stderr)
+    return EXIT_BUG
+
+
+# a value that starts with a minus and a digit: a negative number or a list such as -1.2,1.2
+_NEGATIVE = re.compile(r"-\.?\d")
+
+
+def join_negative_values(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> list[str]:
+    """``argv`` with ``--opt -1.2,1.2,…`` written ``--opt=-1.2,1.2,…`` for options that take one
+    value: argparse reads a leading minus as the next option unless the value is a plain number."""
+    if not argv or argv[0] not in sub:
+        return argv
+    takes_one = {o for a in sub[argv[0]]._actions if a.nargs is None and a.option_strings for o in a.option_strings}
+    out = argv[:1]
+    i = 1
+    while i < len(argv):
+        tok = argv[i]
+        if tok in takes_one and i + 1 < len(argv) and _NEGATIVE.match(argv[i + 1]):
+            out.append(f"{tok}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(tok)
+            i += 1
+    return out
 
 
 def int_at_least(lo: int):

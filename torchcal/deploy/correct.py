@@ -28,6 +28,7 @@ from torch import Tensor
 
 from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
 from torchcal.kinematics.ik import solve_ik, target_frames
+from torchcal.threads import threads_by_size
 
 __all__ = ["Corrector", "CorrectionResult"]
 
@@ -110,6 +111,7 @@ class Corrector:
         opts.update(ik_options or {})
         self.ik_options = opts
 
+    @threads_by_size("targets")
     def correct(self, targets, q0=None, covariates=None) -> CorrectionResult:
         """Commands that make the model's predicted pose of the marker equal the targets.
 

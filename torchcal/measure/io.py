@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import difflib
 import io
+import logging
 import math
 import os
 import warnings
@@ -35,6 +36,7 @@ from torchcal.outputs import atomic_write_text
 __all__ = ["load_measurements", "save_measurements", "marker_columns_in", "read_csv", "UNITS", "UnitsError"]
 
 UNITS = ("deg", "mm")
+logger = logging.getLogger("torchcal")
 
 
 class UnitsError(ValueError):
@@ -95,6 +97,22 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     return header, rows[1:]
 
 
+def _without_undeclared(path, header: list[str], rows: list[list[str]], markers: list[str]):
+    """The header and rows without the columns of markers the robot does not declare (a file often
+    holds more markers than a calibration uses: the declared ones choose), the names left out,
+    for the caller to name. Their columns: ``.x/.y/.z``, orientation, plane contacts,
+    distances measured from them and to them."""
+    undeclared = [m for m in marker_columns_in(header) if m not in markers]
+    if not undeclared:
+        return header, rows, []
+    gone = set(undeclared)
+    drop = [i for i, c in enumerate(header)
+            if (_DIST in c and (c.split(_DIST, 1)[0] in gone or c.split(_DIST, 1)[1] in gone))
+            or any(c == m + s for m in gone for s in _POS + _QUAT + (_PLANE,))]
+    keep = [i for i in range(len(header)) if i not in set(drop)]
+    return [header[i] for i in keep], [[r[i] for i in keep] for r in rows], undeclared
+
+
 def _number(cell: str, line: int, col: str, path) -> float:
     s = cell.strip()
     if s == "" or s.lower() == "nan":
@@ -111,7 +129,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
 
     Every actuated joint of the robot must have a column (named as in the URDF), every marker
     of the robot its ``.x/.y/.z`` columns (or plane / distance columns, see the module
-    docstring). Marker columns must name markers of the robot (declare unknown points with
+    docstring). The robot's markers choose what is used: the columns of markers it does not
+    declare are left out, with one logged warning naming them (declare unknown points with
     ``Robot.from_urdf(..., markers=["m1@link=x,y,z"])`` or ``--marker`` on the command line).
 
     Args:
@@ -141,26 +160,27 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
                 hints.append(repr(j))
         raise ValueError(f"{path}: no column for joint(s) {', '.join(hints)}. The robot's joints are {joints}; "
                          "name the joint columns exactly as in the URDF")
-    markers_in_file = marker_columns_in(header)
     robot_markers = list(robot.marker_names)
-    unknown = [m for m in markers_in_file if m not in robot_markers]
-    if unknown:
-        raise ValueError(f"{path}: measurement column(s) for {unknown}, which the robot does not have (its markers: "
-                         f"{robot_markers}). Declare them, e.g. Robot.from_urdf(urdf, markers=['{unknown[0]}@LINK']) "
-                         f"or --marker {unknown[0]}@LINK[=x,y,z]")
+    header, rows, undeclared = _without_undeclared(path, header, rows, robot_markers)
+    markers_in_file = marker_columns_in(header)
     dist_cols = _distance_columns(header)
     for c, (a_, b_) in dist_cols.items():
         if not b_ or a_ == b_:
             raise ValueError(f"{path}: distance column {c!r} must be named '<marker>.dist.<other marker or fixed "
                              "point>'")
     measured = [m for m in robot_markers if m in markers_in_file or any(b_ == m for _, b_ in dist_cols.values())]
+    absent = [m for m in robot_markers if m not in measured]
+    if absent and (measured or undeclared):
+        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no columns for them (it has "
+                         f"columns for {markers_in_file + undeclared}); declare only the markers that were measured, "
+                         f"named as in the file (e.g. --marker {(markers_in_file + undeclared)[0]}@LINK[=x,y,z])")
     if not measured:
         raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' (or "
                          f"'<marker>.plane', '<marker>.dist.<point>') for one of {robot_markers}")
-    absent = [m for m in robot_markers if m not in measured]
-    if absent:
-        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no columns for them (it has "
-                         f"{markers_in_file}); declare only the markers that were measured")
+    if undeclared:
+        logger.warning(f"{path}: left out the columns of marker(s) {undeclared}, which the robot does not declare "
+                       f"(it uses {measured}); declare a marker to use it (--marker NAME@LINK[=x,y,z], or "
+                       "Robot.from_urdf(urdf, markers=[...]))")
     for m in measured:
         have = [m + s for s in _POS if m + s in cols]
         if have and len(have) < 3:

@@ -23,6 +23,7 @@ from torchcal.pipelines.fitting import (PLAUSIBLE, check_plausible, fit_identifi
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
+from torchcal.threads import threads_by_size
 
 __all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
 
@@ -232,6 +233,7 @@ def _search_box(params: ParamSet, radius: dict) -> ParamSet:
     return p
 
 
+@threads_by_size("data", "test")
 def calibrate(robot, data: Measurements, *, test: Measurements | None = None, method: str = "lm",
               params: ParamSet | None = None, free=None, kind: str = "position", rot_weight: float = 0.1,
               loss: str = "l2", loss_scale: float | None = None, register: bool = True,

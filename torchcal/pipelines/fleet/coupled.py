@@ -341,7 +341,7 @@ def _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p,
         def test_errors(fd_test):
             qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
             idx = torch.arange(R_, device=Z.device)
-            return (fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured).norm(dim=-1)
+            return fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured
     prior_info = None
     if prior:
         P = model.P

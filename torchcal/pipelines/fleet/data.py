@@ -72,10 +72,26 @@ class FleetData:
         J = J * self.seen[idx][..., None, None]
         return J.reshape(J.shape[0], -1, J.shape[-1])
 
+    def error_vectors(self, robot: Robot, X: Tensor) -> Tensor:
+        """``(R, N, M, 3)`` model minus measured positions (m) of every robot with its own
+        parameters ``X (R, K)``; meaningful where :attr:`seen`."""
+        idx = torch.arange(self.q.shape[0], device=self.q.device)
+        return self.positions(robot, X, idx) - self.measured
+
     def errors(self, robot: Robot, X: Tensor) -> Tensor:
         """``(R, N, M)`` Euclidean errors (m) of every robot with its own parameters ``X (R, K)``."""
-        idx = torch.arange(self.q.shape[0], device=self.q.device)
-        return (self.positions(robot, X, idx) - self.measured).norm(dim=-1)
+        return self.error_vectors(robot, X).norm(dim=-1)
+
+    def details(self, robot: Robot, X: Tensor, V: Tensor) -> list[dict]:
+        """Per robot, what :func:`~torchcal.report.calibration.error_details` gives one data set:
+        ``e (n,)``, ``xyz (n, 3)`` and the marker's distance from the robot base ``dist (n,)`` (m)
+        of its observations, from the error vectors ``V (R, N, M, 3)`` of parameters ``X (R, K)``.
+        The base frame only turns and shifts, so that distance is ``|model − base translation|``
+        in the instrument frame and needs no second pass of the kinematics."""
+        t = X[:, [robot.param_names.index(n) for n in BASE_NAMES[:3]]]
+        dist = (self.measured + V - t[:, None, None]).norm(dim=-1)
+        e = V.norm(dim=-1)
+        return [{"e": e[b][s], "xyz": V[b][s], "dist": dist[b][s]} for b, s in enumerate(self.seen)]
 
 
 def fleet_template(robot: Robot, marker_names: list[str], params: ParamSet | None = None, free=None) -> ParamSet:

@@ -41,6 +41,7 @@ from torchcal.pipelines.fleet.identify import check_rank, decide, explain
 from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.problems.uncertainty import residual_noise
 from torchcal.report.fleet import FALSE_ALARM, parameter_spread
+from torchcal.threads import threads_by_size
 
 __all__ = ["calibrate_fleet", "FleetData", "fleet_template", "validate_fleet"]
 
@@ -181,24 +182,22 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
              se: Tensor | None = None) -> list[CalibrationResult]:
     """Per robot, the :class:`~torchcal.pipelines.calibrate.CalibrationResult` ``calibrate()`` would return.
 
-    ``test_errors``: ``(R, N', M)`` held-out errors (m) of the final model (default: the geometry
-    ``X`` alone); ``stage``, ``n_extra``: the final stage's name and each robot's parameters
+    ``test_errors``: ``(R, N', M, 3)`` held-out error vectors (m) of the final model (default: the
+    geometry ``X`` alone); ``stage``, ``n_extra``: the final stage's name and each robot's parameters
     beyond the geometry; ``se``: ``(R, K)`` standard errors when the solver has its own."""
     K = X.shape[1]
     se = (standard_errors(J_fin, r_fin, free, 3 * fd.n_obs) if se is None else se)[:, :K]
     free = free[:, :K]
     R_, N, M = fd.seen.shape
-    E0, E = fd.errors(robot, X0), r_fin.reshape(R_, -1)[:, :N * M * 3].reshape(R_, N, M, 3).norm(dim=-1)
-    Et0 = Et = None
+    V = {"train": (fd.error_vectors(robot, X0), r_fin.reshape(R_, -1)[:, :N * M * 3].reshape(R_, N, M, 3))}
     if fd_test is not None:
-        Et0 = fd_test.errors(robot, X0)
-        Et = fd_test.errors(robot, X) if test_errors is None else test_errors
+        V["test"] = (fd_test.error_vectors(robot, X0), fd_test.error_vectors(robot, X) if test_errors is None
+                     else test_errors)
     n_extra = torch.zeros(R_, dtype=torch.long) if n_extra is None else n_extra
-    # every robot's error statistics per stage, in one pass per statistic
-    mk = robot.marker_names
-    stats = {"train": [errors_by_marker_batched(e, fd.seen, mk) for e in (E0, E)]}
-    if fd_test is not None:
-        stats["test"] = [errors_by_marker_batched(e, fd_test.seen, mk) for e in (Et0, Et)]
+    # every robot's error statistics and plotted errors per stage, in one pass per statistic
+    mk, fds = robot.marker_names, {"train": fd, "test": fd_test}
+    stats = {k: [errors_by_marker_batched(v.norm(dim=-1), fds[k].seen, mk) for v in vs] for k, vs in V.items()}
+    details = {k: [fds[k].details(robot, x, v) for x, v in zip((X0, X), vs)] for k, vs in V.items()}
     out = []
     cand = template.free
     for b in range(R_):
@@ -211,13 +210,12 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
         dropped = [n for n, c, f in zip(p.names, cand.tolist(), free[b].tolist()) if c and not f]
         has_test = tests is not None and tests[b] is not None
         stages, errors = [], {}
-        last = (stage, E, Et, int(free[b].sum() + n_extra[b]))
-        for i, (name, e, et, k) in enumerate((("nominal", E0, Et0, 0), last)):
-            st = {"name": name, "n_params": k, "train": stats["train"][i][b]}
-            errors[name] = {"train": e[b][fd.seen[b]], "test": torch.zeros(0)}
-            if has_test:
-                st["test"] = stats["test"][i][b]
-                errors[name]["test"] = et[b][fd_test.seen[b]]
+        for i, (name, k) in enumerate((("nominal", 0), (stage, int(free[b].sum() + n_extra[b])))):
+            st = {"name": name, "n_params": k}
+            errors[name] = {"test": torch.zeros(0)}
+            for split in ("train", "test") if has_test else ("train",):
+                st[split] = stats[split][i][b]
+                errors[name][split], errors[name][f"{split}_details"] = details[split][i][b]["e"], details[split][i][b]
             stages.append(st)
         out.append(CalibrationResult(robot=robot, params=p, std_errors=std,
                                      unidentifiable={n: reasons[b].get(n, "not identifiable") for n in dropped},
@@ -227,6 +225,7 @@ def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, 
     return out
 
 
+@threads_by_size("data", "test")
 def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=None, params: ParamSet | None = None,
                     free=None, prior: str | None = None, prior_scale: dict | None = None, effects=None,
                     payload: str = "shared", identify: str | None = None, register: bool = True, prefer=None,

@@ -45,6 +45,7 @@ from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_
 from torchcal.pipelines.loop.steps import (clipped, elm_cv, parameter_table, progress_bar, refit,
                                            refresh, test_gain, try_candidate)
 from torchcal.report.calibration import stage_problems
+from torchcal.threads import threads_by_size
 
 __all__ = ["run_loop", "T_ACCEPT", "GEOMETRIC_SETS", "PRIOR_SCALES_MM", "derive_directions"]
 
@@ -129,6 +130,7 @@ def say_fn(log):
     return out
 
 
+@threads_by_size("train", "test")
 def run_loop(robot, train: Measurements, test: Measurements | None = None, *, candidates: list[str] | None = None,
              folds: int = 5, seed: int = 0, elm: bool = True, elm_hidden: int | None = None,
              noise_mm: float | None = None, orientation_weight: float | None = None, progress: bool = False,

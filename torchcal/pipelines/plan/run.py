@@ -41,6 +41,7 @@ from torchcal.pipelines.plan.design import (CRITERIA, DesignColumns, column_sign
 from torchcal.pipelines.plan.feasible import SelfCollision, in_box, parse_box
 from torchcal.kinematics.robot import Robot
 from torchcal.sim.serial import config_bounds
+from torchcal.threads import threads_by_size
 
 __all__ = ["plan_poses", "Plan", "PLANNABLE_EFFECTS", "plan_paths", "check_plannable"]
 
@@ -265,6 +266,7 @@ def _feasible_candidates(robot, qc: Tensor, p: Tensor, reachable, collision_marg
     return qc, feas, feasible
 
 
+@threads_by_size("n_candidates", "candidates")
 def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, criterion: str = "D",
                effects: Sequence[str] = (), reachable=None, collision_margin: float | None = None,
                urdf_path=None, noise: float = 2e-5, margin: float = 0.1, refine_steps: int = 100,
