@@ -159,7 +159,7 @@ class CalibrationResult:
         if self.problems():
             raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
         with staged_dir(out_dir, force) as out:
-            self.robot.export_urdf(self.params, out / "calibrated.urdf", with_instrument=with_instrument)
+            self.robot.export_calibration(self.params, out, with_instrument=with_instrument)
             write_instrument(self.robot, self.params, out / "instrument.json")
             write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
                                              "values": self.params.values.tolist(),
