@@ -15,12 +15,13 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.registration import register_base
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
-from torchcal.outputs import atomic_write_text, staged_dir
-from torchcal.params import ParamSet, display_unit
+from torchcal.outputs import staged_dir
+from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import check_plausible, fit_identified
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
-from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
+from torchcal.report.calibration import (calibration_markdown, error_details, stage_problems,
+                                         write_calibration_report, write_json)
 
 __all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
 
@@ -123,32 +124,8 @@ class CalibrationResult:
         }
 
     def markdown(self) -> str:
-        lines = [f"# Calibration of {self.robot.name}", "",
-                 f"Method `{self.method}`, loss `{self.loss}`, {self.n_train} training rows"
-                 + (f", {self.n_test} held-out rows." if self.n_test else ", no held-out data."), "",
-                 "## Position error per stage (mm)", "",
-                 "| stage | parameters | train mean | train std | train max | test mean | test std | test max |",
-                 "|---|---|---|---|---|---|---|---|"]
-        for s in self.stages:
-            tr, te = s.get("train") or {}, s.get("test") or {}
-            f = lambda d, k: f"{d[k]:.4f}" if k in d else "–"  # noqa: E731
-            lines.append(f"| {s['name']} | {s['n_params']} | {f(tr, 'mean_mm')} | {f(tr, 'std_mm')} | "
-                         f"{f(tr, 'max_mm')} | {f(te, 'mean_mm')} | {f(te, 'std_mm')} | {f(te, 'max_mm')} |")
-        if self.errors:
-            lines += ["", "![error histograms](errors.png)"]
-        lines += ["", "## Identified parameters", "",
-                  "| parameter | value | std. error | unit |", "|---|---|---|---|"]
-        for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
-            if n in self.std_errors:
-                sc, us = display_unit(u)
-                lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
-        if self.unidentifiable:
-            lines += ["", "## Not identifiable from these measurements", ""]
-            lines += [f"- `{n}`: {why}" for n, why in sorted(self.unidentifiable.items())]
-        s = self.solver
-        lines += ["", f"Solver: {s.method}, {s.n_iter} iterations, {s.n_evals} evaluations, "
-                      f"{s.wall_time_s:.3f} s; {s.message}", ""]
-        return "\n".join(lines)
+        """``report.md`` (:func:`~torchcal.report.calibration.calibration_markdown`)."""
+        return calibration_markdown(self)
 
     def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
         """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
@@ -166,13 +143,7 @@ class CalibrationResult:
                                              "free": self.params.free.tolist(),
                                              "std_errors": self.std_errors})
             write_json(out / "report.json", self.report())
-            atomic_write_text(out / "report.md", self.markdown())
-            for split in ("train", "test"):
-                st = [(name, e[f"{split}_details"]) for name, e in self.errors.items()
-                      if e.get(split) is not None and e[split].numel()]
-                if st:
-                    error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
-                                 title=f"{self.robot.name}: position error", split=split)
+            write_calibration_report(self, out)
             if extra is not None:
                 extra(out)
         return Path(out_dir)

@@ -33,6 +33,7 @@ from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
+from torchcal.measure.stats import noise_floor
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, evaluate, evaluate_prior, folds_of,
                                          geometric_start, noise_sigma, observation_model, split_params)
@@ -377,8 +378,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             + ", ".join(str(s["row"]) for s in suspects[:10]) + (" …" if len(suspects) > 10 else ""))
     timings["total"] = time.perf_counter() - t0
 
-    if noise_mm is None and "marker_std_mm" in train.covariates:
-        noise_mm = float(train.covariates["marker_std_mm"].median())
+    noise_mm, noise_source = noise_floor(train, noise_mm)
     for p in stage_problems(stages):
         say("warning: " + p)
     parameters, observability = parameter_table(ctx, current)
@@ -386,6 +386,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       accepted=accepted, candidates=cand_report,
                       geometric={"chosen": best.label, "sets": geo_choice, "prior_mm": best.prior_mm},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
+                      noise_floor_source=noise_source,
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
