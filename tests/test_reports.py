@@ -250,6 +250,18 @@ def _details(n: int, scale: float, seed: int) -> dict:
     return {"e": xyz.norm(dim=-1), "xyz": xyz, "dist": 0.3 + torch.rand(n, generator=g, dtype=torch.float64)}
 
 
+def test_the_overlap_check_sees_overlaps(tmp_path):
+    from torchcal.report.plotting import pyplot, save
+    fig, ax = pyplot().subplots(figsize=(3, 2))
+    ax.set_title("a title")
+    ax.text(0.5, 0.5, "one label")
+    ax.text(0.52, 0.5, "another label")
+    assert overlapping_labels(fig) == [("one label", "another label")]
+    ax.set_xticks([0.0, 0.001], ["left tick", "its neighbour"])  # two tick labels on each other
+    save(fig, tmp_path / "o.png")  # hides the later of two colliding tick labels
+    assert [t.get_text() for t in ax.get_xticklabels() if t.get_visible()] == ["left tick"]
+
+
 def test_error_figure_shows_every_axis_before_and_after(tmp_path):
     stages = [("before", _details(80, 2e-3, 0)), ("geometric", _details(80, 3e-4, 1)), ("full", _details(80, 2e-5, 2))]
     fig = error_figure(stages, tmp_path / "e.png", noise_floor_mm=0.03)

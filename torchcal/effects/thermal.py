@@ -14,6 +14,7 @@ from torch import Tensor
 
 from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.gravity import kinematic_frames
+from torchcal.params import display_unit
 
 __all__ = ["ThermalDrift", "thermal_covariate"]
 
@@ -144,5 +145,6 @@ class ThermalDrift(Effect):
 
     def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
-        return [f"{self.mode_words(m)} by {float(th[i]) * 1e6:.3g} µm/m per {self.unit}"
+        f, u = display_unit(f"1/{self.unit}")  # the report's unit: µm/(m·K), or µm/(m·h) for a time
+        return [f"{self.mode_words(m)} by {float(th[i]) * f:.3g} {u}"
                 for i, m in enumerate(self._mode_labels) if free is None or bool(free[i])]

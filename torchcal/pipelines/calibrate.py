@@ -129,8 +129,9 @@ class CalibrationResult:
 
     def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
         """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
-        instrument frame as its root), ``instrument.json``, ``params.json``, ``report.json``,
-        ``report.md`` and the error figures into ``out_dir``, built under a temporary name.
+        instrument frame as its root) and ``calibration.yaml``, ``instrument.json``, ``params.json``,
+        ``report.json``, ``report.md``, ``report.html`` and the error figures into ``out_dir``, built
+        under a temporary name.
         Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
         says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename."""
         if self.problems():

@@ -103,8 +103,10 @@ def _per_axis(a, data, colors) -> None:
         big = float(np.abs(first).max())
         if big > _LOG_SPAN * small:  # before and after on one readable axis
             a.set_yscale("symlog", linthresh=small, linscale=1.5)
-            # ticks a decade apart from one decade above the linear part on: none crowd zero
-            k0, k1 = int(np.floor(np.log10(small))) + 1, int(np.ceil(np.log10(big)))
+            # ticks a decade apart, the smallest at least half-way up the linear part: none crowd zero
+            k0, k1 = int(np.floor(np.log10(small))), int(np.ceil(np.log10(big)))
+            if 10.0 ** k0 < small / 2:
+                k0 += 1
             a.set_yticks(sorted([0.0] + [s * 10.0 ** k for k in range(k0, k1 + 1) for s in (-1, 1)]))
             a.yaxis.set_major_formatter(lambda v, _: f"{v:g}")
             a.yaxis.set_minor_locator(pyplot().NullLocator())

@@ -116,6 +116,11 @@ def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> P
     findings = loop_findings(res)
     held = heldout_suspects(res)
     rep.update({"findings": findings, "suspect_rows_test": held, "significance_z": SIGNIFICANT_Z})
+    by_stage = {f["stage"]: f for f in findings}
+    for a in rep["effects"]:  # "found" keeps its place but says only what is significant
+        f = by_stage.get(a.get("stage", "+" + a["name"]))
+        if f is not None:
+            a["found"], a["not_significant"] = f["stated"], f["not_significant"]
     if command:
         rep["command"] = command
     write_json(out / "report.json", rep)

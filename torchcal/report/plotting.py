@@ -24,11 +24,24 @@ def _texts(fig) -> list:
     legend entries."""
     from matplotlib.text import Text
 
-    out, seen = [], set()
+    out, seen = [], set(_idle_tick_labels(fig))
     for t in fig.findobj(Text):
         if id(t) not in seen and t.get_visible() and t.get_text().strip() and t.figure is fig:
             seen.add(id(t))
             out.append(t)
+    return out
+
+
+def _idle_tick_labels(fig) -> list[int]:
+    """Ids of the tick labels an axis keeps but does not draw (their tick lies outside the view)."""
+    out = []
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            lo, hi = sorted(axis.get_view_interval())
+            tol = 1e-9 * max(abs(lo), abs(hi), 1.0)
+            for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+                if not lo - tol <= tick.get_loc() <= hi + tol:
+                    out += [id(tick.label1), id(tick.label2)]
     return out
 
 
@@ -58,9 +71,10 @@ def overlapping_labels(fig, pad: float = 0.5) -> list[tuple[str, str]]:
 
 
 def _tick_labels(fig) -> list:
+    idle = set(_idle_tick_labels(fig))
     out = []
     for ax in fig.axes:
-        out += [t for t in ax.get_xticklabels() + ax.get_yticklabels() if t.get_text().strip()]
+        out += [t for t in ax.get_xticklabels() + ax.get_yticklabels() if t.get_text().strip() and id(t) not in idle]
     return out
 
 

@@ -2,7 +2,7 @@
 quantity in its display unit, times as ISO 8601 dates."""
 from __future__ import annotations
 
-from torchcal.report.units import covariate_value, is_time, shown, with_error
+from torchcal.report.units import covariate_value, is_time, shown
 
 __all__ = ["stage_table", "suspects_table", "parameter_section", "flags_section", "candidates_section"]
 
@@ -122,7 +122,3 @@ def candidates_section(candidates: list[dict]) -> list[str]:
                  f"{_num(c.get('test_gain_mm'), '+.4f')} | {'yes' if c.get('accepted') else 'no'} | {modes} |")
     return L
 
-
-def parameter_rows(names, units, values, std_errors: dict) -> list[str]:
-    """Table rows ``| name | value ± s.e. |`` in display units (for the calibration report)."""
-    return [f"| {n} | {with_error(v, std_errors.get(n), u)} |" for n, u, v in zip(names, units, values)]
