@@ -147,7 +147,7 @@ def test_heldout_outliers_are_listed(looped):
     assert sorted(s["row"] for s in rep["suspect_rows_test"]) == sorted(MOVED)
     assert all(7.0 < s["error_mm"] < 9.0 for s in rep["suspect_rows_test"])
     md = (looped / "report.md").read_text()
-    assert "2 suspect held-out observation(s)" in md and "held-out file order" in md
+    assert "2 suspect observation(s) among the held-out rows" in md and "held-out file order" in md
     assert "suspect_rows" in rep and "stages" in rep and "effects" in rep  # the existing keys stay
 
 

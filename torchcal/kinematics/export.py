@@ -62,7 +62,7 @@ class URDFExport:
 
     def _fold(self, jt: JointSpec, T: np.ndarray, delta: float) -> np.ndarray:
         T = T.copy()
-        if jt.movable and delta != 0.0:
+        if jt.movable:  # also at 0: the product with the identity is what the shipped URDFs were made with
             if jt.type == "prismatic":
                 T[:3, 3] += T[:3, :3] @ (jt.axis * delta)
             else:

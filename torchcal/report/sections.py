@@ -44,7 +44,8 @@ def suspects_table(suspects: list[dict], which: str, advice: str) -> list[str]:
     """The observations farther than 5·√3·σ̂ from the final model, as a table (first 50)."""
     if not suspects:
         return [f"No {which} observation lies farther than 5·√3·σ̂ from the final model."]
-    L = [f"{len(suspects)} suspect {which} observation(s), farther from the final model than 5·√3·σ̂. {advice}", "",
+    L = [f"{len(suspects)} suspect observation(s) among the {which} rows, farther from the final model than 5·√3·σ̂. "
+         f"{advice}", "",
          f"| row (0-based, {which} file order) | marker | measured | error (mm) |", "|---|---|---|---|"]
     L += [f"| {s['row']} | {s['marker']} | {s.get('kind', 'position')} | {s['error_mm']:.3f} |" for s in suspects[:50]]
     if len(suspects) > 50:
