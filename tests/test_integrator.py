@@ -369,7 +369,16 @@ def test_figures_and_evidence_without_inertials(looped, tmp_path):
     data = load_measurements(tmp_path / "kr5.csv", robot)
     res = run_loop(robot, data, candidates=["joint_compliance"], elm=False, log=None)
     ev = res.evidence["joint_compliance"]
-    assert ev and all("no inertials" in e["xlabel"] and "no torque" in e["xlabel"] for e in ev.values())
+    # no torque without inertials: plotting against the fitted deflection proves nothing, so the
+    # joint angle stands on the x axis and the evidence says there is no independent signature
+    assert ev and all(e["independent"] is False and e["xlabel"] == f"{k.split('.')[0]} angle [rad]"
+                      and "no signature independent of the fit" in e["note"] for k, e in ev.items())
+    assert "only says how well it follows the fit" in res.accepted[0]["evidence"]
+    from torchcal.report.loop import write_loop_report
+    write_loop_report(res, tmp_path / "kr5_report")
+    md = (tmp_path / "kr5_report" / "report.md").read_text()
+    assert res.accepted[0]["evidence"] in md and (tmp_path / "kr5_report" / "report.html").is_file()
+    assert "rad/N/m" not in md and "rad/N " not in md and "µrad/(N·m)" in md
 
 
 def test_reprs_are_short(files, looped):

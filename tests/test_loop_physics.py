@@ -116,7 +116,7 @@ def test_one_warm_link_is_found_as_that_link():
     assert acc["modes"] == ["elbow_joint.growth"], acc["modes"]
     alpha = acc["params"]["thermal_drift.elbow_joint.growth"]
     assert abs(alpha / 2.3e-5 - 1) < max(0.05, 3 * acc["standard_errors"]["thermal_drift.elbow_joint.growth"] / 2.3e-5)
-    assert "the link carrying elbow_joint" in acc["found"][0] and "per K" in acc["found"][0]
+    assert "the link carrying elbow_joint" in acc["found"][0] and "µm/(m·K)" in acc["found"][0]
 
 
 def test_bending_is_named_in_words():

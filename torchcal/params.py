@@ -9,14 +9,20 @@ from torch import Tensor
 
 __all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
 
-# SI unit -> (factor, unit) in which people read it; m and rad share the factor, so ratios of the
-# two read unchanged
-_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"), "rad/(N*m)": (1e6, "µrad/(N·m)"), "m/N": (1e9, "µm/kN")}
+# The one unit table: SI unit -> (factor, unit) in which people read it. m and rad share the
+# factor, so ratios of the two read unchanged. Spellings of one unit ("rad/N/m", "rad/(N*m)")
+# read alike. Reports, tables and plots all go through display_unit.
+_DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"),
+            "rad/(N*m)": (1e6, "µrad/(N·m)"), "rad/N/m": (1e6, "µrad/(N·m)"), "rad/(N m)": (1e6, "µrad/(N·m)"),
+            "rad/N": (1e6, "µrad/N"), "m/N": (1e9, "µm/kN"),
+            "1/K": (1e6, "µm/(m·K)"), "1/s": (3.6e9, "µm/(m·h)"), "1": (1e6, "ppm"),
+            "kg": (1.0, "kg"), "kg*m": (1.0, "kg·m"), "N*m": (1.0, "N·m"), "s": (1.0, "s"), "K": (1.0, "K")}
 
 
 def display_unit(unit: str) -> tuple[float, str]:
-    """``(factor, unit)`` to show a value given in ``unit``: m -> mm, rad -> mrad,
-    rad/(N*m) -> µrad/(N·m), m/N -> µm/kN; anything else as it is."""
+    """``(factor, unit)`` to show a value given in the SI ``unit``: m -> mm, rad -> mrad,
+    rad/(N*m) -> µrad/(N·m), m/N -> µm/kN, 1/K -> µm/(m·K), a scale factor -> ppm; anything
+    else as it is."""
     return _DISPLAY.get(unit, (1.0, unit))
 
 

@@ -105,7 +105,7 @@ def _loop(a, argv) -> int:
                 f"{e.name} ({', '.join(lab for lab, _ in e.modes())})" for e in res.effects) +
                 ". Those act through the saved model (torchcal.load('model'), torchcal correct), not through "
                 "this URDF")
-        robot.export_urdf(geo, d / "calibrated.urdf", with_instrument=a.with_instrument, note=note)
+        robot.export_calibration(geo, d, with_instrument=a.with_instrument, note=note)
         write_instrument(robot, geo, d / "instrument.json")
         prov = run_record(a, d, _inputs(a), argv)
         model = res.model()

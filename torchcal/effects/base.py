@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcal.params import display_unit
+
 __all__ = ["Effect", "Prepared", "LinearBasis", "TIME_COVARIATES"]
 
 # Covariates that count time: a model reading one must never extrapolate it to another day
@@ -255,7 +257,8 @@ class Effect:
         for label, cols in self.modes():
             cols = [i for i in cols if free is None or bool(free[i])]
             if cols:
-                vals = ", ".join(f"{names[i]} = {float(th[i]):.4g} {units[i]}" for i in cols)
+                vals = ", ".join(f"{names[i]} = {float(th[i]) * display_unit(units[i])[0]:.4g} "
+                                 f"{display_unit(units[i])[1]}" for i in cols)
                 out.append(f"{self.mode_words(label)}: {vals}")
         return out
 

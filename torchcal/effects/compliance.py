@@ -76,7 +76,8 @@ class JointCompliance(GravityDeformation):
             return super().prepare(q, covariates)
         idx = torch.tensor([self.robot.joint_names.index(j) for j in self.joints], device=q.device)
         F = gravity_features(self.robot, q, self._lump_links(), self.gravity)  # (N, L, dof, 4)
-        return Prepared({"F": F[:, :, idx, :].permute(0, 2, 1, 3).reshape(q.shape[0], len(self.joints), -1)})
+        return Prepared({"F": F[:, :, idx, :].permute(0, 2, 1, 3).reshape(q.shape[0], len(self.joints), -1),
+                         "q": q[:, idx]})
 
     def joint_delta(self, theta, prep):
         if not self.lumped:
@@ -96,8 +97,10 @@ class JointCompliance(GravityDeformation):
     def describe(self, theta=None, free=None):
         if not self.lumped:
             return super().describe(theta, free)
+        modes = dict(self.modes())
         return [f"{j} deflects with the gravity torque (lumped link masses: {4 * len(self._lump_links())} "
-                "products of compliance and mass moment)" for j in self.joints]
+                "products of compliance and mass moment)" for j in self.joints
+                if free is None or bool(free[modes[f"{j}.twist"]].any())]
 
     def mode_words(self, label: str) -> str:
         return f"{label.split('.')[0]} twists about its axis (joint compliance)"
@@ -110,9 +113,13 @@ class JointCompliance(GravityDeformation):
         cols = dict(self.modes())[label]
         keep[cols] = theta[cols]
         d = self.joint_delta(keep[None], prep)[0][:, self.robot.joint_names.index(j)]
-        # no inertials, so no gravity torque to plot against: the fitted deflection stands in for it
-        return {"x": d, "xlabel": "fitted deflection (no inertials in the URDF: no torque to plot) [rad]",
-                "fitted": d, "ylabel": "joint twist [rad]", "dof": self.robot.joint_names.index(j)}
+        # no inertials: the gravity torque is itself fitted (lumped mass moments), so there is no
+        # signature independent of the fit; plotting against the fitted deflection would make any
+        # fit look perfect, so the joint angle stands on the x axis and the report says why
+        return {"x": prep.features["q"][:, self.joints.index(j)], "fitted": d, "ylabel": "joint twist [rad]",
+                "xlabel": f"{j} angle [rad]", "dof": self.robot.joint_names.index(j), "independent": False,
+                "note": "no inertials in the URDF, so the gravity torque is itself fitted: no signature independent "
+                        "of the fit; the fitted twist is shown against the joint angle"}
 
     def torques(self, q, covariates=None, theta: Tensor | None = None) -> Tensor:
         """Gravity torque per effect joint (N·m) at ``q`` with the identified payload, for

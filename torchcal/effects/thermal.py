@@ -15,6 +15,7 @@ from torch import Tensor
 from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.gravity import kinematic_frames
 from torchcal.effects.terms import driver_columns
+from torchcal.params import display_unit
 
 __all__ = ["ThermalDrift", "thermal_covariate"]
 
@@ -177,5 +178,9 @@ class ThermalDrift(Effect):
 
     def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
-        return [f"{self.mode_words(m)} by {float(th[i]) * 1e6:.3g} µm/m per {_unit_of(self._split(m)[1])}"
-                for i, m in enumerate(self._mode_labels) if free is None or bool(free[i])]
+        out = []
+        for i, m in enumerate(self._mode_labels):
+            if free is None or bool(free[i]):
+                f, u = display_unit(f"1/{_unit_of(self._split(m)[1])}")  # the report's unit: µm/(m·K)
+                out.append(f"{self.mode_words(m)} by {float(th[i]) * f:.3g} {u}")
+        return out

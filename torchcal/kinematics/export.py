@@ -4,100 +4,83 @@ not read (meshes, limits, inertials) survives."""
 from __future__ import annotations
 
 import copy
-import xml.etree.ElementTree as ET
+import hashlib
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchcal.kinematics.transforms import matrix_to_rpy, so3_exp
+import yaml
+
+from torchcal.kinematics.transforms import so3_exp
 from torchcal.kinematics.tree import JointSpec, Marker
-from torchcal.kinematics.urdf import write_urdf
+from torchcal.kinematics.urdf import urdf_links, write_urdf
+from torchcal.kinematics.urdf_edit import OriginEdit, edit_origins, format_values, origin_text, rpy_near
 
-__all__ = ["URDFExport", "edit_urdf", "origin_attrs"]
+__all__ = ["URDFExport", "origin_attrs", "CALIBRATION_YAML", "URDF_NAME"]
 
-
-def origin_attrs(T: np.ndarray) -> dict[str, str]:
-    rpy = matrix_to_rpy(torch.as_tensor(T[:3, :3])).numpy() + 0.0  # + 0.0 turns -0.0 into 0.0
-    return {"xyz": " ".join(repr(float(v) + 0.0) for v in T[:3, 3]), "rpy": " ".join(repr(float(v)) for v in rpy)}
-
-
-def edit_urdf(text: str, joints: list[JointSpec], mks, base, base_link: str, root: str,
-               note: str | None = None) -> str:
-    """The original URDF text with new joint origins and added marker/base links. Editing the
-    XML (rather than re-writing a parsed model) keeps everything kinematics does not read:
-    mimic tags, transmissions, gazebo blocks, comments."""
-
-    parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
-    tree = ET.ElementTree(ET.fromstring(text, parser=parser))
-    rob = tree.getroot()
-    by_name = {j.get("name"): j for j in rob.findall("joint")}
-    for jt in joints:
-        el = by_name[jt.name]
-        o = el.find("origin")
-        if o is None:
-            o = ET.SubElement(el, "origin")
-        o.attrib.update(origin_attrs(jt.origin))
-    links = {l.get("name") for l in rob.findall("link")}
-    for mk, T in mks:
-        ln = f"marker_{mk.name}"
-        if ln in links:
-            raise ValueError(f"cannot export: link {ln!r} already exists in the URDF")
-        ET.SubElement(rob, "link", name=ln)
-        j = ET.SubElement(rob, "joint", name=f"{ln}_joint", type="fixed")
-        ET.SubElement(j, "parent", link=mk.link)
-        ET.SubElement(j, "child", link=ln)
-        ET.SubElement(j, "origin", origin_attrs(T))
-    if base is not None:
-        if base_link in links:
-            raise ValueError(f"cannot export: link {base_link!r} already exists; pass base_link='…'")
-        ET.SubElement(rob, "link", name=base_link)
-        j = ET.SubElement(rob, "joint", name=f"{base_link}_to_{root}", type="fixed")
-        ET.SubElement(j, "parent", link=base_link)
-        ET.SubElement(j, "child", link=root)
-        ET.SubElement(j, "origin", origin_attrs(base))
-    if note:
-        rob.insert(0, ET.Comment(" " + note.replace("--", "—") + " "))
-    ET.indent(tree, space="  ")
-    return '<?xml version="1.0"?>\n' + ET.tostring(rob, encoding="unicode") + "\n"
+URDF_NAME = "calibrated.urdf"
+CALIBRATION_YAML = "calibration.yaml"
 
 
+def origin_attrs(T: np.ndarray, rpy0=(0.0, 0.0, 0.0)) -> dict[str, str]:
+    """``xyz`` and ``rpy`` attribute values of a (4, 4) transform, the rpy closest to ``rpy0``."""
+    return {"xyz": format_values(T[:3, 3], None), "rpy": format_values(rpy_near(T[:3, :3], rpy0), None)}
+
+
+def _fixed_link(name: str, parent: str, T: np.ndarray, joint: str) -> list[str]:
+    o = origin_attrs(T)
+    return [f'<link name="{name}"/>', f'<joint name="{joint}" type="fixed">', f'  <parent link="{parent}"/>',
+            f'  <child link="{name}"/>', f'  <origin xyz="{o["xyz"]}" rpy="{o["rpy"]}"/>', "</joint>"]
 
 
 class URDFExport:
     """The URDF-export half of :class:`~torchcal.kinematics.robot.Robot` (a mixin)."""
 
-    # ------------------------------------------------------------------ export
-    def calibrated_joints(self, params) -> list[JointSpec]:
-        """Joint specs whose origins carry the errors in ``params`` (offsets folded in)."""
+    # ------------------------------------------------------------------ calibrated origins
+    def _vector(self, params) -> torch.Tensor:
         p = self._check_params(params)
         if p is None:
             p = torch.zeros(self.n_params, dtype=self.dtype, device=self.device)
         if p.ndim != 1:
             raise ValueError("give one parameter vector (K,), not a population")
+        return p
+
+    def _origins_np(self, params) -> tuple[np.ndarray, np.ndarray]:
+        """``(J, 4, 4)`` joint origins with the errors of ``params`` (zero offsets not folded in)
+        and ``(J,)`` each joint's zero offset (rad / m; a mimic joint's is its multiplier times
+        its source's)."""
+        p = self._vector(params)
         slots = self._slots(p[None].to(torch.float64))
         O_R, O_t = self._true_origins(slots)
+        T = np.tile(np.eye(4), (len(self.joints), 1, 1))
+        T[:, :3, :3], T[:, :3, 3] = O_R[0].detach().cpu().numpy(), O_t[0].detach().cpu().numpy()
         off = slots[0, self._slices["offset"]]
+        delta = np.array([float(self._mult[j] * off[int(self._src[j])]) if jt.movable else 0.0
+                          for j, jt in enumerate(self.joints)])
+        return T, delta
+
+    def _fold(self, jt: JointSpec, T: np.ndarray, delta: float) -> np.ndarray:
+        T = T.copy()
+        if jt.movable:  # also at 0: the product with the identity is what the shipped URDFs were made with
+            if jt.type == "prismatic":
+                T[:3, 3] += T[:3, :3] @ (jt.axis * delta)
+            else:
+                T[:3, :3] = T[:3, :3] @ so3_exp(torch.as_tensor(jt.axis * delta)).numpy()
+        return T
+
+    def calibrated_joints(self, params) -> list[JointSpec]:
+        """Joint specs whose origins carry the errors in ``params`` (offsets folded in)."""
+        T, delta = self._origins_np(params)
         out = []
         for j, jt in enumerate(self.joints):
-            T = np.eye(4)
-            T[:3, :3] = O_R[0, j].detach().cpu().numpy()
-            T[:3, 3] = O_t[0, j].detach().cpu().numpy()
-            if jt.movable:
-                delta = float(self._mult[j] * off[int(self._src[j])])
-                if jt.type == "prismatic":
-                    T[:3, 3] += T[:3, :3] @ (jt.axis * delta)
-                else:
-                    T[:3, :3] = T[:3, :3] @ so3_exp(torch.as_tensor(jt.axis * delta)).numpy()
             nj = copy.copy(jt)
-            nj.origin, nj.dh = T, None
+            nj.origin, nj.dh = self._fold(jt, T[j], delta[j]), None
             out.append(nj)
         return out
 
     def _extra_frames(self, params) -> tuple[np.ndarray | None, list[tuple[Marker, np.ndarray]]]:
-        p = self._check_params(params)
-        if p is None:
-            p = torch.zeros(self.n_params, dtype=self.dtype, device=self.device)
+        p = self._vector(params)
         slots = self._slots(p[None])
         mR, mt = self._markers(slots, aligned=False)
         mks = []
@@ -112,6 +95,30 @@ class URDFExport:
             base[:3, :3], base[:3, 3] = so3_exp(b[3:]).numpy(), b[:3].numpy()
         return base, mks
 
+    def origin_corrections(self, params) -> list[dict]:
+        """Per joint the calibration changed: ``joint``; ``correction``, the origin correction
+        ``(x, y, z)`` m and ``(roll, pitch, yaw)`` rad with ``calibrated = nominal · Trans(x, y, z)
+        · Rz(yaw) Ry(pitch) Rx(roll) · (zero offset about the axis)``; ``zero_offset`` (rad / m);
+        ``origin`` (4, 4), the calibrated origin with the offset folded in (what the exported URDF
+        holds). Joints in the robot's order."""
+        p = self._vector(params).detach().cpu().double()
+        T0, _ = self._origins_np(None)
+        T, delta = self._origins_np(params)
+        index = {n: i for i, n in enumerate(self.param_names)}
+        out = []
+        for j, jt in enumerate(self.joints):
+            names = [f"{jt.name}.{s}" for s in ("dx", "dy", "dz", "droll", "dpitch", "dyaw")]
+            if jt.dh is None and all(n in index for n in names):
+                corr = np.array([float(p[index[n]]) for n in names])
+            else:  # a DH row: its errors are not origin errors, so read the correction off the transforms
+                C = np.linalg.solve(T0[j], T[j])
+                corr = np.concatenate([C[:3, 3], rpy_near(C[:3, :3], np.zeros(3))])
+            if not (np.array_equal(T[j], T0[j]) and delta[j] == 0.0):
+                out.append({"joint": jt.name, "type": jt.type, "correction": corr + 0.0,
+                            "zero_offset": float(delta[j]) + 0.0, "origin": self._fold(jt, T[j], delta[j])})
+        return out
+
+    # ------------------------------------------------------------------ files
     def export_urdf(self, params, path, *, with_instrument: bool = False, base_link: str = "instrument",
                     note: str | None = None) -> str:
         """Write a URDF whose nominal kinematics equal this robot's calibrated kinematics, in the
@@ -121,26 +128,102 @@ class URDFExport:
         link ``marker_<name>`` on its link. The instrument registration (the base frame
         parameters) is left out, so that the root stays the robot's; with ``with_instrument`` a
         non-zero base frame becomes a new root link ``base_link`` (the instrument frame).
-        ``note`` goes into an XML comment. Returns the XML text. When the robot came from a
-        URDF, everything else in it (inertials, meshes, limits, mimic tags, transmissions) is
-        kept as it was; only joint origins change.
+        ``note`` goes into an XML comment. Returns the XML text.
+
+        When the robot came from a URDF, its text is edited in place: only the ``<origin>`` of
+        the joints the calibration changed is rewritten, the rpy chosen closest to the original
+        one (:func:`~torchcal.kinematics.urdf_edit.rpy_near`), numbers it leaves equal keep their
+        spelling, and every other byte (comments, visuals, collisions, inertials, limits, mimic
+        tags, transmissions, gazebo blocks) stays as it was.
         """
-        joints = self.calibrated_joints(params)
         base, mks = self._extra_frames(params)
         if not with_instrument:
             base = None
-        if self._urdf_text is not None:
-            xml = edit_urdf(self._urdf_text, joints, mks, base, base_link, self.root, note)
-            Path(path).write_text(xml)
-            return xml
-        extra = [JointSpec(name=f"marker_{mk.name}_joint", type="fixed", parent=mk.link, child=f"marker_{mk.name}",
-                           origin=T) for mk, T in mks]
+        if self._urdf_text is None:
+            joints = self.calibrated_joints(params)
+            extra = [JointSpec(name=f"marker_{mk.name}_joint", type="fixed", parent=mk.link,
+                               child=f"marker_{mk.name}", origin=T) for mk, T in mks]
+            if base is not None:
+                extra.insert(0, JointSpec(name=f"{base_link}_to_{self.root}", type="fixed", parent=base_link,
+                                          child=self.root, origin=base))
+            return write_urdf(self.name, ([extra[0]] if base is not None else []) + joints +
+                              extra[1 if base is not None else 0:], path)
+        links = set(self.links_in_urdf())
+        append = []
+        for mk, T in mks:
+            ln = f"marker_{mk.name}"
+            if ln in links:
+                raise ValueError(f"cannot export: link {ln!r} already exists in the URDF")
+            append += _fixed_link(ln, mk.link, T, f"{ln}_joint")
         if base is not None:
-            extra.insert(0, JointSpec(name=f"{base_link}_to_{self.root}", type="fixed", parent=base_link,
-                                      child=self.root, origin=base))
+            if base_link in links:
+                raise ValueError(f"cannot export: link {base_link!r} already exists; pass base_link='…'")
+            append += [f'<link name="{base_link}"/>'] + _fixed_link(self.root, base_link, base,
+                                                                       f"{base_link}_to_{self.root}")[1:]
+        written = origin_text(self._urdf_text)
+        edits = {}
+        nominal = {jt.name: jt.origin for jt in self.joints}
+        for c in self.origin_corrections(params):
+            T, T0 = c["origin"], nominal[c["joint"]]
+            rot = not np.array_equal(T[:3, :3], T0[:3, :3])
+            edits[c["joint"]] = OriginEdit(T[:3, 3] if not np.array_equal(T[:3, 3], T0[:3, 3]) else None,
+                                           rpy_near(T[:3, :3], written[c["joint"]][1]) if rot else None)
+        xml = edit_origins(self._urdf_text, edits, append, note)
+        Path(path).write_text(xml)
+        return xml
 
-        return write_urdf(self.name, ([extra[0]] if base is not None else []) + joints +
-                          extra[1 if base is not None else 0:], path)
+    def links_in_urdf(self) -> list[str]:
+        """Every link named in the URDF text (or in the joints, for a robot built from DH)."""
+        if self._urdf_text is None:
+            return list(dict.fromkeys(l for jt in self.joints for l in (jt.parent, jt.child)))
+        return urdf_links(self._urdf_text)
+
+    def calibration_yaml(self, params, note: str | None = None) -> str:
+        """``calibration.yaml``: each changed joint's origin correction as ``x y z roll pitch
+        yaw`` and its zero offset, the calibrated origins (the form of ur_description's
+        ``default_kinematics.yaml``) and the marker points, with units stated."""
+        corr = self.origin_corrections(params)
+        written = origin_text(self._urdf_text) if self._urdf_text is not None else {}
+        num = lambda v: float(v) + 0.0  # noqa: E731
+        xyzrpy = lambda v: dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), map(num, v)))  # noqa: E731
+        body = {
+            "robot": self.name,
+            "units": {"x": "m", "y": "m", "z": "m", "roll": "rad", "pitch": "rad", "yaw": "rad",
+                      "zero_offsets": "rad (revolute joints), m (prismatic joints)"},
+            "corrections": {c["joint"]: xyzrpy(c["correction"]) for c in corr if np.any(c["correction"] != 0)},
+            "zero_offsets": {c["joint"]: c["zero_offset"] for c in corr if c["zero_offset"] != 0.0},
+            "kinematics": {c["joint"]: xyzrpy(np.concatenate([c["origin"][:3, 3], rpy_near(
+                c["origin"][:3, :3], written.get(c["joint"], (None, np.zeros(3)))[1])])) for c in corr},
+            "markers": {},
+        }
+        _, mks = self._extra_frames(params)
+        for mk, T in mks:
+            body["markers"][mk.name] = {"link": mk.link, **xyzrpy(np.concatenate([T[:3, 3], rpy_near(T[:3, :3],
+                                                                                                      np.zeros(3))]))}
+        text = yaml.safe_dump(body, sort_keys=False, default_flow_style=False)
+        body_hash = hashlib.sha256(text.encode()).hexdigest()[:16]
+        head = [f"# Calibration of {self.name} (torchcal)."] + ([f"# {note}"] if note else []) + [
+            "# Units: x, y, z in metres; roll, pitch, yaw in radians (URDF convention: R = Rz(yaw) Ry(pitch) Rx(roll));",
+            "# zero offsets in radians (revolute joints) or metres (prismatic joints).",
+            "# corrections: for each joint the calibration changed, calibrated origin = nominal origin",
+            "#   · Trans(x, y, z) · Rz(yaw) Ry(pitch) Rx(roll) · (rotation or shift by the zero offset about the",
+            "#   joint axis); the joint's true position is its command plus the zero offset (a mimic joint's:",
+            "#   its multiplier times its source's).",
+            "# kinematics: the resulting origins, as calibrated.urdf writes them (offsets folded in), in the",
+            "#   layout of ur_description's default_kinematics.yaml.",
+            "# markers: each measured point on its link, as calibrated.urdf's marker_<name> links.",
+            "# Joints not listed are unchanged."]
+        return "\n".join(head) + "\n" + text + f"hash: calib_{body_hash}\n"
+
+    def export_calibration(self, params, out_dir, *, with_instrument: bool = False, base_link: str = "instrument",
+                           note: str | None = None) -> tuple[Path, Path]:
+        """Write ``calibrated.urdf`` (:meth:`export_urdf`) and ``calibration.yaml``
+        (:meth:`calibration_yaml`) into ``out_dir``, the two files every calibration output
+        holds. Returns their paths."""
+        out = Path(out_dir)
+        self.export_urdf(params, out / URDF_NAME, with_instrument=with_instrument, base_link=base_link, note=note)
+        (out / CALIBRATION_YAML).write_text(self.calibration_yaml(params, note=note))
+        return out / URDF_NAME, out / CALIBRATION_YAML
 
     def to_urdf_string(self, params=None, inertials: dict | None = None, comment: str | None = None) -> str:
         """Nominal (or calibrated) kinematics as URDF text, without marker or base links."""

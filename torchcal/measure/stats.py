@@ -1,11 +1,13 @@
-"""Error statistics of a model on measured data, in mm: count, mean, standard deviation, max, RMS
-and median, overall and per marker. One implementation for calibration stages, loop stages and reports."""
+"""Error statistics of a model on measured data, in mm: count, mean, standard deviation, max, RMS,
+median and 95th percentile (linear interpolation, numpy's default), overall and per marker. One implementation for calibration stages, loop stages and reports."""
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
 
-__all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched"]
+__all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched", "noise_floor"]
 
 
 def error_stats(err_m: Tensor) -> dict:
@@ -15,7 +17,7 @@ def error_stats(err_m: Tensor) -> dict:
         return {"n": 0}
     return {"n": int(e.numel()), "mean_mm": float(e.mean()), "std_mm": float(e.std()) if e.numel() > 1 else 0.0,
             "max_mm": float(e.max()), "rmse_mm": float(torch.sqrt((e * e).mean())),
-            "median_mm": float(e.median())}
+            "median_mm": float(e.median()), "p95_mm": float(torch.quantile(e, 0.95))}
 
 
 def angle_stats(err_rad: Tensor) -> dict:
@@ -50,9 +52,14 @@ def _masked_stats(e: Tensor, mask: Tensor) -> list[dict]:
     rmse = torch.sqrt((e * e * w).sum(-1) / nn)
     srt = torch.where(mask, e, torch.full_like(e, float("inf"))).sort(-1).values
     med = srt.gather(-1, ((n - 1).clamp(min=0) // 2)[:, None])[:, 0]
-    cols = [c.tolist() for c in (n, mean, std, mx, rmse, med)]
-    return [{"n": int(k), "mean_mm": a, "std_mm": b, "max_mm": c, "rmse_mm": r, "median_mm": m} if k else {"n": 0}
-            for k, a, b, c, r, m in zip(*cols)]
+    pos = (n - 1).clamp(min=0).to(e.dtype) * 0.95  # torch.quantile's linear interpolation
+    lo = pos.floor().long()
+    hi = torch.minimum(lo + 1, (n - 1).clamp(min=0))
+    a_lo, a_hi = srt.gather(-1, lo[:, None])[:, 0], srt.gather(-1, hi[:, None])[:, 0]
+    p95 = a_lo + (pos - lo.to(e.dtype)) * torch.where(hi > lo, a_hi - a_lo, torch.zeros_like(a_lo))
+    cols = [c.tolist() for c in (n, mean, std, mx, rmse, med, p95)]
+    return [{"n": int(k), "mean_mm": a, "std_mm": b, "max_mm": c, "rmse_mm": r, "median_mm": m, "p95_mm": p}
+            if k else {"n": 0} for k, a, b, c, r, m, p in zip(*cols)]
 
 
 def errors_by_marker_batched(e: Tensor, seen: Tensor, marker_names: list[str]) -> list[dict]:
@@ -65,3 +72,55 @@ def errors_by_marker_batched(e: Tensor, seen: Tensor, marker_names: list[str]) -
     for b in range(B):
         out[b]["per_marker"] = {m: per[k][b] for k, m in enumerate(marker_names) if per[k][b]["n"]}
     return out
+
+
+# mean Euclidean norm of 3-D isotropic Gaussian noise, per unit of its per-axis σ: 2·sqrt(2/π)
+_MEAN_NORM_3D = 2.0 * math.sqrt(2.0 / math.pi)
+
+
+def noise_floor(data, given_mm: float | None = None) -> tuple[float | None, str | None]:
+    """The noise floor of a data set (the mean Euclidean error a perfect model would leave, mm)
+    and where it comes from, in words.
+
+    In order: the pure error of rows that repeat a command (their pooled per-axis spread, which
+    holds the robot's repeatability too, as the mean norm of 3-D noise of that σ); ``given_mm``
+    (the caller's, e.g. ``--noise-mm``, the instrument's specification); the median of a
+    ``marker_std_mm`` covariate (each pose's measured spread, as ``torchcal import-bag`` writes it;
+    divided by √``marker_samples`` when the rows are means of that many samples). ``(None, None)``
+    when none applies."""
+    pure = _pure_error_mm(data)
+    if pure is not None:
+        return pure
+    if given_mm is not None:
+        return float(given_mm), "given by the caller (noise_mm, --noise-mm: the instrument's specification)"
+    if "marker_std_mm" in data.covariates:
+        med = float(torch.quantile(data.covariates["marker_std_mm"].double(), 0.5))  # the mean of the two middle
+        if "marker_samples" in data.covariates:
+            n = float(torch.quantile(data.covariates["marker_samples"].double(), 0.5))
+            return med / math.sqrt(max(n, 1.0)), (f"the median of the data's `marker_std_mm` column over √(median "
+                                                  f"`marker_samples` = {n:g}): the spread of a mean of that many samples")
+        return med, "the median of the data's `marker_std_mm` column (each pose's measured spread)"
+    return None, None
+
+
+def _pure_error_mm(data) -> tuple[float, str] | None:
+    """The floor from rows that repeat a command (see :func:`noise_floor`), or None without repeats."""
+    q, pos, seen = data.q, data.positions, data.seen
+    _, group = torch.unique(q, dim=0, return_inverse=True)
+    n_groups = int(group.max()) + 1 if group.numel() else 0
+    if n_groups == len(q):
+        return None
+    ss, dof = 0.0, 0
+    for m in range(pos.shape[1]):
+        ok = seen[:, m]
+        g, p = group[ok], pos[ok, m].double()
+        counts = torch.bincount(g, minlength=n_groups)
+        mean = torch.zeros(n_groups, 3, dtype=p.dtype).index_add_(0, g, p) / counts.clamp(min=1)[:, None]
+        ss += float(((p - mean[g]) ** 2).sum())
+        dof += 3 * int((counts[counts > 0] - 1).sum())
+    if dof < 6:
+        return None
+    sigma_mm = math.sqrt(ss / dof) * 1e3
+    reps = int((torch.bincount(group) > 1).sum())
+    return (_MEAN_NORM_3D * sigma_mm, f"the pure error of {reps} repeated command(s): their pooled spread, "
+            f"σ = {sigma_mm:.4g} mm per axis, as the mean norm of 3-D noise (it includes the robot's repeatability)")

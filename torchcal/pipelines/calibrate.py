@@ -15,14 +15,15 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
-from torchcal.outputs import atomic_write_text, staged_dir
-from torchcal.params import ParamSet, display_unit
+from torchcal.outputs import staged_dir
+from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate_prior import choose_prior, is_small
 from torchcal.pipelines.fitting import (PLAUSIBLE, check_plausible, fit_identified, implausible_reason,
                                         implausible_values, reduce_free)
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
-from torchcal.report.calibration import error_details, error_figure, stage_problems, write_json
+from torchcal.report.calibration import (calibration_markdown, error_details, stage_problems,
+                                         write_calibration_report, write_json)
 from torchcal.threads import threads_by_size
 
 __all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
@@ -149,68 +150,27 @@ class CalibrationResult:
         }
 
     def markdown(self) -> str:
-        lines = [f"# Calibration of {self.robot.name}", "",
-                 f"Method `{self.method}`, loss `{self.loss}`, {self.n_train} training rows"
-                 + (f", {self.n_test} held-out rows." if self.n_test else ", no held-out data."), "",
-                 "## Position error per stage (mm)", "",
-                 "| stage | parameters | train mean | train std | train max | test mean | test std | test max |",
-                 "|---|---|---|---|---|---|---|---|"]
-        for s in self.stages:
-            tr, te = s.get("train") or {}, s.get("test") or {}
-            f = lambda d, k: f"{d[k]:.4f}" if k in d else "–"  # noqa: E731
-            lines.append(f"| {s['name']} | {s['n_params']} | {f(tr, 'mean_mm')} | {f(tr, 'std_mm')} | "
-                         f"{f(tr, 'max_mm')} | {f(te, 'mean_mm')} | {f(te, 'std_mm')} | {f(te, 'max_mm')} |")
-        if self.errors:
-            lines += ["", "![error histograms](errors.png)"]
-        if self.prior_reason:
-            lines += ["", "## Prior", "", self.prior_reason + "."]
-        lines += ["", "## Identified parameters", "",
-                  "| parameter | value | std. error | unit |", "|---|---|---|---|"]
-        for n, v, u in zip(self.params.names, self.params.values.tolist(), self.params.units):
-            if self.statuses().get(n, ("",))[0] == "identified":
-                sc, us = display_unit(u)
-                lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
-        st = self.statuses()
-        for kind, title in (("tied", "Tied to others: these measurements cannot tell them apart"),
-                            ("fixed", "Fixed at nominal: not seen, or pinned down worse than a plausible error")):
-            rows = sorted((n, why) for n, (k, why) in st.items() if k == kind)
-            if rows:
-                lines += ["", f"## {title}", ""] + [f"- `{n}`{self._value_words(n)}: {why}" for n, why in rows]
-        s = self.solver
-        lines += ["", f"Solver: {s.method}, {s.n_iter} iterations, {s.n_evals} evaluations, "
-                      f"{s.wall_time_s:.3f} s; {s.message}", ""]
-        return "\n".join(lines)
-
-    def _value_words(self, name: str) -> str:
-        """`` = value unit`` for a parameter fitted under the prior though tied; else empty."""
-        if name not in self.params.free_names:
-            return ""
-        f, u = display_unit(self.params.units[self.params.index(name)])
-        return f" = {float(self.params[name]) * f:.4g} {u}"
+        """``report.md`` (:func:`~torchcal.report.calibration.calibration_markdown`)."""
+        return calibration_markdown(self)
 
     def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
         """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
-        instrument frame as its root), ``instrument.json``, ``params.json``, ``report.json``,
-        ``report.md`` and the error figures into ``out_dir``, built under a temporary name.
+        instrument frame as its root) and ``calibration.yaml``, ``instrument.json``, ``params.json``,
+        ``report.json``, ``report.md``, ``report.html`` and the error figures into ``out_dir``, built
+        under a temporary name.
         Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
         says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename."""
         if self.problems():
             raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
         with staged_dir(out_dir, force) as out:
-            self.robot.export_urdf(self.params, out / "calibrated.urdf", with_instrument=with_instrument)
+            self.robot.export_calibration(self.params, out, with_instrument=with_instrument)
             write_instrument(self.robot, self.params, out / "instrument.json")
             write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
                                              "values": self.params.values.tolist(),
                                              "free": self.params.free.tolist(),
                                              "std_errors": self.std_errors})
             write_json(out / "report.json", self.report())
-            atomic_write_text(out / "report.md", self.markdown())
-            for split in ("train", "test"):
-                st = [(name, e[f"{split}_details"]) for name, e in self.errors.items()
-                      if e.get(split) is not None and e[split].numel()]
-                if st:
-                    error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
-                                 title=f"{self.robot.name}: position error", split=split)
+            write_calibration_report(self, out)
             if extra is not None:
                 extra(out)
         return Path(out_dir)

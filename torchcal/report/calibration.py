@@ -9,10 +9,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcal.report.figures import error_figure
+from torchcal.report.html import write_html
 from torchcal.report.plotting import pyplot
+from torchcal.report.sections import stage_table
+from torchcal.report.units import shown
 
 __all__ = ["write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
-           "FOREIGN_RATIO"]
+           "FOREIGN_RATIO", "calibration_markdown", "write_calibration_report"]
 
 # held-out rows this many times worse than the training rows do not come from the same robot
 FOREIGN_RATIO = 20.0
@@ -84,68 +88,74 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
 def error_details(robot, params: Tensor, data, errors_xyz: Tensor | None = None, obs=None) -> dict:
     """Per observation of ``data``: the error vector ``xyz (n, 3)`` (model − measured, m,
     instrument frame; computed from ``params (K,)`` unless given; NaN in axes not measured), its
-    norm ``e (n,)`` and the marker's distance from the robot base ``dist (n,)`` (m).
+    norm ``e (n,)``, the marker's distance from the robot base ``dist (n,)`` (m), and where it
+    came from: ``row (n,)`` (0-based row of ``data``), ``marker (n,)`` (index into
+    ``robot.marker_names``), ``dims (n,)`` (how many components it measured).
 
     With ``obs`` (:class:`~torchcal.measure.observations.Observations`, ``errors_xyz`` its residual
     vectors) every observation counts in ``e`` and ``dist`` (a plane contact's error is its signed
     distance), and ``xyz`` holds the position observations only."""
     mk = [robot.marker_names.index(m) for m in data.marker_names]
     base_free = robot.positions(data.q, params, check=False, base=False)[:, mk]
+    robot_marker = torch.tensor(mk, device=base_free.device)
     if obs is not None:
         pos = obs.kind == 0
         xyz = errors_xyz[pos].masked_fill(~obs.mask[pos], float("nan"))
-        return {"e": errors_xyz.norm(dim=-1), "xyz": xyz, "dist": base_free[obs.rows, obs.data_marker].norm(dim=-1)}
+        return {"e": errors_xyz.norm(dim=-1), "xyz": xyz, "dist": base_free[obs.rows, obs.data_marker].norm(dim=-1),
+                "row": obs.rows, "marker": robot_marker[obs.data_marker], "dims": obs.dims}
     seen = data.observed
     if errors_xyz is None:
         p = robot.positions(data.q, params, check=False)[:, mk][seen]
         errors_xyz = p - data.positions[seen]
-    return {"e": torch.nan_to_num(errors_xyz).norm(dim=-1), "xyz": errors_xyz, "dist": base_free[seen].norm(dim=-1)}
+    rows, cols = torch.nonzero(seen, as_tuple=True)
+    return {"e": torch.nan_to_num(errors_xyz).norm(dim=-1), "xyz": errors_xyz, "dist": base_free[seen].norm(dim=-1),
+            "row": rows, "marker": robot_marker[cols], "dims": torch.isfinite(errors_xyz).sum(-1)}
 
 
-def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position error", split: str = "train",
-                 noise_floor_mm: float | None = None) -> None:
-    """Four panels a person checks a calibration with, for several stages (``(label, details)``,
-    details from :func:`error_details`): the error histogram; the per-axis errors of the last
-    stage; the cumulative distribution with each stage's 95th percentile and the noise floor
-    marked; the error against the marker's distance from the robot base."""
-    plt = pyplot()
+def calibration_markdown(res) -> str:
+    """``report.md`` of a :class:`~torchcal.pipelines.calibrate.CalibrationResult`: the error per
+    stage (mean, RMSE, p95, max), the figures, every fitted parameter with its standard error in
+    its display unit, what could not be identified and the solver's account."""
+    lines = [f"# Calibration of {res.robot.name}", "",
+             f"Method `{res.method}`, loss `{res.loss}`, {res.n_train} training rows"
+             + (f", {res.n_test} held-out rows." if res.n_test else ", no held-out data."), "",
+             "## Position error per stage (mm)", ""]
+    lines += stage_table(res.stages)
+    for split, name in (("test", "errors_test.png"), ("train", "errors.png")):
+        if any(e.get(f"{split}_details") is not None for e in res.errors.values()):
+            lines += ["", f"![errors, {split}: histogram, per axis before and after, cumulative with p95, against "
+                          f"reach]({name})"]
+    if getattr(res, "prior_reason", ""):
+        lines += ["", "## Prior", "", res.prior_reason + "."]
+    status = res.statuses()  # one list per parameter: identified, tied to others, or fixed
+    lines += ["", "## Identified parameters", "", "| parameter | value | std. error | unit |", "|---|---|---|---|"]
+    for n, v, u in zip(res.params.names, res.params.values.tolist(), res.params.units):
+        if status.get(n, ("",))[0] == "identified":
+            (sv, us), (se, _) = shown(v, u, 6), shown(res.std_errors.get(n, float("nan")), u, 3)
+            lines.append(f"| {n} | {sv} | {se} | {us} |")
+    for kind, title in (("tied", "Tied to others: these measurements cannot tell them apart"),
+                        ("fixed", "Fixed at nominal: not seen, or pinned down worse than a plausible error")):
+        rows = sorted((n, why) for n, (k, why) in status.items() if k == kind)
+        if rows:
+            lines += ["", f"## {title}", ""] + [f"- `{n}`: {why}" for n, why in rows]
+    if res.problems():
+        lines += ["", "**Not fit to save or deploy:** " + "; ".join(res.problems())]
+    s = res.solver
+    lines += ["", f"Solver: {s.method}, {s.n_iter} iterations, {s.n_evals} evaluations, "
+                  f"{s.wall_time_s:.3f} s; {s.message}", ""]
+    return "\n".join(lines)
 
-    data = [(lab, {k: v.detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
-                   for k, v in d.items()}) for lab, d in stages if d["e"].numel()]
-    if not data:
-        return
-    fig, ax = plt.subplots(2, 2, figsize=(11, 7.5), dpi=110)
-    e_all = np.concatenate([d["e"] for _, d in data])
-    hi = float(e_all.max())
-    lo = float(np.percentile(e_all[e_all > 0], 1)) if (e_all > 0).any() else hi
-    log = hi > 30 * max(lo, 1e-12)  # stages a thousandfold apart: only a log axis shows both
-    bins = np.geomspace(max(lo, 1e-6) * 0.8, hi * 1.05, 50) if log else np.linspace(0, hi * 1.02 + 1e-12, 40)
-    for lab, d in data:
-        ax[0, 0].hist(d["e"], bins=bins, alpha=0.55, label=f"{lab}: mean {d['e'].mean():.3f}, max {d['e'].max():.3f} mm")
-        xs = np.sort(d["e"])
-        ax[1, 0].plot(xs, np.arange(1, len(xs) + 1) / len(xs), label=lab)
-        p95 = float(np.percentile(d["e"], 95))
-        ax[1, 0].axvline(p95, ls=":", lw=1, color=ax[1, 0].lines[-1].get_color())
-        ax[1, 0].annotate(f"p95 {p95:.3f}", (p95, 0.95), fontsize=7, rotation=90, va="top", ha="right")
-        ax[1, 1].scatter(d["dist"], d["e"], s=5, alpha=0.5, label=lab)
-    if log:
-        for a in (ax[0, 0], ax[1, 0], ax[1, 1]):
-            a.set_xscale("log") if a is not ax[1, 1] else a.set_yscale("log")
-    if noise_floor_mm is not None:
-        ax[1, 0].axvline(noise_floor_mm, color="k", lw=1.2, label=f"noise floor {noise_floor_mm:.3f} mm")
-    lab, last = data[-1]
-    ax[0, 1].boxplot([x[np.isfinite(x)] for x in last["xyz"].T], showfliers=True)
-    ax[0, 1].set_xticks([1, 2, 3], ["x", "y", "z"])
-    ax[0, 1].axhline(0, color="k", lw=0.6)
-    ax[0, 0].set(xlabel="Euclidean error of each observation [mm]", ylabel="observations", title="error histogram")
-    ax[0, 1].set(ylabel="error per axis, model − measured [mm]", title=f"per axis: {lab} (instrument frame)")
-    ax[1, 0].set(xlabel="Euclidean position error [mm]", ylabel="fraction of observations",
-                 title="cumulative distribution, 95th percentile dotted")
-    ax[1, 1].set(xlabel="marker distance from the robot base [m]", ylabel="Euclidean position error [mm]",
-                 title="error against reach")
-    for a in (ax[0, 0], ax[1, 0], ax[1, 1]):
-        a.legend(fontsize=7)
-    fig.suptitle(f"{title} ({split})")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+
+def write_calibration_report(res, out_dir) -> None:
+    """``report.md``, the error figures (``errors.png`` for the training rows, ``errors_test.png``
+    for the held-out ones, where the result kept the details) and ``report.html`` into
+    ``out_dir``."""
+    out = Path(out_dir)
+    for split in ("train", "test"):
+        st = [(name, e[f"{split}_details"]) for name, e in res.errors.items()
+              if e.get(split) is not None and e[split].numel() and e.get(f"{split}_details") is not None]
+        if st:
+            error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
+                         title=f"{res.robot.name}: position error", split=split)
+    (out / "report.md").write_text(calibration_markdown(res))
+    write_html(out, "report.md", title=f"Calibration of {res.robot.name}")

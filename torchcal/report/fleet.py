@@ -30,9 +30,14 @@ from scipy import stats
 
 from torchcal.params import display_unit
 from torchcal.report.calibration import write_json
+from torchcal.report.figures import fleet_figure
+from torchcal.report.html import write_html
+from torchcal.report.units import shown, with_error
 
 __all__ = ["parameter_spread", "sibling_z", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS",
-           "FALSE_ALARM"]
+           "FALSE_ALARM", "spread_rows", "SPREAD_FIGURE"]
+
+SPREAD_FIGURE = "fleet_spread.png"
 
 MIN_ROBOTS = 5  # fewer robots than this: a median and a MAD say too little to flag anyone
 SCREEN = 4.0  # siblings beyond this many robust standard deviations do not set the yardstick
@@ -149,6 +154,29 @@ def _mean_mm(stage: dict | None, split: str) -> float | None:
     return d.get("mean_mm")
 
 
+def _stat(stage: dict | None, split: str, key: str) -> str:
+    v = ((stage or {}).get(split) or {}).get(key)
+    return "–" if v is None else f"{v:.4f}"
+
+
+def spread_rows(fr) -> list[dict]:
+    """Per parameter judged over the fleet (at least 4 robots fitted it): every robot's distance
+    from its siblings in their standard deviations (:func:`sibling_z`), the robots flagged and the
+    flag bound, for :func:`~torchcal.report.figures.fleet_figure`."""
+    rows = []
+    for n, u, vals, ses in _columns(fr.results, fr.effects):
+        e = fr.spread.get(n)
+        who = [i for i, v in enumerate(vals) if v is not None]
+        if e is None or len(who) < 4:
+            continue
+        x = np.array([vals[i] for i in who], dtype=float)
+        se = np.array([ses[i] if ses[i] is not None and math.isfinite(ses[i]) else 0.0 for i in who])
+        z, _ = sibling_z(x, se, e["median_std_error"])
+        rows.append({"name": n, "z": z, "robots": [fr.names[i] for i in who], "flagged": set(e["outliers"]),
+                     "z_needed": e.get("z_needed")})
+    return rows
+
+
 def fleet_report(fr) -> dict:
     """``fleet.json``: robots, parameter spread, flags, the prior and shared effect parameters."""
     robots = []
@@ -170,8 +198,9 @@ def fleet_report(fr) -> dict:
             "robots": robots, "flags": fr.flags, "spread": fr.spread}
 
 
-def fleet_markdown(fr) -> str:
-    """``fleet.md``: flags first, then each robot's errors, then the spread of every parameter."""
+def fleet_markdown(fr, figure: str | None = None) -> str:
+    """``fleet.md``: flags first, then each robot's errors, then the spread of every parameter
+    (``figure``: the spread figure's file name, shown with the flags)."""
     last = fr.results[0].stages[-1]["name"]
     lines = [f"# Fleet calibration: {len(fr.names)} × {fr.robot.name}", "",
              f"Identifiable parameters judged {'per robot' if fr.identify == 'per_robot' else 'on the pooled design'}; "
@@ -180,7 +209,9 @@ def fleet_markdown(fr) -> str:
         lines += [f"Hierarchical prior: each robot's geometric errors around the fleet mean; noise σ = "
                   f"{fr.prior['sigma_m'] * 1e3:.4f} mm, {fr.prior['n_outer']} rounds of scale estimation.", ""]
     if fr.effects and fr.effects.get("shared"):
-        lines += ["Shared by the fleet: " + ", ".join(f"{k} = {v:.4g}" for k, v in fr.effects["shared"].items()), ""]
+        su = fr.effects.get("shared_units", {})
+        lines += ["Shared by the fleet: " + ", ".join(f"{k} = {' '.join(shown(v, su.get(k, '')))}"
+                                                      for k, v in fr.effects["shared"].items()), ""]
     bound = _bound(fr)
     lines += [f"## Flags (|z| from the siblings > {fr.z_threshold:g}" +
               (f" and > {bound:.1f}, the bound for {len(fr.names)} robots" if bound and bound > fr.z_threshold else "")
@@ -208,13 +239,20 @@ def fleet_markdown(fr) -> str:
             lines += ["", "A joint offset far from its siblings usually means a re-mastered or damaged axis. An "
                       "identified parameter also carries what the robot's unidentifiable errors project onto it: "
                       "confirm a flag by measuring that axis again."]
-    lines += ["", "## Robots", "", f"| robot | rows | parameters | train mean: nominal → {last} (mm) | test mean (mm) | "
-              "solver |", "|---|---|---|---|---|---|"]
+    if figure:
+        lines += ["", f"![each parameter's spread over the fleet, flagged robots marked]({figure})"]
+    lines += ["", "## Robots", "", f"Errors in mm; {last} model unless marked. Each robot's own report: its name.", "",
+              f"| robot | rows | parameters | train mean: nominal → {last} | train RMSE | train p95 | train max | "
+              "test mean: nominal → final | test RMSE | test p95 | test max | solver |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, r in zip(fr.names, fr.results):
         s0, s1 = r.stages[0], r.stages[-1]
         te = f"{_mean_mm(s0, 'test'):.4f} → {_mean_mm(s1, 'test'):.4f}" if r.n_test else "–"
-        lines.append(f"| {n} | {r.n_train} | {s1['n_params']} | {_mean_mm(s0, 'train'):.4f} → "
-                     f"{_mean_mm(s1, 'train'):.4f} | {te} | {r.solver.n_iter} it, {r.solver.message} |")
+        cell = lambda split, k: _stat(s1, split, k)  # noqa: E731
+        lines.append(f"| [{n}]({n}/report.md) | {r.n_train} | {s1['n_params']} | {_mean_mm(s0, 'train'):.4f} → "
+                     f"{_mean_mm(s1, 'train'):.4f} | {cell('train', 'rmse_mm')} | {cell('train', 'p95_mm')} | "
+                     f"{cell('train', 'max_mm')} | {te} | {cell('test', 'rmse_mm')} | {cell('test', 'p95_mm')} | "
+                     f"{cell('test', 'max_mm')} | {r.solver.n_iter} it, {r.solver.message} |")
     lines += ["", "## Parameter spread over the fleet", "",
               "| parameter | robots | mean | std | median | robust std | min | max | unit | flag bound | outliers |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -247,8 +285,15 @@ def save_fleet(fr, out_dir, figures: bool = True) -> Path:
         d = r.save(out / n) if figures else dataclasses.replace(r, errors={}).save(out / n)
         if fr.effects:
             _add_effects(d, fr.effects, b)
+            write_html(d, "report.md", title=f"Calibration of {fr.robot.name}: robot {n}")
     write_json(out / "fleet.json", fr.report())
-    (out / "fleet.md").write_text(fr.markdown())
+    fig = None
+    if figures and fleet_figure(spread_rows(fr), out / SPREAD_FIGURE, fr.z_threshold,
+                                f"{len(fr.names)} × {fr.robot.name}: each parameter's spread, flagged robots "
+                                "marked") is not None:
+        fig = SPREAD_FIGURE
+    (out / "fleet.md").write_text(fleet_markdown(fr, fig))
+    write_html(out, "fleet.md", title=f"Fleet calibration: {len(fr.names)} × {fr.robot.name}")
     return out
 
 
@@ -260,9 +305,9 @@ def _add_effects(d: Path, eff: dict, b: int) -> None:
     rep["effects"] = {n: {"value": v, "std_error": s, "unit": u} for n, u, v, s in rows}
     rep["effects_shared"] = eff.get("shared", {})
     write_json(d / "report.json", rep)
-    md = ["", "## Effects", "", "| parameter | value | std. error | unit |", "|---|---|---|---|"]
-    md += [f"| {n} | {v:.6g} | {s:.3g} | {u} |" for n, u, v, s in rows if v is not None]
-    md += [f"| {n} (shared by the fleet) | {v:.6g} | – | {eff['shared_units'].get(n, '')} |"
+    md = ["", "## Effects", "", "| parameter | value ± standard error |", "|---|---|"]
+    md += [f"| {n} | {with_error(v, s, u)} |" for n, u, v, s in rows if v is not None]
+    md += [f"| {n} (shared by the fleet) | {' '.join(shown(v, eff['shared_units'].get(n, '')))} |"
            for n, v in eff.get("shared", {}).items()]
     with open(d / "report.md", "a") as fh:
         fh.write("\n".join(md) + "\n")

@@ -56,12 +56,16 @@ def evidence_for(robot, model, data, setup=None) -> tuple[str, dict]:
         c = float(torch.corrcoef(torch.stack([fitted, y]))[0, 1]) if float(fitted.std()) > 0 else float("nan")
         panels.append((float(contrib.norm(dim=-1).mean()), label, {
             "x": x.tolist(), "residual": y.tolist(), "fitted": fitted.tolist(), "r": c, "xlabel": sig["xlabel"],
-            "ylabel": sig["ylabel"], "words": eff.mode_words(label)}))
+            "ylabel": sig["ylabel"], "words": eff.mode_words(label), "independent": sig.get("independent", True),
+            "note": sig.get("note")}))
     panels.sort(key=lambda t: -t[0])
     out = {label: d for _, label, d in panels[:MAX_PANELS]}
     if not out:
         return "no mode moved the markers enough to plot", out
     best = max(out.items(), key=lambda kv: abs(kv[1]["r"]) if kv[1]["r"] == kv[1]["r"] else -1)
     what, against = best[1]["ylabel"].split(" [")[0], best[1]["xlabel"].split(" [")[0]
+    if not best[1]["independent"]:  # a correlation with the fit itself proves nothing: say so
+        return (f"{best[1]['words']}: {best[1]['note']}; the partial residual's correlation with the fitted {what} "
+                f"(r = {best[1]['r']:.2f}) only says how well it follows the fit", out)
     return (f"{best[1]['words']}: the partial residual follows the fitted {what} against the {against} "
             f"(r = {best[1]['r']:.2f})", out)

@@ -2,11 +2,10 @@
 noise a perfect model would leave, and which joint angles and covariates the residual still
 follows.
 
-**The noise a perfect model would leave.** Rows with identical commands (a pose measured again)
-differ by the instrument's noise alone: their spread around their own mean, the *pure error*,
-estimates it with no model at all (``σ² = Σ |r − r̄_group|² / (n_values − n_groups·dims)``).
-Without repeats it comes from ``--noise-mm`` (the instrument's specification) or, failing that,
-the median of a ``marker_std_mm`` column (the spread of the instrument over a static capture).
+**The noise a perfect model would leave** (:func:`~torchcal.measure.stats.noise_floor`): rows with
+identical commands (a pose measured again) differ by the noise alone, and their spread, the *pure
+error*, estimates it with no model at all. Without repeats it comes from ``--noise-mm`` (the
+instrument's specification) or, failing that, from a ``marker_std_mm`` column.
 
 **Associations.** Each candidate signal (each joint's angle, its sine and cosine, each numeric
 covariate, each direction of approach) is regressed on the residual, component by component, with
@@ -15,7 +14,6 @@ explain. Signals are ranked by R²; the strongest few are listed and plotted.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import torch
@@ -23,7 +21,7 @@ from torch import Tensor
 
 from torchcal.measure.data import Measurements
 
-__all__ = ["Leftover", "Association", "pure_error", "associations", "leftover", "ABOVE_FLOOR"]
+__all__ = ["Leftover", "Association", "associations", "leftover", "ABOVE_FLOOR"]
 
 ABOVE_FLOOR = 1.10  # a final CV error this far above the floor is reported as something still missing
 
@@ -75,28 +73,6 @@ class Leftover:
                                  for a in self.associations]}
 
 
-def pure_error(data: Measurements, groups: Tensor) -> tuple[float | None, int]:
-    """Per-axis noise σ (m) from rows with identical commands (``groups``: a group id per row),
-    and the number of repeated groups; None when no command was measured twice."""
-    pos = data.positions  # (N, M, 3)
-    ss, dof, reps = 0.0, 0, 0
-    for g in torch.unique(groups):
-        rows = torch.nonzero(groups == g).flatten()
-        if rows.numel() < 2:
-            continue
-        x = pos[rows]
-        ok = torch.isfinite(x)
-        n = ok.sum(0)
-        mean = torch.where(ok, x, torch.zeros_like(x)).sum(0) / n.clamp(min=1)
-        d = torch.where(ok, x - mean, torch.zeros_like(x))
-        ss += float((d * d).sum())
-        dof += int((n - 1).clamp(min=0).sum())
-        reps += 1
-    if dof == 0:
-        return None, 0
-    return math.sqrt(ss / dof), reps
-
-
 def _signals(data: Measurements) -> list[tuple[str, str, Tensor]]:
     out = []
     for j, n in enumerate(data.joint_names):
@@ -138,26 +114,10 @@ def associations(data: Measurements, residual: Tensor, top: int = 5) -> list[Ass
     return out[:top]
 
 
-def leftover(data: Measurements, residual: Tensor, groups: Tensor, cv_mean_mm: float | None,
-             noise_mm: float | None = None) -> Leftover:
+def leftover(data: Measurements, residual: Tensor, cv_mean_mm: float | None, floor_mm: float | None,
+             floor_source: str | None) -> Leftover:
     """:class:`Leftover` of the final model: ``residual (N, M·3)`` its training residual (m),
-    ``groups`` the duplicate-command group of each row, ``cv_mean_mm`` its cross-validated mean
-    error, ``noise_mm`` the instrument's figure when given."""
-    sigma, reps = pure_error(data, groups)
-    if sigma is not None:
-        floor, src = _mean_norm_mm(sigma), (f"pure error of {reps} repeated command(s): σ = {sigma * 1e3:.4f} mm per "
-                                            "axis, the mean error a perfect model would leave")
-    elif noise_mm is not None:
-        floor, src = float(noise_mm), "given (--noise-mm, the instrument's specification)"
-    elif "marker_std_mm" in data.covariates:
-        floor = float(data.covariates["marker_std_mm"].median())
-        src = "the median of the marker_std_mm column (the instrument's spread over each static capture)"
-    else:
-        floor, src = None, "unknown"
-    ratio = None if floor is None or cv_mean_mm is None or floor <= 0 else cv_mean_mm / floor
-    return Leftover(floor, src, cv_mean_mm, ratio, associations(data, residual))
-
-
-def _mean_norm_mm(sigma: float) -> float:
-    """Mean Euclidean norm (mm) of 3-D Gaussian noise with ``sigma`` (m) per axis: σ·2√(2/π)."""
-    return sigma * 2 * math.sqrt(2 / math.pi) * 1e3
+    ``cv_mean_mm`` its cross-validated mean error, the noise floor and its source
+    (:func:`~torchcal.measure.stats.noise_floor`)."""
+    ratio = None if floor_mm is None or cv_mean_mm is None or floor_mm <= 0 else cv_mean_mm / floor_mm
+    return Leftover(floor_mm, floor_source or "unknown", cv_mean_mm, ratio, associations(data, residual))

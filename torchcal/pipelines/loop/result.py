@@ -58,6 +58,7 @@ class LoopResult:
     setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
     leftover: object = None     # Leftover: the final model against the noise floor, what the residual follows
     removed: list = field(default_factory=list)  # modes accepted once, then explained by later findings
+    noise_floor_source: str | None = None  # where noise_floor_mm comes from, in words
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -77,7 +78,8 @@ class LoopResult:
 
     def report(self) -> dict:
         return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
-                "noise_floor_mm": self.noise_floor_mm, "noise_sigma_mm": self.noise_sigma_mm,
+                "noise_floor_mm": self.noise_floor_mm, "noise_floor_source": self.noise_floor_source,
+                "noise_sigma_mm": self.noise_sigma_mm,
                 "huber_threshold_mm": self.huber_mm, "stages": self.stages, "effects": self.accepted,
                 "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
                 "suspect_rows": self.suspects, "flags": self.flags, "parameters": self.parameters,

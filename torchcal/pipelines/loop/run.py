@@ -32,6 +32,7 @@ from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
+from torchcal.measure.stats import noise_floor
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mean_mm, duplicate_groups, folds_of,
                                          geometric_start, noise_sigma, observation_model, orientation_count,
@@ -390,12 +391,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             + ", ".join(str(s["row"]) for s in suspects[:10]) + (" …" if len(suspects) > 10 else ""))
     timings["total"] = time.perf_counter() - t0
 
+    noise_mm, noise_source = noise_floor(train, noise_mm)
     left = leftover(train, residual_matrix(robot, current.params, current.effects, train, setup),
-                    duplicate_groups(train), cv_mean_mm(ctx, current), noise_mm)
+                    cv_mean_mm(ctx, current), noise_mm, noise_source)
     for line in left.words() + [f"the residual still follows {a.words()}" for a in left.associations[:3]
                                 if left.missing]:
         say(line)
-    noise_mm = left.floor_mm
     for p in stage_problems(stages):
         say("warning: " + p)
     parameters, observability = parameter_table(ctx, current)
@@ -403,6 +404,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       accepted=accepted, candidates=cand_report,
                       geometric={"chosen": best.label, "sets": geo_choice, "prior_mm": best.prior_mm},
                       n_train=len(train), n_test=0 if test is None else len(test), noise_floor_mm=noise_mm,
+                      noise_floor_source=noise_source,
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,

@@ -40,6 +40,7 @@ from torchcal.pipelines.plan.design import (CRITERIA, DesignColumns, column_sign
                           information, refine_poses, tune_directions)
 from torchcal.pipelines.plan.feasible import SelfCollision, in_box, parse_box
 from torchcal.kinematics.robot import Robot
+from torchcal.report.plan import write_plan_figure
 from torchcal.sim.serial import config_bounds
 from torchcal.threads import threads_by_size
 
@@ -164,15 +165,16 @@ class Plan:
         return "\n".join(lines) + "\n"
 
     def save(self, out, *, force: bool = False, meta: dict | None = None) -> list[Path]:
-        """Write the CSV, ``<stem>.plan.json`` (with ``meta`` merged in) and ``<stem>.plan.md``
-        (refused when one exists, unless ``force``); each is written under a temporary name and
-        renamed."""
+        """Write the CSV, ``<stem>.plan.json`` (with ``meta`` merged in), ``<stem>.plan.md`` and its
+        figure ``<stem>.plan.png`` (refused when one exists, unless ``force``); each is written under
+        a temporary name and renamed."""
         paths = plan_paths(out)
         for p in paths:
             check_out_file(p, force)
+        figure = write_plan_figure(self, paths[0], force)
         atomic_write_text(paths[0], self.csv_text())
         atomic_write_text(paths[1], json.dumps({**self.to_dict(), **(meta or {})}, indent=1) + "\n")
-        atomic_write_text(paths[2], self.markdown())
+        atomic_write_text(paths[2], self.markdown() + figure)
         return list(paths)
 
 
