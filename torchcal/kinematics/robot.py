@@ -281,6 +281,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self._nominal_cache = None
         self._nominal_cache = self._origins(None)
         self._nominal_cache4 = homogeneous(*self._nominal_cache)
+        self._jac_layout = self._jacobian_layout()
 
     # ------------------------------------------------------------------ basic facts
     @property
