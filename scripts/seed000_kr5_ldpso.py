@@ -65,9 +65,19 @@ whole PSO iteration (swarm update + fitness) and of the fitness alone, for the c
 position-only kinematics path (``torchcal.kinematics.fk_compact``, the default) and the general one
 (``CalibrationProblem(compact=False)``), and predicts the ratio from the schedules.
 
+The restarts as one batch: the 10 runs of each swarm are also run as one population tensor
+(``torchcal.optim.minimize_runs``: runs × particles, each run with its own generator seeded as
+alone, its own bests and its own stopping), ``--batch-reps`` times, PSO and LDPSO-BT alternately.
+The batch gives each run bit for bit the result of its run alone (checked against the rounds
+above: ``batched_identical_to_one_by_one``), and pays an iteration's fixed cost once for all ten,
+so LDPSO-BT's shrinking population saves time in proportion to its evaluations:
+``batched_time_ratio`` (wall, median over the repeats) and ``batched_time_ratio_cpu`` (thread CPU).
+``--batched-only`` runs just that comparison (and two runs one by one to check the results).
+
 Usage::
 
     .venv/bin/python scripts/seed000_kr5_ldpso.py                 # full run, noise-free data
+    .venv/bin/python scripts/seed000_kr5_ldpso.py --batched-only  # the restarts as one batch only
     .venv/bin/python scripts/seed000_kr5_ldpso.py --noise-mm 0.02  # same with 0.02 mm noise
     .venv/bin/python scripts/seed000_kr5_ldpso.py --quick         # smoke test
 
@@ -95,7 +105,7 @@ sys.path.insert(0, str(ROOT))
 from torchcal.problems.identifiability import identifiability  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.measure.blocks import PositionResidual  # noqa: E402
-from torchcal.optim import get_solver  # noqa: E402
+from torchcal.optim import get_solver, minimize_runs  # noqa: E402
 from torchcal.problems.calibration import CalibrationProblem  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import random_configs  # noqa: E402
@@ -202,6 +212,37 @@ def run_all(args, robot, ps, prob, prob_general, truth, q, q_fresh):
                          f"({runs[n][-1]['cpu_s']:.2f} cpu)" for n in names)
         print(f"  round {rnd + 1}/{args.runs}: {line}", flush=True)
     return runs
+
+
+def batched_restarts(args, prob, ps, runs: dict) -> dict:
+    """PSO and LDPSO-BT, ``args.runs`` seeds each as one batch, ``args.batch_reps`` times alternately:
+    wall and thread-CPU time per batch, their LDPSO-BT / PSO ratios (median over the repeats), and
+    whether each run's result equals its run alone in ``runs`` (bit for bit)."""
+    seeds = list(range(args.runs))
+    times = {m: {"wall": [], "cpu": []} for m in ("pso", "ldpso-bt")}
+    same = True
+    for rep in range(args.batch_reps):
+        for m in (("pso", "ldpso-bt") if rep % 2 == 0 else ("ldpso-bt", "pso")):
+            c0, t0 = time.thread_time(), time.perf_counter()
+            res = minimize_runs(prob, m, seeds=seeds, max_iter=args.iters)
+            times[m]["wall"].append(time.perf_counter() - t0)
+            times[m]["cpu"].append(time.thread_time() - c0)
+            for r, alone in zip(res, runs[m]):
+                same &= ps.expand(r.x).tolist() == alone["x"] and r.fun * 1e3 == alone["fun_mm"]
+    med = lambda v: sorted(v)[len(v) // 2]  # noqa: E731
+    out = {f"batched_{k}_{m.replace('-bt', '')}_s": med(times[m][k]) for m in times for k in ("wall", "cpu")}
+    out.update(batched_time_ratio=med(times["ldpso-bt"]["wall"]) / med(times["pso"]["wall"]),
+               batched_time_ratio_cpu=med(times["ldpso-bt"]["cpu"]) / med(times["pso"]["cpu"]),
+               batched_identical_to_one_by_one=same, batched_runs=len(seeds), batched_reps=args.batch_reps,
+               batched_times=times)
+    return out
+
+
+def print_batched(b: dict) -> None:
+    print(f"  as one batch of {b['batched_runs']} runs: LDPSO-BT / PSO wall {b['batched_time_ratio']:.3f} "
+          f"({b['batched_wall_ldpso_s']:.2f} / {b['batched_wall_pso_s']:.2f} s), thread CPU "
+          f"{b['batched_time_ratio_cpu']:.3f} ({b['batched_cpu_ldpso_s']:.2f} / {b['batched_cpu_pso_s']:.2f} s); "
+          f"median of {b['batched_reps']}; each run equal to its run alone: {b['batched_identical_to_one_by_one']}")
 
 
 def lm_side_study(args, robot, ps, truth, q, q_fresh):
@@ -438,6 +479,9 @@ def main(argv=None):
     ap.add_argument("--lm-noise-mm", type=float, default=0.02, help="noise of the LM noise-floor side study")
     ap.add_argument("--lm-noise-draws", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="smoke test: 2 runs, 60 iterations, 2 noise draws")
+    ap.add_argument("--batch-reps", type=int, default=3, help="repeats of the batched restarts (each method)")
+    ap.add_argument("--batched-only", action="store_true",
+                    help="only the restarts as one batch (and two runs one by one, to check the results)")
     args = ap.parse_args(argv)
     if args.quick:
         args.runs, args.iters, args.hybrid_iters, args.lm_noise_draws = 2, 60, 20, 2
@@ -459,6 +503,19 @@ def main(argv=None):
           f"{args.fresh} fresh poses; noise {args.noise_mm} mm; swarm {args.iters} iterations; "
           f"torch threads {torch.get_num_threads()}; load avg at start {load0[0]:.2f}")
     print(f"  fitness before calibration {f0_mm:.3f} mm, at the true parameters {f_true_mm:.4g} mm")
+    if args.batched_only:
+        alone = {m: [] for m in ("pso", "ldpso-bt")}
+        for m in alone:
+            for sd in range(min(2, args.runs)):
+                r = get_solver(m, seed=sd, max_iter=args.iters).minimize(prob)
+                alone[m].append({"x": ps.expand(r.x).tolist(), "fun_mm": r.fun * 1e3})
+        bt = batched_restarts(args, prob, ps, alone)
+        print_batched(bt)
+        print(json.dumps(dict(bt, runs=args.runs, iters=args.iters, poses=args.poses, seed=args.seed,
+                              checked_against_runs_alone=min(2, args.runs), threads=torch.get_num_threads(),
+                              load_avg_start_end=[load0[0], os.getloadavg()[0]],
+                              target_batched_ratio_le_0_6=bt["batched_time_ratio"] <= 0.6)))
+        return
 
     # identifiability: at the nominal parameters (the textbook statement) and at the truth
     rep = identifiability(robot, q, free=dh)
@@ -473,6 +530,9 @@ def main(argv=None):
     print(f"\nRunning {args.runs} interleaved rounds of {len(method_specs(args))} methods ...", flush=True)
     prob_general = make_problem(robot, ps, q, meas, compact=False)
     runs = run_all(args, robot, ps, prob, prob_general, truth, q, q_fresh)
+    print(f"\nThe same {args.runs} runs of each swarm as one batch, {args.batch_reps} times alternately ...", flush=True)
+    batched = batched_restarts(args, prob, ps, runs)
+    print_batched(batched)
     print_table3(runs, f0_mm, args)
     print_axis(runs, before_cal, before_fresh, args)
     perr, comb_labels = print_params(runs, rep, rep_true, dh, ps, truth, args)
@@ -553,7 +613,7 @@ def main(argv=None):
         "lm_marquardt_noise_floor_ratio": lms["lm-marquardt"].get("noise_floor_ratio"),
         "lm_noise_floor_noise_mm": args.lm_noise_mm,
         "rank": rep.rank, "unidentifiable": rep.dropped, "rank_at_truth": rep_true.rank,
-        "param_errors": perr,
+        "param_errors": perr, **batched,
     }
     tg = {
         "ldpso_cpu_time_median_ratio_le_0.6": J["time_ratio_cpu_median"] <= 0.6,
@@ -562,6 +622,7 @@ def main(argv=None):
         "lm_noisefree_lt_1e-6mm": J["lm_noisefree_max_err_mm"] < 1e-6,
         "lm_marquardt_noisefree_lt_1e-6mm (variant)": J["lm_marquardt_noisefree_max_err_mm"] < 1e-6,
         "lm_noise_floor_ratio_le_1.2": (J["lm_noise_floor_ratio"] or float("inf")) <= 1.2,
+        "ldpso_batched_wall_ratio_le_0.6": J["batched_time_ratio"] <= 0.6,
         "pso_240x500_le_1.5s_cpu (mean wall)": pso_t <= 1.5 and args.iters == 500,
         "pso_240x500_le_1.5s_cpu (fastest run)": J["pso_time_min_s"] <= 1.5 and args.iters == 500,
     }

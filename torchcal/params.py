@@ -100,11 +100,24 @@ class ParamSet:
 
     @property
     def free_names(self) -> list[str]:
-        return [n for n, f in zip(self.names, self.free.tolist()) if f]
+        return [self.names[i] for i in self._free()[1]]
 
     @property
     def free_index(self) -> Tensor:
-        return torch.nonzero(self.free).flatten()
+        """``(k,)`` indices of the free entries."""
+        return self._free()[0]
+
+    def _free(self) -> tuple[Tensor, list[int]]:
+        """The free entries' indices as a tensor and a list, found again only when ``free`` was
+        replaced or written in place: on a GPU, finding them makes the host wait for the device."""
+        if self.free.is_inference():  # no version counter to tell a change by
+            idx = torch.nonzero(self.free).flatten()
+            return idx, idx.tolist()
+        c = getattr(self, "_free_cache", None)
+        if c is None or c[0] is not self.free or c[1] != self.free._version:
+            idx = torch.nonzero(self.free).flatten()
+            c = self._free_cache = (self.free, self.free._version, idx, idx.tolist())
+        return c[2], c[3]
 
     def expand(self, x_free: Tensor) -> Tensor:
         """``(P, n_free)`` or ``(n_free,)`` free values -> full ``(P, K)`` / ``(K,)`` vectors

@@ -4,6 +4,7 @@ its column is ``axis × (p − point)`` or ``axis``) and by the joints; m per un
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
 
 import torch
 from torch import Tensor
@@ -79,6 +80,45 @@ class Jacobians:
         out = torch.bmm(R.permute(0, 2, 1, 3, 4).reshape(P * n, N * 3, 3), D.reshape(P * n, 3, k))
         return out.reshape(P, n, N, 3, k).permute(0, 3, 2, 1, 4).reshape(P, 3, N, n * k)
 
+    def _jacobian_layout(self) -> SimpleNamespace:
+        """What the slot columns of :meth:`_slot_jacobian` take from the robot's structure alone,
+        built once (:meth:`Robot._build`) so that a Jacobian copies no index list to the device:
+        ``rot_f (V,)`` 1 for the columns that are rotations (in the robot's dtype), ``ri`` their
+        indices, ``pidx`` the point each turns about (joint origins ``J``, DH parent origins ``J``,
+        then markers ``M``), ``off`` where the markers start among those points, ``mask (M, V)``
+        which columns move which marker. Columns: URDF origins (6 each), DH rows (4 each), joint
+        offsets (J), markers (6 each). Also the frame indices the Jacobian gathers, as device
+        tensors (a Python list as an index is copied to the device at every call): ``parent_urdf``
+        (parent frame of each URDF joint), ``parent`` (of every joint), ``dh`` (the DH joints),
+        ``mk_frame`` (each marker's frame)."""
+        Jn, M, anc = len(self.joints), len(self.markers), self._anc
+        is_rot, pidx, masks = [], [], []
+        if self._urdf_idx:
+            U = self._urdf_idx
+            is_rot += [False, False, False, True, True, True] * len(U)
+            pidx += [j for j in U for _ in range(3)]
+            masks.append(anc[U].repeat_interleave(6, 0))
+        if self._dh_idx:
+            D = self._dh_idx
+            is_rot += [False, False, True, True] * len(D)
+            for j, c in zip(D, self._dh_classic.tolist()):
+                pidx += [j if c else Jn + j, j]
+            masks.append(anc[D].repeat_interleave(4, 0))
+        rev = self._is_rev.tolist()
+        is_rot += rev
+        pidx += [j for j, r in enumerate(rev) if r]
+        masks.append(anc)
+        off = Jn * (2 if self._dh_idx else 1)
+        is_rot += [False, False, False, True, True, True] * M
+        pidx += [off + m for m in range(M) for _ in range(3)]
+        masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
+        rot = torch.tensor(is_rot, device=self.device)
+        ix = lambda v: torch.tensor(v, dtype=torch.long, device=self.device)  # noqa: E731
+        return SimpleNamespace(parent_urdf=ix([self.parent_frame[j] for j in self._urdf_idx]),
+                               parent=ix(self.parent_frame), dh=ix(self._dh_idx), mk_frame=ix(self._mk_frame),rot_f=rot.to(self.dtype), ri=torch.nonzero(rot).flatten(),
+                               pidx=torch.tensor(pidx, dtype=torch.long, device=self.device), off=off,
+                               mask=torch.cat(masks, 0).to(self.dtype).T)
+
     def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
         mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
@@ -95,11 +135,9 @@ class Jacobians:
         # every rotational column turns about an axis through one of these points: the joint
         # origins (J), the parent origins (J, DH only) and the markers (M)
         pts = [tJ]
-        axes, is_rot, masks, pidx = [], [], [], []
-        anc = self._anc  # (J, M)
+        axes = []
         if self._urdf_idx:
-            U = self._urdf_idx
-            pU = [self.parent_frame[j] for j in U]
+            pU = self._jac_layout.parent_urdf
             e = slots[:, self._slices["urdf"]].reshape(P, -1, 6)
             # x, y, z, roll, pitch, yaw directions of each origin frame F0 = RP·U_R: F0 times
             # small per-parameter-vector matrices, so one batched product per pose
@@ -107,12 +145,9 @@ class Jacobians:
             if not self._aligned:
                 B = self._CfT[pU] @ B
             axes.append(self._turn(RFi[:, :, pU], B))
-            is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(len(U)))
-            pidx += [j for j in U for _ in range(3)]
-            masks.append(anc[U].repeat_interleave(6, 0))
         if self._dh_idx:
-            D = self._dh_idx
-            RP = RFi[:, :, self.parent_frame] if self._aligned else RFi[:, :, self.parent_frame] @ self._CpT
+            D, parent = self._jac_layout.dh, self._jac_layout.parent
+            RP = RFi[:, :, parent] if self._aligned else RFi[:, :, parent] @ self._CpT
             tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
                               for f in self.parent_frame], 2)
             pts.append(tP)
@@ -125,37 +160,26 @@ class Jacobians:
             a_d = torch.where(cls, z_p, z_j)
             ax = torch.stack([x_p, a_d, x_p, z_j], -2)
             axes.append(ax.reshape(P, N, -1, 3).permute(0, 3, 1, 2))
-            is_rot.append(torch.tensor([False, False, True, True], device=self.device).repeat(len(D)))
-            for j, c in zip(D, self._dh_classic.tolist()):
-                pidx += [j if c else Jn + j, j]
-            masks.append(anc[D].repeat_interleave(4, 0))
         # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
         mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
         mov_ax = (RJ @ mov_dir)[..., 0]  # (P, N, J, 3)
         axes.append(mov_ax.permute(0, 3, 1, 2))
-        is_rot.append(self._is_rev.clone())
-        pidx += torch.nonzero(self._is_rev).flatten().tolist()
-        masks.append(anc)
         # marker offsets: like a fixed joint on the marker's link
         M = len(self.markers)
         e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
         dirs = self._rpy_directions(e, self._mk_R)
         if not self._aligned:
             dirs = self._CmT @ dirs
-        axes.append(self._turn(RFi[:, :, self._mk_frame], dirs))
-        is_rot.append(torch.tensor([False, False, False, True, True, True], device=self.device).repeat(M))
-        off = sum(x.shape[2] for x in pts)  # where the markers start among the points
-        pidx += [off + m for m in range(M) for _ in range(3)]
+        axes.append(self._turn(RFi[:, :, self._jac_layout.mk_frame], dirs))
         pts.append(mt)
-        masks.append(torch.eye(M, dtype=torch.bool, device=self.device).repeat_interleave(6, 0))
+        lay = self._jac_layout
+        mask, ri, off = lay.mask, lay.ri, lay.off
 
         # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
         # every elementwise pass runs over long rows (with the 3 components innermost, as the
         # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
         # batched 3 x 3 product per parameter vector.
         V = sum(x.shape[-1] for x in axes)
-        rot = torch.cat(is_rot)  # (V,)
-        mask = torch.cat(masks, 0).to(self.dtype).T  # (M, V)
         Rb, tb = self._base(slots)
 
         # the axes in the instrument frame, (P, 3, N, V)
@@ -164,9 +188,8 @@ class Jacobians:
         pw = (Rb @ torch.cat([x.permute(0, 3, 1, 2) for x in pts], -1).reshape(P, 3, N * Vp)).reshape(P, 3, N, Vp)
         mw = pw[..., off:]  # Rb·mt, (P, 3, N, M)
         m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
-        ri = torch.nonzero(rot).flatten()
         # lever arms from each rotational column's point to the markers: the translation tb cancels
-        at = pw[..., torch.tensor(pidx, dtype=torch.long, device=self.device)]
+        at = pw[..., lay.pidx]
         ar, lev = a[..., ri][:, :, :, None, :], mw[..., None] - at[:, :, :, None, :]
         ax_, ay_, az_ = ar.unbind(1)
         lx, ly, lz = lev.unbind(1)
@@ -175,7 +198,7 @@ class Jacobians:
         lin *= mask
         rows = [lin]
         if kind == "pose":
-            rows.append(a[:, :, :, None, :] * (mask * rot.to(self.dtype)))
+            rows.append(a[:, :, :, None, :] * (mask * lay.rot_f))
         Jv = torch.cat(rows, 1) if len(rows) > 1 else lin  # (P, r, N, M, V)
         r_rows = Jv.shape[1]
         # split back into slot groups; offsets per movable joint -> per actuated joint

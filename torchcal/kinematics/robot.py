@@ -241,12 +241,16 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         # Internally every joint turns about (or slides along) z: C_j maps z onto the joint axis,
         # the chain works in frames W_j C_j, and C's are folded into origins and markers. A
         # revolute step is then a cheap mix of two columns instead of a 3x3 product.
-        C = torch.stack([_align_z(a) for a in self._axis])
+        # C is found on the host from the file's axes and copied once: on a GPU each Python
+        # branch of _align_z, and the check below, would wait for the device
+        axes_host = torch.tensor(np.stack([jt.axis for jt in self.joints]), dtype=self.dtype)
+        C_host = torch.stack([_align_z(a) for a in axes_host])
+        C = C_host.to(self.device)
         Cf = torch.cat([torch.eye(3, **fk)[None], C])  # per frame: root, then each joint's child
         self._C = C
         self._CfT = Cf.transpose(-1, -2)
         self._CpT = self._CfT[self.parent_frame]
-        self._aligned = bool(torch.allclose(C, torch.eye(3, **fk).expand_as(C), atol=0, rtol=0))
+        self._aligned = bool(torch.equal(C_host, torch.eye(3, dtype=C_host.dtype).expand_as(C_host)))
         self._kinds = [1 if jt.type in ("revolute", "continuous") else 2 if jt.type == "prismatic" else 0
                        for jt in self.joints]
         kinds = torch.tensor(self._kinds, device=self.device)
@@ -259,7 +263,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         s4[rev, 1, 0], s4[rev, 0, 1] = 1, -1
         p4[kinds == 2, 2, 3] = 1
         self._M4_one, self._M4_c, self._M4_s, self._M4_p = one, c4, s4, p4
-        self._has_moff = bool((self._moff != 0).any())
+        self._has_moff = any(v != 0 for v in moff)
         Tm = torch.tensor(np.stack([mk.matrix() for mk in self.markers]), **fk)
         self._mk_R, self._mk_t = Tm[:, :3, :3].contiguous(), Tm[:, :3, 3].contiguous()
         self._mk_frame = [link_frame[mk.link] for mk in self.markers]
@@ -281,6 +285,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self._nominal_cache = None
         self._nominal_cache = self._origins(None)
         self._nominal_cache4 = homogeneous(*self._nominal_cache)
+        self._jac_layout = self._jacobian_layout()
 
     # ------------------------------------------------------------------ basic facts
     @property

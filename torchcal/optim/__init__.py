@@ -8,9 +8,9 @@ robots.
 """
 from torchcal.optim import cpso, ga, gradient, hybrid, lm, mayfly, mma, pso  # noqa: F401  (registers solvers)
 from torchcal.optim.base import Solver, available, get_solver, minimize, register
-from torchcal.optim.engine import IterativeSolver
+from torchcal.optim.engine import IterativeSolver, minimize_runs
 from torchcal.optim.result import Result
 from torchcal.problems.base import FunctionProblem, LeastSquaresProblem, Problem
 
 __all__ = ["Problem", "LeastSquaresProblem", "FunctionProblem", "Result", "Solver", "IterativeSolver",
-           "register", "get_solver", "available", "minimize"]
+           "register", "get_solver", "available", "minimize", "minimize_runs"]

@@ -29,9 +29,11 @@ class Solver:
         self.progress = progress
         self.callback = callback
 
-    def generator(self, problem: Problem) -> torch.Generator:
+    def generator(self, problem: Problem, seed: int | None = None) -> torch.Generator:
+        """A generator on the problem's device seeded with ``seed`` (default: the solver's)."""
+        seed = self.seed if seed is None else seed
         g = torch.Generator(device=problem.device)
-        g.manual_seed(0 if self.seed is None else int(self.seed))
+        g.manual_seed(0 if seed is None else int(seed))
         return g
 
     def minimize(self, problem: Problem) -> Result:

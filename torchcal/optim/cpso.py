@@ -106,6 +106,7 @@ class ChaoticPSO(PSO):
 
     name = "cpso"
     aliases = ("chaotic-pso",)
+    batched = False  # the chaotic search follows one global best
 
     def __init__(self, *, pop_size: int = 200, max_iter: int = 200,
                  w: float | tuple[float, float] = (0.9, 0.2), c1: float = 1.3, c2: float = 1.8,

@@ -8,6 +8,7 @@ Also holds small helpers shared with :mod:`torchcal.optim.gradient`.
 """
 from __future__ import annotations
 
+import logging
 import math
 from types import SimpleNamespace
 
@@ -19,9 +20,31 @@ from torchcal.optim.engine import LocalSolver
 from torchcal.optim.result import Result
 from torchcal.problems.base import LeastSquaresProblem, Problem
 
-__all__ = ["LevenbergMarquardt"]
+__all__ = ["LevenbergMarquardt", "GPU_MIN_JACOBIAN", "note_device_size"]
 
 _F64 = torch.float64
+log = logging.getLogger(__name__)
+
+# A least-squares problem whose Jacobian has fewer entries (m residuals x k parameters) than this
+# does too little work per tensor operation for a GPU: every operation of an iteration costs about
+# a kernel launch (microseconds) whatever its size, so the run is slower than on the CPU. Measured
+# by scripts/gpu_check.sh (calibrate on 300 KR5 poses, 900 x ~40, ran slower on an H100 than on
+# one CPU thread).
+GPU_MIN_JACOBIAN = 1_000_000
+_told: set[str] = set()  # device types already told about (once per process: a loop fits many)
+
+
+def note_device_size(device: torch.device, m: int, k: int) -> bool:
+    """Say once per process, in the log, when an ``m x k`` least-squares problem on a GPU is too
+    small to gain from it (:data:`GPU_MIN_JACOBIAN`); whether it is."""
+    small = device.type == "cuda" and m * k < GPU_MIN_JACOBIAN
+    if small and device.type not in _told:
+        _told.add(device.type)
+        log.warning("this problem (%d residuals, %d parameters) is too small to gain from %s: each tensor "
+                    "operation of an iteration does less work than a kernel launch costs, so it runs slower "
+                    "than on the CPU; consider device='cpu' (the robot and the data on the CPU)",
+                    m, k, device.type)
+    return small
 
 
 # -- helpers shared by the gradient solvers ---------------------------------------------------
@@ -209,6 +232,7 @@ class LevenbergMarquardt(LocalSolver):
         r = ev.residuals(x)
         J = ev.jacobian(x, r)
         k = x.numel()
+        note_device_size(x.device, r.numel(), k)
         A, gr, Ae, ge, rhs = self._linearise(st, x, r, J)
         S0 = torch.dot(r, r)
         S, gnorm, xnorm, Amax = torch.stack([
@@ -217,7 +241,7 @@ class LevenbergMarquardt(LocalSolver):
             # floor the scaling: a near-zero column would otherwise get no damping and its
             # parameter would run off in a direction the data cannot see
             dA = A.diagonal()
-            st.Dvec = dA.clamp(min=1e-6 * float(dA.max())) if float(dA.max()) > 0 else torch.ones_like(dA)
+            st.Dvec = dA.clamp(min=1e-6 * Amax) if Amax > 0 else torch.ones_like(dA)
             st.Dm = torch.diag_embed(st.Dvec)
             st.mu = self.mu0 if self.mu0 is not None else self.tau
         else:
@@ -255,7 +279,9 @@ class LevenbergMarquardt(LocalSolver):
 
     def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> tuple[bool, str] | None:
         # torch functions rather than operators (x + h, a @ b): on small CPU tensors the
-        # operator dispatch costs about as much as the arithmetic
+        # operator dispatch costs about as much as the arithmetic. The host reads the device at
+        # most three times per step (on a GPU each read waits for all queued work): whether the
+        # Cholesky factor exists, the step's scalars together, and the new gradient test.
         add, dot, mv = torch.add, torch.dot, torch.mv
         x, g, S, mu, nu = st.x, st.g, st.S, st.mu, st.nu
         stop = None
@@ -272,14 +298,15 @@ class LevenbergMarquardt(LocalSolver):
                 x_new = torch.clamp(x_new, st.lower, st.upper)
                 h = torch.sub(x_new, x)
             r_new = st.ev.residuals(x_new)
-            S_new = dot(r_new, r_new).item()
-            hh = dot(h, h).item()
-            if st.bounded or st.marquardt:
+            model = st.bounded or st.marquardt
+            SS = dot(r_new, r_new)
+            parts = [SS, dot(h, h), dot(h, g), torch.linalg.vector_norm(x_new)]
+            if model:
                 Jh = mv(st.J, h)
-                pred = -2.0 * dot(h, g).item() - dot(Jh, Jh).item()
-            else:
-                # (A + mu I) h = -g  =>  S(0) - S_model(h) = mu h·h - h·g
-                pred = mu * hh - dot(h, g).item()
+                parts.append(dot(Jh, Jh))
+            S_new, hh, hg, xnorm_new, *JhJh = torch.stack(parts).tolist()
+            # S(0) - S_model(h): from J h, or as (A + mu I) h = -g gives mu h·h - h·g
+            pred = -2.0 * hg - JhJh[0] if model else mu * hh - hg
             act = S - S_new
             rho = act / pred if (pred > 0 and math.isfinite(S_new)) else -1.0
             small_f = abs(act) <= self.ftol * S and pred <= self.ftol * S and rho <= 2.0
@@ -291,8 +318,8 @@ class LevenbergMarquardt(LocalSolver):
                 if st.marquardt:
                     st.Dvec = torch.maximum(st.Dvec, st.A.diagonal())
                     st.Dm = torch.diag_embed(st.Dvec)
-                st.gnorm = _gcos(st.ge, st.A, dot(r_new, r_new)).item()
-                st.xnorm = torch.linalg.vector_norm(x_new).item()
+                st.gnorm = _gcos(st.ge, st.A, SS).item()
+                st.xnorm = xnorm_new
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
                 st.best = self._fit_at(st, x_new, S_new)

@@ -14,11 +14,11 @@ state and no per-particle Python.
 
 Shapes: ``k`` parameters, ``P`` particles; positions ``X``, velocities ``V``, personal bests
 ``pbest`` are ``(P, k)``; fitness values ``f``, ``pbest_f`` are ``(P,)``; ``gbest`` is
-``(k,)`` and ``gbest_f`` a 0-d tensor.
+``(k,)`` and ``gbest_f`` a 0-d tensor. Several independent runs carry a leading run axis
+``R`` on all of them (:mod:`torchcal.optim.swarm`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from fractions import Fraction
 from typing import Callable
 
@@ -27,99 +27,10 @@ from torch import Tensor
 
 from torchcal.optim.base import register
 from torchcal.optim.engine import IterativeSolver
-from torchcal.optim.result import Result
+from torchcal.optim.swarm import SwarmState, rand_runs, rows_of
 from torchcal.problems.base import Problem
 
 __all__ = ["PSO", "LDPSO_BT", "ldpso_pop_sizes", "SwarmState"]
-
-
-@dataclass
-class SwarmState:
-    """Mutable state of a swarm during one run (all tensors on the problem's dtype/device).
-
-    Attributes:
-        X: ``(P, k)`` positions.   V: ``(P, k)`` velocities.
-        pbest: ``(P, k)`` personal best positions.   pbest_f: ``(P,)`` their fitness.
-        gbest: ``(k,)`` global best position.   gbest_f: 0-d tensor, its fitness.
-        n_evals: points evaluated so far (Python int: the population size is known on the
-            host, so counting never synchronises with the device).
-
-    A state made by :meth:`allocate` keeps ``X``, ``V``, ``pbest`` and ``pbest_f`` as the first
-    ``P`` rows of buffers sized for the initial population, with a spare set for
-    :meth:`keep_rows`, and scratch buffers for one iteration (:meth:`scratch`). A state built
-    from plain tensors works too (the solvers' hooks and tests use that); it allocates instead.
-    """
-
-    X: Tensor
-    V: Tensor
-    pbest: Tensor
-    pbest_f: Tensor
-    gbest: Tensor
-    gbest_f: Tensor
-    n_evals: int = 0
-    _bufs: list | None = None
-    _scratch: dict | None = None
-
-    @property
-    def size(self) -> int:
-        return int(self.X.shape[0])
-
-    @property
-    def best(self) -> Tensor:
-        """The best fitness so far (what the engine records)."""
-        return self.gbest_f
-
-    @classmethod
-    def allocate(cls, X: Tensor, V: Tensor, f: Tensor) -> "SwarmState":
-        """A buffered state from the initial ``(P, k)`` positions, velocities and ``(P,)``
-        fitness: personal bests are the start points, the global best their best."""
-        P = X.shape[0]
-        i = torch.argmin(f)
-        bufs = [[torch.empty_like(X), torch.empty_like(X), torch.empty_like(X), torch.empty_like(f)]
-                for _ in range(2)]
-        for b, v in zip(bufs[0], (X, V, X, f)):
-            b.copy_(v)
-        s = cls(*bufs[0], gbest=X[i].clone(), gbest_f=f[i].clone(), n_evals=int(P), _bufs=bufs, _scratch={})
-        return s
-
-    def keep_rows(self, idx: Tensor) -> None:
-        """Keep only particles ``idx`` (``(n,)`` long, in the order given) of ``X``, ``V``,
-        ``pbest``, ``pbest_f``: gathered into the spare buffers, which then become the live ones."""
-        if self._bufs is None:
-            self.X, self.V, self.pbest, self.pbest_f = (t.index_select(0, idx) for t in
-                                                        (self.X, self.V, self.pbest, self.pbest_f))
-            return
-        n = int(idx.numel())
-        spare = [b[:n] for b in self._bufs[1]]
-        for src, dst in zip((self.X, self.V, self.pbest, self.pbest_f), spare):
-            torch.index_select(src, 0, idx, out=dst)
-        self._bufs.reverse()
-        self.X, self.V, self.pbest, self.pbest_f = spare
-
-    def scratch(self) -> dict:
-        """Scratch tensors for one iteration at the current population ``P`` (views of buffers
-        sized for the initial population, made once per ``P``): ``r``, ``t``, ``d`` ``(2, P, k)``
-        (random numbers, velocity terms, differences), ``xn`` ``(P, k)``, ``wall`` ``(P, k)`` bool,
-        ``f`` ``(P,)``, ``better`` ``(P,)`` bool."""
-        P = self.size
-        s = self._scratch.get(P)
-        if s is None:
-            if not self._scratch:
-                cap, k = self.X.shape
-                X = self.X
-                self._scratch["_b"] = dict(r=X.new_empty(2 * cap * k), t=X.new_empty(2 * cap * k),
-                                           d=X.new_empty(2 * cap * k), xn=X.new_empty(cap * k),
-                                           wall=torch.empty(cap * k, dtype=torch.bool, device=X.device),
-                                           f=self.pbest_f.new_empty(cap),
-                                           better=torch.empty(cap, dtype=torch.bool, device=X.device))
-            b, k = self._scratch["_b"], self.X.shape[1]
-            s = {n: b[n][: 2 * P * k].view(2, P, k) for n in ("r", "t", "d")}
-            s.update(xn=b["xn"][: P * k].view(P, k), wall=b["wall"][: P * k].view(P, k), f=b["f"][:P],
-                     better=b["better"][:P])
-            s["r1"], s["r2"], s["t1"], s["t2"], s["d1"], s["d2"] = (*s["r"], *s["t"], *s["d"])
-            s["better_col"] = s["better"][:, None]
-            self._scratch[P] = s
-        return s
 
 
 @register
@@ -147,20 +58,28 @@ class PSO(IterativeSolver):
         c1, c2: cognitive (personal best) and social (global best) coefficients.
         v_max: velocity limit as a fraction of each parameter's bound range; ``None`` = no limit
             (the initial velocities then span the full range).
+        stall_iter, stall_tol: stop a run once its best fitness has improved by at most
+            ``stall_tol`` (relative) over the last ``stall_iter`` iterations (``None``: run all
+            ``max_iter``). The test reads the best on the host: one synchronisation per iteration.
         seed, progress, callback: see :class:`Solver`. ``callback(it, best)`` is called after
             initialisation (``it = 0``) and after each iteration with the best fitness so far.
 
     Result: ``x`` the global best, ``history`` the best fitness after initialisation and after
     each iteration (``max_iter + 1`` floats), ``n_evals`` every point evaluated. NaN fitness
     values count as ``+inf`` (never a best).
+
+    Several independent runs (restarts with their own seeds) go as one population tensor through
+    :func:`~torchcal.optim.engine.minimize_runs`, each with its own random stream, bests and
+    stopping: the same results as the runs one by one.
     """
 
     name = "pso"
+    batched = True
 
     def __init__(self, *, pop_size: int = 240, max_iter: int = 500,
                  w: float | tuple[float, float] = 0.8, c1: float = 1.49, c2: float = 1.49,
-                 v_max: float | None = 0.2, seed: int | None = 0, progress: bool = False,
-                 callback: Callable[[int, float], None] | None = None):
+                 v_max: float | None = 0.2, stall_iter: int | None = None, stall_tol: float = 0.0,
+                 seed: int | None = 0, progress: bool = False, callback: Callable[[int, float], None] | None = None):
         super().__init__(seed=seed, progress=progress, callback=callback)
         if int(pop_size) < 1:
             raise ValueError(f"pop_size must be >= 1, got {pop_size}")
@@ -168,6 +87,12 @@ class PSO(IterativeSolver):
             raise ValueError(f"max_iter must be >= 0, got {max_iter}")
         if v_max is not None and not v_max > 0:
             raise ValueError(f"v_max must be positive or None, got {v_max}")
+        if stall_iter is not None and int(stall_iter) < 1:
+            raise ValueError(f"stall_iter must be >= 1 or None, got {stall_iter}")
+        if not stall_tol >= 0:
+            raise ValueError(f"stall_tol must be >= 0 (a relative improvement), got {stall_tol}")
+        self.stall_iter = None if stall_iter is None else int(stall_iter)
+        self.stall_tol = float(stall_tol)
         self.pop_size = int(pop_size)
         self.max_iter = int(max_iter)
         self.w = w
@@ -205,7 +130,7 @@ class PSO(IterativeSolver):
         operation, in the same order, as that expression written out."""
         torch.mul(w["r"], self._c12, out=w["t"])
         torch.sub(s.pbest, s.X, out=w["d1"])
-        torch.sub(s.gbest, s.X, out=w["d2"])
+        torch.sub(s.gbest.unsqueeze(-2), s.X, out=w["d2"])
         w["t"].mul_(w["d"])
         s.V.mul_(self.inertia(t)).add_(w["t1"]).add_(w["t2"])
 
@@ -219,10 +144,10 @@ class PSO(IterativeSolver):
     # -- shared helpers --------------------------------------------------------------------------
     @staticmethod
     def _evaluate(problem: Problem, X: Tensor, out: Tensor | None = None) -> Tensor:
-        """Batched fitness ``(P, k) -> (P,)`` in the problem's dtype, NaN mapped to ``+inf`` so a
-        failed evaluation can never become a best (``argmin`` would otherwise pick NaN); written
-        into ``out`` when given."""
-        f = problem.fitness(X).to(dtype=problem.dtype).reshape(X.shape[0])
+        """Batched fitness ``(..., P, k) -> (..., P)`` (one call on all points) in the problem's
+        dtype, NaN mapped to ``+inf`` so a failed evaluation can never become a best (``argmin``
+        would otherwise pick NaN); written into ``out`` when given."""
+        f = problem.fitness(X.reshape(-1, X.shape[-1])).to(dtype=problem.dtype).reshape(X.shape[:-1])
         inf = float("inf")
         return torch.nan_to_num(f, nan=inf, posinf=inf, neginf=-inf, out=out)
 
@@ -235,27 +160,33 @@ class PSO(IterativeSolver):
         ops stay on the device (no ``.item()``): the global best is chosen with ``torch.where``.
         """
         better = torch.lt(f, s.pbest_f, out=None if w is None else w["better"])
-        col = better[:, None] if w is None else w["better_col"]
+        col = better[..., None] if w is None else w["better_col"]
         torch.where(col, X, s.pbest, out=s.pbest)
         torch.where(better, f, s.pbest_f, out=s.pbest_f)
-        cand_f, i = torch.min(s.pbest_f, 0)
+        cand_f, i = torch.min(s.pbest_f, -1)
         gb = cand_f < s.gbest_f
-        torch.where(gb, s.pbest.index_select(0, i.view(1))[0], s.gbest, out=s.gbest)
+        torch.where(gb[..., None], rows_of(s.pbest, i[..., None])[..., 0, :], s.gbest, out=s.gbest)
         torch.where(gb, cand_f, s.gbest_f, out=s.gbest_f)
 
     # -- the run -------------------------------------------------------------------------------
-    def init(self, problem: Problem, g: torch.Generator) -> SwarmState:
+    def init(self, problem: Problem, g: torch.Generator | list[torch.Generator]) -> SwarmState:
+        """The start of one run (``g`` a generator) or of several (``g`` a list: one per run, each
+        drawing what its run would draw alone)."""
         problem.require_finite_bounds(self.name)
         span = problem.upper - problem.lower
         # Velocity limit per component; without v_max the full range is the natural scale.
         vlim = span * (self.v_max if self.v_max is not None else 1.0)
         self._c12 = torch.tensor([self.c1, self.c2], dtype=problem.dtype, device=problem.device)[:, None, None]
 
-        X, V = self._init_positions(problem, g, vlim)
+        if isinstance(g, torch.Generator):
+            X, V = self._init_positions(problem, g, vlim)
+        else:
+            X, V = (torch.stack(t) for t in zip(*(self._init_positions(problem, gi, vlim) for gi in g)))
         if problem.x0 is not None:
             # Seed the swarm with the user's start so the result is never worse than it.
-            X[0] = problem.clip(problem.x0)
-        s = SwarmState.allocate(X, V, self._evaluate(problem, X))
+            X[..., 0, :] = problem.clip(problem.x0)
+        s = SwarmState.allocate(X, V, self._evaluate(problem, X), ring=0 if self.stall_iter is None else
+                                self.stall_iter + 1)
         s.vlim, s.nvlim = vlim, -vlim
         self._after_init(s, problem, g)
         return s
@@ -263,7 +194,7 @@ class PSO(IterativeSolver):
     def step(self, problem: Problem, s: SwarmState, t: int, g: torch.Generator) -> None:
         self._before_step(t, s, problem, g)
         w = s.scratch()
-        torch.rand(w["r"].shape, generator=g, out=w["r"])  # r1 = r[0], r2 = r[1]: one draw
+        rand_runs(g, w["r"])  # r1 = r[..., 0, :, :], r2 = r[..., 1, :, :]: one draw per run
         self._velocity(t, s, w)
         if self.v_max is not None:
             s.V.clamp_(s.nvlim, s.vlim)
@@ -275,10 +206,41 @@ class PSO(IterativeSolver):
         s.n_evals += s.size
         self._update_bests(s, s.X, f, w)
         self._after_step(t, s, problem, g)
+        s.t = t
+        if s.ring is not None:
+            s.ring[t % s.ring.shape[0]] = s.gbest_f
         return None
+
+    def _stalled(self, s: SwarmState) -> Tensor | None:
+        """``(...)`` bool: whether each run's best improved by at most ``stall_tol`` (relative)
+        over the last ``stall_iter`` iterations; ``None`` before that many or without the test."""
+        if s.ring is None or s.t < self.stall_iter:
+            return None
+        L = s.ring.shape[0]
+        old, new = s.ring[(s.t - self.stall_iter) % L], s.ring[s.t % L]
+        return (old - new) <= self.stall_tol * old.abs()
+
+    def _stall_message(self) -> str:
+        return (f"the best fitness improved by at most {self.stall_tol:g} (relative) over the last "
+                f"{self.stall_iter} iterations")
+
+    def check(self, problem: Problem, s: SwarmState) -> tuple[bool, str] | None:
+        stalled = self._stalled(s)
+        if stalled is not None and bool(stalled):
+            return True, self._stall_message()
+        return None
+
+    def check_runs(self, problem: Problem, s: SwarmState) -> tuple[Tensor, str] | None:
+        """For several runs: ``((R,) bool, why)``, the runs that stop now, or ``None``."""
+        stalled = self._stalled(s)
+        return None if stalled is None else (stalled, self._stall_message())
 
     def finish(self, problem: Problem, s: SwarmState) -> tuple[Tensor, float, dict]:
         return s.gbest.clone(), float(s.gbest_f), self._extra(s)
+
+    def finish_runs(self, problem: Problem, s: SwarmState) -> list[tuple[Tensor, float, dict]]:
+        """For several runs: ``(x, fun, extra)`` per run of the state."""
+        return [(x.clone(), f, self._extra(s)) for x, f in zip(s.gbest, s.gbest_f.tolist())]
 
     def _after_init(self, s: SwarmState, problem: Problem, g: torch.Generator) -> None:
         """Called once after the initial population is evaluated."""
@@ -328,7 +290,7 @@ class LDPSO_BT(PSO):
         max_iter: ``MaxIt``.
         w1, w2: inertia before / after the switch.
         k_switch: ``K``; the best-tracking stage is ``t > K MaxIt``.
-        c1, c2, v_max, seed, progress, callback: as in :class:`PSO`.
+        c1, c2, v_max, stall_iter, stall_tol, seed, progress, callback: as in :class:`PSO`.
     """
 
     name = "ldpso-bt"
@@ -336,12 +298,13 @@ class LDPSO_BT(PSO):
 
     def __init__(self, *, n_max: int = 240, n_min: int = 40, max_iter: int = 500, w1: float = 0.8,
                  w2: float = 0.4, k_switch: float = 0.8, c1: float = 1.49, c2: float = 1.49,
-                 v_max: float | None = 0.2, seed: int | None = 0, progress: bool = False,
-                 callback: Callable[[int, float], None] | None = None):
+                 v_max: float | None = 0.2, stall_iter: int | None = None, stall_tol: float = 0.0,
+                 seed: int | None = 0, progress: bool = False, callback: Callable[[int, float], None] | None = None):
         if not 1 <= int(n_min) <= int(n_max):
             raise ValueError(f"need 1 <= n_min <= n_max, got n_min={n_min}, n_max={n_max}")
         super().__init__(pop_size=n_max, max_iter=max_iter, w=w1, c1=c1, c2=c2, v_max=v_max,
-                         seed=seed, progress=progress, callback=callback)
+                         stall_iter=stall_iter, stall_tol=stall_tol, seed=seed, progress=progress,
+                         callback=callback)
         self.n_max = int(n_max)
         self.n_min = int(n_min)
         self.w1 = float(w1)
@@ -357,13 +320,13 @@ class LDPSO_BT(PSO):
         if n < s.size:
             # Keep the n best by personal-best fitness (stable sort: deterministic on ties), in
             # their original order so particle identity is easy to follow.
-            s.keep_rows(torch.argsort(s.pbest_f, stable=True)[:n].sort().values)
+            s.keep_rows(torch.argsort(s.pbest_f, dim=-1, stable=True)[..., :n].sort(-1).values)
 
     def _velocity(self, t: int, s: SwarmState, w: dict) -> None:
         if t > self.k_switch * self.max_iter:
             # Best-tracking stage: only the global best attracts, v = w2 v + c2 r2 (gbest - x).
             torch.mul(w["r2"], self.c2, out=w["t2"])
-            w["t2"].mul_(torch.sub(s.gbest, s.X, out=w["d2"]))
+            w["t2"].mul_(torch.sub(s.gbest.unsqueeze(-2), s.X, out=w["d2"]))
             s.V.mul_(self.w2).add_(w["t2"])
             return
         super()._velocity(t, s, w)
