@@ -183,8 +183,12 @@ def test_noise_floor_from_repeated_commands():
     d = Measurements(q, p, ["flange"], list(robot.joint_names))
     v, src = noise_floor(d)
     assert v == pytest.approx(0.05 * 2 * math.sqrt(2 / math.pi), rel=0.08) and "pure error of 40 repeated" in src
-    assert noise_floor(d, 0.03) == (0.03, "given by the caller (noise_mm, --noise-mm)")
-    assert noise_floor(d.subset(torch.arange(40))) == (None, None)
+    # the pure error is measured on these very rows: it comes before the instrument's specification
+    assert noise_floor(d, 0.03)[0] == pytest.approx(v)
+    once = d.subset(torch.arange(40))
+    assert noise_floor(once) == (None, None)
+    assert noise_floor(once, 0.03) == (0.03, "given by the caller (noise_mm, --noise-mm: the instrument's "
+                                             "specification)")
 
 
 def test_a_finding_is_stated_only_when_significant():

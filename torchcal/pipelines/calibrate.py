@@ -101,6 +101,7 @@ class CalibrationResult:
     prior_tried: list = field(default_factory=list)
     implausible: dict = field(default_factory=dict)  # joint errors beyond their plausible size: name -> value
     plausible: dict = field(default_factory=dict)
+    held_by_prior: dict = field(default_factory=dict)  # fitted, but tied: the prior's share, and why
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -123,9 +124,10 @@ class CalibrationResult:
         tell it from others) or ``"fixed"`` (not seen, or pinned down worse than a plausible
         error), with the reason for the latter two."""
         imp = set(getattr(self.identifiability, "imprecise", []) or [])
-        out = {n: ("identified", "") for n in self.params.free_names if n not in self.unidentifiable}
+        out = {n: ("identified", "") for n in self.params.free_names if n not in self.held_by_prior}
+        out.update({n: ("tied", why) for n, why in self.held_by_prior.items()})
         for n, why in self.unidentifiable.items():
-            fixed = n not in self.params.free_names and (n in imp or "does not move" in why or "not fitted" in why)
+            fixed = n in imp or "does not move" in why or "not fitted" in why
             out[n] = ("fixed" if fixed else "tied", why)
         return out
 
@@ -329,7 +331,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     std_errors = dict(zip(p.free_names, se.tolist()))
 
     # on small data (or when the plain fit moves a joint implausibly far) the loop's CV-chosen prior
-    choice, why = None, ""
+    choice, why, held = None, "", {}
     gradient = not swarm and kind == "position" and reduce
     wanted = prior == "cv" or (prior == "auto" and (is_small(data, len(start.free_names))
                                                    or implausible_values(p, robot, plausible)))
@@ -339,11 +341,14 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         if choice.prior_mm is not None:
             p, std_errors = choice.params, {n: choice.std_errors.get(n, float("nan")) for n in choice.params.free_names}
             # what the data alone cannot tell apart is held by the prior: tied, with the value the prior gives it
+            # what the data alone cannot tell apart, the prior holds: tied, fitted to the prior's share
             cand = start.clone()
             cand.values = p.values.clone()
             _, rank = reduce_free(lambda q: make_problem(q, loss_obj), cand, markers=robot.marker_names, kind=kind,
                                   prefer=prefer)
-            unident = {n: rank.reasons[n] for n in rank.dropped}
+            held = {n: rank.reasons[n] + "; held by the prior at its share of the tie" for n in rank.dropped
+                    if n in p.free_names}
+            unident = {n: rank.reasons[n] for n in rank.dropped if n not in p.free_names}
     elif prior is not None and gradient:
         why = (f"no prior: {data.n_values} measured values for {len(start.free_names)} candidate parameters are "
                "enough to fit the identifiable ones alone")
@@ -364,4 +369,5 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
                              wall_time_s=time.perf_counter() - t0, errors=errors,
                              prior_mm=None if choice is None else choice.prior_mm, prior_reason=why,
                              prior_tried=[] if choice is None else choice.tried,
-                             implausible=implausible_values(p, robot, plausible), plausible=plausible)
+                             implausible=implausible_values(p, robot, plausible), plausible=plausible,
+                             held_by_prior=held)

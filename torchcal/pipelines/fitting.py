@@ -100,9 +100,9 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
 
     Returns (a copy of ``params`` with them fixed, the identifiability report)."""
     prob = make_problem(params)
-    # what the measurements themselves can tell apart: a prior's rows would make every column
-    # independent, and would then split an exact tie between its parameters
-    J = prob.data_jacobian(prob.x0) if hasattr(prob, "data_jacobian") else prob.jacobian(prob.x0)
+    # a problem with a prior counts its rows: a prior holds what the data cannot tell apart, and
+    # splits an exact tie among its parameters rather than putting all of it on one
+    J = prob.jacobian(prob.x0)
     units = [params.units[i] for i in params.free_index.tolist()]
     rep = analyse_jacobian(J, params.free_names, units, markers=markers, kind=kind, prefer=prefer)
     out = params.clone()

@@ -18,7 +18,7 @@ first one, and it is cross-checked against the SVD of the same matrix. Interchan
 parameters (``joint_1.dz`` and ``base.z``) tie exactly after normalisation, so the QR is run in
 *tiers*: the columns matching the first preference tier are pivoted first, the next tier is
 pivoted against the span of what was kept, and so on (:data:`DEFAULT_PREFER`: base frame, then
-DH errors and joint offsets, then marker offsets, then joint-origin errors).
+marker points, then DH errors and joint offsets, then joint-origin errors).
 
 Observability indices (Borm & Menq 1991; Driels & Pathre 1990; Nahvi & Hollerbach 1996), from
 the singular values ``σ1 ≥ … ≥ σk`` of the Jacobian of the ``k`` identifiable parameters:
@@ -60,13 +60,15 @@ __all__ = ["stacked_jacobian", "identifiability", "analyse_jacobian", "observabi
 # Preference tiers (glob patterns), earliest kept first when parameters are interchangeable.
 # The base frame comes first, with the other unknowns of the set-up (touched planes, fixed points):
 # with measurements in an instrument frame it must always be identified, and first-joint errors
-# duplicate it. Then DH errors and joint zero offsets (the
-# textbook parameters), then marker offsets (the tool point is usually unknown), and last the
-# six-per-joint origin errors of URDF robots, which duplicate the others most often.
+# duplicate it. Then the marker points, unknowns of the set-up too: a point's place about the last
+# joint's axis is exactly that joint's zero offset, and it is the point, placed anywhere on its
+# link, that takes it (a zero offset taking it would be as large as the point's unknown angle).
+# Then DH errors and joint zero offsets (the textbook parameters), and last the six-per-joint
+# origin errors of URDF robots, which duplicate the others most often.
 DEFAULT_PREFER: list[list[str]] = [
     ["base.*", "plane.*", "pivot.*"],
-    ["*.da", "*.dd", "*.dalpha", "*.dtheta", "*.offset"],
     ["<markers>"],  # placeholder: replaced by "<marker>.*" for each of the robot's markers
+    ["*.da", "*.dd", "*.dalpha", "*.dtheta", "*.offset"],
 ]
 
 # Relative boost per position that breaks exact ties in favour of earlier columns (see _tiered_qr).

@@ -137,7 +137,13 @@ def calibration_markdown(res) -> str:
                         ("fixed", "Fixed at nominal: not seen, or pinned down worse than a plausible error")):
         rows = sorted((n, why) for n, (k, why) in status.items() if k == kind)
         if rows:
-            lines += ["", f"## {title}", ""] + [f"- `{n}`: {why}" for n, why in rows]
+            lines += ["", f"## {title}", ""]
+            for n, why in rows:
+                val = ""
+                if n in res.params.free_names:  # held by a prior at its share of the tie
+                    sv, us = shown(float(res.params[n]), res.params.units[res.params.index(n)], 4)
+                    val = f" = {sv} {us}"
+                lines.append(f"- `{n}`{val}: {why}")
     if res.problems():
         lines += ["", "**Not fit to save or deploy:** " + "; ".join(res.problems())]
     s = res.solver

@@ -131,6 +131,9 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
     # every error, under the prior
     start = warm_start(geometric_start(robot, data, None, setup, ctx.rot_weight is not None), out.best.params)
     m = evaluate_prior(ctx, "prior", start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
+    plausible = [x for x in tried if not implausible_values(x.params, robot)]
+    if plausible and implausible_values(m.params, robot):  # the best scale that keeps every joint plausible
+        m = min(plausible, key=lambda x: penalised(x.scores, x.k, n_obs))
     for mt in sorted(tried, key=lambda x: x.prior_mm):
         name = f"prior {mt.prior_mm:g} mm/mrad"
         out.fits[name] = mt.params
