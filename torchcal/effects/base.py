@@ -99,6 +99,10 @@ class Effect:
         self.geometry = g
         self.theta = torch.zeros(len(self.param_names), dtype=robot.dtype, device=robot.device)
         self.covariate_range: dict[str, tuple[float, float]] = {}
+        # a Gaussian prior on the parameters, as weights (m of residual per unit of each), when the
+        # loop keeps every mode softly rather than choosing some (None: none)
+        self.ridge: Tensor | None = None
+        self.ridge_mm: float | None = None  # that prior's σ: the RMS displacement a mode may cause (mm)
 
     # -- description --------------------------------------------------------------------
     def default_joints(self) -> list[str]:
@@ -143,6 +147,8 @@ class Effect:
         kw.update(changes)
         out = type(self)(self.robot, joints, geometry=self.geometry, **kw)
         out.covariate_range = dict(self.covariate_range)
+        if self.ridge is not None and out.param_names == self.param_names:
+            out.ridge, out.ridge_mm = self.ridge.clone(), self.ridge_mm
         return out
 
     def at_geometry(self, geometry: Tensor) -> "Effect":

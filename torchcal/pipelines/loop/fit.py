@@ -155,17 +155,27 @@ def geometric_start(robot, data: Measurements, patterns, setup: Setup | None = N
     return p if setup is None else ParamSet.concat(p, setup.params())
 
 
-def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float) -> Tensor | None:
+def prior_weights(robot, params: ParamSet, prior_mm: float | None, sigma: float,
+                  effects: list = ()) -> Tensor | None:
     """Prior weights ``σ_noise / σ_prior`` for every geometric error (not the instrument frame,
     not the marker points: unknowns of the set-up, not errors of the robot); ``σ_prior`` is
-    ``prior_mm`` mm for lengths and ``prior_mm`` mrad for angles (equal at a 1 m lever)."""
-    if prior_mm is None:
+    ``prior_mm`` mm for lengths and ``prior_mm`` mrad for angles (equal at a 1 m lever); then the
+    ``ridge`` of each of ``effects`` (the last entries of ``params``) that carries one. None when
+    there is no prior at all."""
+    soft = [e for e in effects if getattr(e, "ridge", None) is not None]
+    if prior_mm is None and not soft:
         return None
-    setup = ("base.",) + tuple(f"{m}." for m in robot.marker_names)
     w = torch.zeros(len(params), dtype=params.values.dtype, device=params.values.device)
     K = robot.n_params
-    is_err = torch.tensor([not n.startswith(setup) for n in params.names[:K]], device=w.device)
-    w[:K][is_err] = sigma / (prior_mm * 1e-3)
+    if prior_mm is not None:
+        setup = ("base.",) + tuple(f"{m}." for m in robot.marker_names)
+        is_err = torch.tensor([not n.startswith(setup) for n in params.names[:K]], device=w.device)
+        w[:K][is_err] = sigma / (prior_mm * 1e-3)
+    o = len(params) - sum(e.n_params for e in effects)
+    for e in effects:
+        if getattr(e, "ridge", None) is not None:
+            w[o:o + e.n_params] = e.ridge.to(w)
+        o += e.n_params
     return w
 
 
@@ -223,9 +233,9 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
              reduce: bool = True, info: dict | None = None) -> Model:
     """Fit ``start`` on all training rows (identifiable subset, judged at the start and again
     at the solution), then K-fold cross-validate it from that fit."""
-    prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma)
+    prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma, effects)
     full = fit_params(ctx, start, effects, ctx.data, prior, reduce)
-    prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma)
+    prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma, effects)
     prob = effect_problem(ctx, full, effects, ctx.data, prior)
     x = prob.x0
     J = prob.data_jacobian(x) * prob.observation_weights(x).repeat_interleave(3)[:, None]

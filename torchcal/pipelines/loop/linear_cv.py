@@ -71,12 +71,18 @@ class LinearCV:
             self._data_folds.append((val_obs, Aw[tr3].T @ Aw[tr3], Aw[tr3].T @ self._rw[tr3]))
         self.set_prior(prior)
 
-    def set_prior(self, prior: Tensor | None) -> "LinearCV":
-        """Score under base prior weights ``prior`` (``(kb,)``, raw units; None: no prior)."""
+    def set_prior(self, prior: Tensor | None, ridge: float | None = None) -> "LinearCV":
+        """Score under base prior weights ``prior`` (``(kb,)``, raw units; None: no prior) and a
+        Gaussian prior of weight ``ridge`` on every group coordinate (each column of unit norm, so
+        ``ridge = σ_noise / (σ_mode √(3 n_obs))`` for a mode's RMS displacement ``σ_mode``; None:
+        none)."""
         P = torch.zeros_like(self._x0)
         if prior is not None:
             P[: self.kb] = prior / self.scale[: self.kb]
+        if ridge is not None:
+            P[self.kb:] = ridge
         self.prior = None if prior is None else prior.clone()
+        self.ridge = ridge
         P2 = P * P
 
         def add(G, b):  # the prior residual P (x0 + δ): curvature P², gradient P² x0
@@ -180,6 +186,23 @@ class LinearCV:
         h = G[J, J]
         quad = ((U * (Gd[S][:, S] @ U)).sum(0) - 2 * (U * g).sum(0) + h) / sch.clamp(min=1e-300)
         return scores, torch.where(sch > 1e-12 * h.clamp(min=1e-300), k0 + quad, torch.full_like(h, k0))
+
+    def soft(self, start: list[int], n_obs: float, ridges: list[float]) -> dict | None:
+        """Every usable group at once under the ridge (of ``ridges``) with the lowest penalised
+        score: ``{"ridge", "chosen", "scores", "k", "pen"}``; None with fewer than two groups. The
+        ridge stays set as found; :meth:`set_prior` resets it."""
+        pool = [g for g in range(len(self.slices)) if self.usable[g] and g not in start]
+        if len(pool) < 2:
+            return None
+        best = None
+        for lam in ridges:
+            self.set_prior(self.prior, lam)
+            sc, k = self.scores(start + pool), self.k_eff(start + pool)
+            pen = penalised(sc, k, n_obs)
+            if best is None or pen < best["pen"]:
+                best = {"ridge": lam, "chosen": start + pool, "scores": sc, "k": k, "pen": pen}
+        self.set_prior(self.prior, best["ridge"])
+        return best
 
     def _rank_one(self, G: Tensor, b: Tensor, S: Tensor, J: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """For each column ``j`` of ``J`` added to the set ``S``: its coefficient ``x_j``, the

@@ -27,7 +27,7 @@ def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
     col = {int(i): c for c, i in enumerate(m.params.free_index.tolist())}
     out, o = [], ctx.n_geo
     for k, e in enumerate(m.effects):
-        if e.selectable:
+        if e.selectable and e.ridge is None:  # a family kept softly is held by its prior, not judged mode by mode
             for label, idx in e.modes():
                 cols = [col[o + i] for i in idx if (o + i) in col and i not in set(e.shared())]
                 if cols:
@@ -44,7 +44,7 @@ def weakest_mode(ctx: Context, m: Model, protect=frozenset()) -> tuple[int, str,
     modes = [(k, lab, c) for k, lab, c in _mode_columns(ctx, m) if (m.effects[k].name, lab) not in protect]
     if len(modes) == 0:
         return None
-    prior = prior_weights(ctx.robot, m.params, m.prior_mm, ctx.sigma)
+    prior = prior_weights(ctx.robot, m.params, m.prior_mm, ctx.sigma, m.effects)
     prob = effect_problem(ctx, m.params, m.effects, ctx.data, prior)
     x = prob.x0
     r = prob.residual_vectors(m.params.values[None])[0]

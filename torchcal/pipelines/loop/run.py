@@ -345,7 +345,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                          "test_gain_mm": gain, "evidence": ev_text,
                          "found": eff.describe(free=kept)
                          + [f"{a} cannot be told from {', '.join(b)} by these data: one finding, either of them"
-                            for a, b in entry.get("aliases", {}).items()],
+                            for a, b in entry.get("aliases", {}).items()]
+                         + ([f"all {len(eff.modes())} modes kept under a Gaussian prior of {eff.ridge_mm:.3g} mm RMS at "
+                             "the markers per mode (its scale chosen by CV): together they explain what no single "
+                             "mode shows clearly"] if eff.ridge is not None else []),
+                         "soft_prior_mm": eff.ridge_mm,
                          "aliases": entry.get("aliases", {}),
                          "params": {n: float(v) for n, v, f in zip(m.params.names, m.params.values.tolist(),
                                                                      m.params.free.tolist())

@@ -10,7 +10,7 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
                                          prior_weights, split_params)
 from torchcal.pipelines.loop.linear_cv import LinearCV
-from torchcal.pipelines.loop.selection import penalised
+from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["effect_start"]
@@ -56,6 +56,31 @@ def _bilinear_starts(lin: Tensor) -> list[Tensor]:
     return out
 
 
+# A mode's prior σ when a family is kept softly, as multiples of the noise: the RMS displacement
+# each mode may cause at the markers (chosen by the penalised CV error)
+SOFT_SCALES = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
+
+
+def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard: dict, shared: int) -> dict | None:
+    """Every mode of a linear family at once under a Gaussian prior whose scale the penalised CV
+    error chooses (:data:`SOFT_SCALES`), when it beats the hard selection ``hard`` and passes the
+    rule against ``baseline``; None otherwise (the ridge is then left off). On noisy data many
+    small modes held by a prior can explain what no single mode shows clearly."""
+    if shared:  # a bilinear family (an unknown payload) is chosen mode by mode
+        return None
+    n3 = 3 * ctx.n_obs
+    opt = lcv.soft(forced, ctx.n_obs, [1.0 / (m * (n3 ** 0.5)) for m in SOFT_SCALES])
+    if opt is None:
+        return None
+    t, pen_ok, _ = compare(baseline[0], opt["scores"], baseline[1], opt["k"], ctx.n_obs)
+    pen_hard = hard["pen"] if hard["new"] else penalised(*baseline, ctx.n_obs)
+    if not (t > T_ACCEPT and pen_ok and opt["pen"] < pen_hard):
+        lcv.set_prior(lcv.prior)
+        return None
+    m = 1.0 / (opt["ridge"] * n3 ** 0.5)
+    return dict(opt, sigma_mm=1e3 * m * ctx.sigma, t=t, pen_hard=pen_hard, pen_soft=opt["pen"])
+
+
 def _step_words(h: dict, labels: list[str]) -> dict:
     """One selection step for the report: what was tried (each mode's t) and added, or which mode
     left or was exchanged for which, and the threshold."""
@@ -81,7 +106,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
     base_effects = [e for e, _ in keep]
     base = assemble(geo, [p for _, p in keep])
-    prior = prior_weights(robot, base, current.prior_mm, ctx.sigma)
+    prior = prior_weights(robot, base, current.prior_mm, ctx.sigma, base_effects)
     prob = effect_problem(ctx, base, base_effects, ctx.data, prior)
     x = prob.x0
     r = prob.residual_vectors(base.values[None])[0]
@@ -105,7 +130,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         baseline = (lcv.scores(forced), lcv.k_eff(forced))
 
         def select(s_mm):
-            w_ = prior_weights(robot, base, s_mm, ctx.sigma)
+            w_ = prior_weights(robot, base, s_mm, ctx.sigma, base_effects)
             lcv.set_prior(None if w_ is None else w_[base.free_index])
             chosen, hist, sc, k = lcv.forward(forced, ctx.n_obs, baseline)
             return {"chosen": chosen, "hist": hist, "pen": penalised(sc, k, ctx.n_obs), "prior_mm": s_mm,
@@ -125,22 +150,30 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
                     best, i = cand, i + step
                 if best["prior_mm"] != current.prior_mm:
                     break
-        w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma)
+        w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma, base_effects)
         lcv.set_prior(None if w_ is None else w_[base.free_index])
         chosen, hist = best["chosen"], best["hist"]
         out["prior_mm"] = best["prior_mm"]
         out["selection"] = [_step_words(h, labels) for h in hist]
-        if not best["new"]:
+        soft = _soft_option(lcv, forced, ctx, baseline, best, shared)
+        if soft is not None:
+            chosen = soft["chosen"]
+            out["soft"] = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
+        elif not best["new"]:
             out.update(effect=None, reason="no mode passed the selection")
             return out
-        out["aliases"] = {labels[g]: [labels[h] for h in hs] for g, hs in lcv.aliases(chosen).items()
-                          if g in best["new"]}
+        if soft is None:
+            out["aliases"] = {labels[g]: [labels[h] for h in hs] for g, hs in lcv.aliases(chosen).items()
+                              if g in best["new"]}
         ok, why = eff.proposes([labels[g] for g in chosen])
         if not ok:
             out.update(effect=None, reason=why)
             return out
         chosen = sorted(chosen)  # the restricted effect keeps the catalogue's order
         eff = eff.with_modes([labels[g] for g in chosen])
+        if soft is not None:  # the prior the selection chose, on the effect's own parameters
+            eff.ridge = soft["ridge"] * lcv.scale[[c for g in chosen for c in lcv.slices[g]]]
+            eff.ridge_mm = soft["sigma_mm"]
     else:
         chosen = list(range(len(groups)))
     coef = lcv.coefficients(chosen)

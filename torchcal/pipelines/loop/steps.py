@@ -77,7 +77,7 @@ def try_candidate(ctx: Context, current: Model, name: str, robot, train, test, n
     entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": best.cv_rmse_mm(n_obs),
              "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "modes": modes, "added_modes": added,
              "extends": [e.name for e in superseded], "selection": start["selection"],
-             "aliases": start.get("aliases", {})}
+             "aliases": start.get("aliases", {}), "soft": start.get("soft")}
     if best.prior_mm is not None:
         entry["prior_mm"] = best.prior_mm
     return {"name": name, "ok": ok, "model": best, "entry": entry}
