@@ -4,10 +4,13 @@ robot and data an integrator points the commands at."""
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import logging
 import math
+import re
 import sys
+import warnings
 from pathlib import Path
 
 import yaml
@@ -19,7 +22,7 @@ from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, rea
 from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",
-           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS"]
+           "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS", "inputs_of"]
 
 logger = logging.getLogger("torchcal")
 
@@ -107,15 +110,26 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
         raise SystemExit(f"torchcal {argv[0]}: error: {path} is not valid YAML: {e}") from None
     if not isinstance(data, dict):
         raise SystemExit(f"torchcal {argv[0]}: error: {path} must hold a mapping of option: value")
-    actions = {a.dest: a for a in sub[argv[0]]._actions if a.option_strings}
+    # the options a user may set: hidden ones (help=SUPPRESS) are the command's own business
+    actions = {a.dest: a for a in sub[argv[0]]._actions
+               if a.option_strings and a.help != argparse.SUPPRESS and a.dest not in ("help", "config")}
     tokens: list[str] = []
     for key, value in data.items():
         dest = str(key).replace("-", "_")
         a = actions.get(dest)
-        if a is None or dest in ("help", "config"):
-            known = sorted(k.replace("_", "-") for k in actions if k not in ("help", "config"))
+        where = f"torchcal {argv[0]}: error: {path}: option {key!r}"
+        if a is None:
+            known = sorted(k.replace("_", "-") for k in actions)
             raise SystemExit(f"torchcal {argv[0]}: error: {path}: unknown option {key!r}; options are {known}")
         flag = a.option_strings[-1] if a.option_strings[-1].startswith("--") else a.option_strings[0]
+        switch = isinstance(a, (argparse._StoreTrueAction, argparse.BooleanOptionalAction))
+        if switch and not (isinstance(value, bool) or value is None):
+            # a quoted "false" is text, and text is true: never guess what a switch was meant to be
+            raise SystemExit(f"{where} must be true or false (a YAML boolean, without quotes), got {value!r}")
+        if isinstance(value, (dict, set)):
+            raise SystemExit(f"{where} must be a value or a list of values, got a mapping")
+        if isinstance(value, list) and not (a.nargs in ("*", "+") or isinstance(a, argparse._AppendAction)):
+            raise SystemExit(f"{where} takes one value, got a list {value}")
         if dest in PATH_OPTIONS and value is not None:
             value = str((path.parent / str(value)).resolve()) if not Path(str(value)).is_absolute() else str(value)
         if isinstance(a, argparse._StoreTrueAction):
@@ -135,6 +149,18 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
     return [argv[0]] + tokens + argv[1:]
 
 
+def inputs_of(a: argparse.Namespace) -> list[str]:
+    """The files a command reads (its ``--config``, URDF, data, held-out data, model, targets;
+    a fleet's directories and globs expanded): outputs never go over them."""
+    out = [getattr(a, "config", None)]
+    for k in PATH_OPTIONS:
+        v = getattr(a, k, None)
+        if k == "out" or v is None:
+            continue
+        out += sorted(glob.glob(str(v))) if glob.has_magic(str(v)) else [v]
+    return [str(x) for x in out if x is not None]
+
+
 class _Stderr(logging.StreamHandler):
     """Writes to whatever ``sys.stderr`` is when a message comes (a notebook, a test harness or
     a caller may have replaced it since the handler was made), like logging's last resort."""
@@ -152,7 +178,8 @@ class _Stderr(logging.StreamHandler):
 
 
 def setup_logging(a: argparse.Namespace) -> None:
-    """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``."""
+    """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``.
+    Python warnings go the same way, as one line each, once per run (no source line)."""
     level = logging.WARNING if getattr(a, "quiet", False) else logging.DEBUG if getattr(a, "verbose", False) \
         else logging.INFO
     logger.setLevel(level)
@@ -162,6 +189,15 @@ def setup_logging(a: argparse.Namespace) -> None:
         h._torchcal = True
         logger.addHandler(h)
         logger.propagate = False
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message)
+        key = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)?", "#", text)  # the same warning with other numbers is the same
+        if key not in shown:
+            shown.add(key)
+            logger.warning(f"torchcal {getattr(a, 'cmd', '')}: warning: {text}")
+    warnings.showwarning = show
 
 
 def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -> dict:
