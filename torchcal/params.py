@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
+
 __all__ = ["ParamSet", "display_unit"]
 
 # SI unit -> (factor, unit) in which people read it; m and rad share the factor, so ratios of the
@@ -67,7 +69,10 @@ class ParamSet:
             patterns = [patterns]
         idx = [i for i, n in enumerate(self.names) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
         if not idx:
-            raise KeyError(f"no parameter matches {list(patterns)}; names look like {self.names[:4]}")
+            raise KeyError(f"no parameter matches {list(patterns)}; names look like {self.names[:4]} … "
+                           + advice("(robot.param_names lists them all)",
+                                    "(--free takes glob patterns of these names, e.g. --free 'elbow*' --free "
+                                    "'*.offset'; report.md of a calibration lists them)"))
         return idx
 
     def fix(self, *patterns: str) -> "ParamSet":

@@ -11,8 +11,9 @@ from torch import Tensor
 
 from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
+from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
-from torchcal.measure.registration import register_base
+from torchcal.measure.registration import gross_errors, register_base
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import atomic_write_text, staged_dir
@@ -40,6 +41,12 @@ def _position_errors(robot, params: Tensor, data: Measurements | None) -> Tensor
     if data is None or len(data) == 0:
         return torch.zeros(0)
     return PositionResidual(robot, data).errors(params[None])[0]
+
+
+def _position_gap(robot, params: Tensor, data: Measurements) -> Tensor:
+    """``(N, M)`` distance (m) between each measured position and the model's (NaN: not seen)."""
+    mk = [robot.marker_names.index(m) for m in data.marker_names]
+    return (robot.positions(data.q, params, check=False)[:, mk] - data.positions).norm(dim=-1)
 
 
 def _errors(robot, params: Tensor, train: Measurements, test: Measurements | None) -> dict:
@@ -92,6 +99,7 @@ class CalibrationResult:
     loss: str = "l2"
     wall_time_s: float = 0.0
     errors: dict = field(default_factory=dict)  # stage -> {"train": Tensor, "test": Tensor} (m)
+    suspects: list = field(default_factory=list)  # gross errors left out of the fit: {"row", "marker", "error_mm"}
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -119,7 +127,7 @@ class CalibrationResult:
             "solver": {"method": self.solver.method, "fun": self.solver.fun, "n_iter": self.solver.n_iter,
                        "n_evals": self.solver.n_evals, "wall_time_s": self.solver.wall_time_s,
                        "converged": self.solver.converged, "message": self.solver.message},
-            "wall_time_s": self.wall_time_s, "problems": self.problems(),
+            "wall_time_s": self.wall_time_s, "problems": self.problems(), "suspects": self.suspects,
         }
 
     def markdown(self) -> str:
@@ -142,6 +150,10 @@ class CalibrationResult:
             if n in self.std_errors:
                 sc, us = display_unit(u)
                 lines.append(f"| {n} | {v * sc:.5f} | {self.std_errors[n] * sc:.5f} | {us} |")
+        if self.suspects:
+            lines += ["", "## Gross errors left out of the fit (kept in the statistics)", "",
+                      "| row | marker | error at the registered nominal model (mm) |", "|---|---|---|"]
+            lines += [f"| {s['row']} | {s['marker']} | {s['error_mm']:.4g} |" for s in self.suspects]
         if self.unidentifiable:
             lines += ["", "## Not identifiable from these measurements", ""]
             lines += [f"- `{n}`: {why}" for n, why in sorted(self.unidentifiable.items())]
@@ -226,6 +238,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             parameter of full rank.
     """
     t0 = time.perf_counter()
+    check_fit_inputs(robot, data, test, enough=False)
     if kind not in ("position", "pose"):
         raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
     if len(data) == 0:
@@ -236,6 +249,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
                              "fits positions, partial ones included): use torchcal.run_loop / 'torchcal loop', which "
                              "identifies the planes' poses and the fixed points with the robot")
+    check_enough(robot, data)
     p = _select_free(params if params is not None else robot.params(), free)
     if not (set(data.marker_names) <= set(robot.marker_names)):
         raise ValueError(f"the data has markers {data.marker_names} but the robot has {robot.marker_names}")
@@ -250,6 +264,11 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     if register and base_free:
         p = register_base(robot, data, p)
     start = p.clone()
+    # a gross error (a glitch metres off) is left out of the fit and listed; the statistics keep it
+    gross = gross_errors(robot, data, start)
+    suspects = [{"row": i, "marker": data.marker_names[m], "error_mm": 1e3 * float(e)} for (i, m), e in
+                zip(torch.nonzero(gross).tolist(), _position_gap(robot, start.values, data)[gross].tolist())]
+    fit_data = data.hide(gross) if suspects else data
 
     def p_cand(cur: ParamSet) -> ParamSet:
         nxt = start.clone()
@@ -258,8 +277,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
 
     def blocks(loss_obj):
         if kind == "pose":
-            return [PoseResidual(robot, data, rot_weight=rot_weight, loss=loss_obj)]
-        return [PositionResidual(robot, data, loss=loss_obj)]
+            return [PoseResidual(robot, fit_data, rot_weight=rot_weight, loss=loss_obj)]
+        return [PositionResidual(robot, fit_data, loss=loss_obj)]
 
     nominal = start.values
     stages = [{"name": "nominal", "n_params": 0, "train": stage_stats(robot, nominal, data)}]
@@ -297,7 +316,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     for rnd in range(1 if loss == "l2" or loss_scale is not None else 12):
         if loss != "l2":
             scale = float(loss_scale) if loss_scale is not None else max(
-                2.5 * 1.4826 * float(PositionResidual(robot, data).errors(p.values[None])[0].median()), 1e-9)
+                2.5 * 1.4826 * float(PositionResidual(robot, fit_data).errors(p.values[None])[0].median()), 1e-9)
             if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
                 break
             scale_prev = scale
@@ -324,4 +343,4 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     return CalibrationResult(robot=robot, params=p, std_errors=std_errors, unidentifiable=unident, stages=stages,
                              solver=s, method=method, n_train=len(data), n_test=0 if test is None else len(test),
                              start=start, identifiability=report, loss=loss if loss_obj is None else repr(loss_obj),
-                             wall_time_s=time.perf_counter() - t0, errors=errors)
+                             wall_time_s=time.perf_counter() - t0, errors=errors, suspects=suspects)

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.kinematics.fk_compact import PositionKernel
 from torchcal.measure.blocks import Loss, PositionResidual
 from torchcal.measure.observations import Observations, Setup
@@ -40,15 +41,17 @@ class CalibrationProblem(Problem):
             raise ValueError("a calibration problem needs at least one residual block")
         idx = params.free_index
         if idx.numel() == 0:
-            raise ValueError("no free parameter: unfix some with ParamSet.unfix('pattern')")
+            raise ValueError("no free parameter: every parameter is fixed; choose some to identify ("
+                             + advice("free=['pattern'] in calibrate, or ParamSet.unfix('pattern')",
+                                      "--free PATTERN, e.g. --free '*.offset'") + ")")
         self.robot, self.params, self.blocks, self.fitness_kind = robot, params, blocks, fitness
         self.compact = compact
         self.fitness_is_sse = fitness == "sse"  # lets LM reuse its own sum of squares
         super().__init__(params.lower[idx], params.upper[idx], params.values[idx], params.free_names)
         self.m = sum(b.n_obs * b.obs_dim for b in blocks)
         if self.m < idx.numel():
-            raise ValueError(f"{self.m} residuals for {idx.numel()} free parameters: measure more poses "
-                             "or fix parameters")
+            raise ValueError(f"{self.m} residuals for {idx.numel()} free parameters: measure more poses, or identify "
+                             "fewer parameters (" + advice("free=['pattern']", "--free PATTERN") + ")")
 
     def full(self, X: Tensor) -> Tensor:
         """Free values ``(P, k)`` or ``(k,)`` -> full parameter vectors."""

@@ -31,13 +31,16 @@ from torch import Tensor
 
 from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
+from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
+from torchcal.measure.registration import gross_errors
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, evaluate, evaluate_prior, folds_of,
                                          geometric_start, noise_sigma, observation_model, split_params)
 from torchcal.pipelines.loop.result import LoopResult
-from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
+from torchcal.pipelines.loop.selection import (HUBER_K, OUTLIER_K, SIGMA_FLOOR, T_ACCEPT, compare, penalised,
+                                               rmse_mm)
 from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_matrix, stage_details
 from torchcal.pipelines.loop.steps import (clipped, compare_at, elm_cv, parameter_table, progress_bar, refit,
                                            refresh, test_gain, try_candidate)
@@ -142,6 +145,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     Returns:
         A :class:`LoopResult`.
     """
+    check_fit_inputs(robot, train, test, enough=False)
     names = list(EFFECTS) if candidates is None else list(candidates)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -165,6 +169,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None
     if test is not None:
         Observations(robot, test, setup)  # the held-out rows fit this robot and set-up, before any fitting
+    check_enough(robot, train)
     if setup is not None:
         say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
@@ -190,10 +195,15 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
+    # the first probe is a plain fit without the gross errors (glitches metres off the registered
+    # nominal model): with them it would drag every residual, σ̂ with them, and nothing would look
+    # identifiable; from then on the Huber loss down-weights them
+    gross = gross_errors(robot, train, geo0.values[: robot.n_params])
+    plain = Context(robot, train.hide(gross) if bool(gross.any()) else train, fl, None, 1.0, setup)
+    probe = evaluate(plain, "noise probe", geometric_start(robot, train, None, setup), [], None)
     ctx = Context(robot, train, fl, None, 1.0, setup)
-    probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
     for _ in range(3):
-        sigma = noise_sigma(ctx, probe)
+        sigma = max(noise_sigma(ctx, probe), SIGMA_FLOOR)  # an exact fit leaves no spread: no zero threshold
         ctx = ctx.at(HUBER_K * sigma, sigma)
         probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
     say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")

@@ -30,12 +30,17 @@ import torch
 from scipy.optimize import least_squares
 from torch import Tensor
 
-__all__ = ["T_ACCEPT", "HUBER_K", "OUTLIER_K", "robust_sigma", "row_scores", "compare", "rmse_mm",
+__all__ = ["T_ACCEPT", "HUBER_K", "OUTLIER_K", "SIGMA_FLOOR", "robust_sigma", "row_scores", "compare", "rmse_mm",
            "effective_params", "selection_threshold", "LinearCV"]
 
 T_ACCEPT = 3.0
 HUBER_K = 3.0    # Huber threshold on the 3-D error norm, in units of the per-axis noise σ̂
 OUTLIER_K = 5.0  # an observation further than this many σ̂ from the model is a suspect
+
+
+# the smallest noise estimate (m per axis), far below any instrument's: rows a model fits exactly
+# (as many unknowns as values) leave no spread, and a zero Huber threshold would mean nothing
+SIGMA_FLOOR = 1e-9
 
 
 def robust_sigma(r: Tensor, k_params: int = 0) -> float:
