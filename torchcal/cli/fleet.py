@@ -120,6 +120,9 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     out = Path(a.out)
     print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s; wrote {out}{os.sep}<robot>/ and "
           f"{out / 'fleet.md'}")
+    gross = {n: len(r.suspects) for n, r in zip(fr.names, fr.results) if r.suspects}
+    if gross:
+        print(f"gross errors left out of the fit (listed in each robot's report): {gross}")
     if fr.flags:
         print(f"{len(fr.flags)} flag(s) (robust |z| > {a.z:g}):")
         for fl in fr.flags[:20]:

@@ -121,7 +121,8 @@ class Corrector:
         far = float(p.norm(dim=-1).max()) if p.numel() else 0.0
         if far > 10 * reach + 1.0:
             raise UnitsError(f"targets lie up to {far:.4g} from the {self.frame} frame's origin, but the robot reaches "
-                             f"about {reach:.3g} m: they look like millimetres; torchcal expects metres (divide by 1000)")
+                             f"about {reach:.3g} m: they look like millimetres; torchcal expects metres (divide by "
+                             "1000)")
 
     def correct(self, targets, q0=None, covariates=None) -> CorrectionResult:
         """Commands that make the model's predicted pose of the marker equal the targets.

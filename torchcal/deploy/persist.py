@@ -31,6 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.deploy.elm import ELM
 from torchcal.deploy.model import ERROR_NAMES, CalibratedModel
 from torchcal.effects.registry import effect_class, effect_type
@@ -158,7 +159,7 @@ def _nearby_model(d: Path) -> str:
         return "; did you mean " + " or ".join(str(x) for x in near) + "?"
     if not d.exists():
         return f"; {d} does not exist"
-    return "; write one with torchcal.save, or give the model folder of a 'torchcal loop' result (OUT/model)"
+    return "; " + advice("write one with torchcal.save", "give the model folder of a 'torchcal loop' result (OUT/model)")
 
 
 def _read_meta(d: Path) -> dict:

@@ -141,9 +141,10 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self.dof = len(self.joint_names)
         self._specs = {jt.name: jt for jt in self.joints}
         if self.dof == 0:
-            raise ValueError(f"no movable joint lies between the root link {self.root!r} and the markers "
-                             f"({', '.join(f'{m.name} on {m.link!r}' for m in self.markers)}): nothing would move them. "
-                             "Declare each marker on the link that carries it (the flange or tool link)")
+            where = ", ".join(f"{m.name} on {m.link!r}" for m in self.markers)
+            raise ValueError(f"no movable joint lies between the root link {self.root!r} and the markers ({where}): "
+                             "nothing would move them. Declare each marker on the link that carries it (the flange or "
+                             "tool link)")
 
         # motion: q_j = mult * (q[src] + offset[src]) + moff
         src, mult, moff = [], [], []

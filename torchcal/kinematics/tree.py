@@ -180,8 +180,8 @@ def select_subtree(joints: list[JointSpec], markers: list[Marker]) -> tuple[str,
         if mk.link not in links:
             close = [l for l in sorted(links) if mk.link.lower() in l.lower() or l.lower() in mk.link.lower()][:5]
             listed = sorted(links)
-            hint = (f"; did you mean {', '.join(close)}?" if close
-                    else f"; its links are {listed[:12]}" + (f" and {len(listed) - 12} more" if len(listed) > 12 else ""))
+            more = f" and {len(listed) - 12} more" if len(listed) > 12 else ""
+            hint = f"; did you mean {', '.join(close)}?" if close else f"; its links are {listed[:12]}{more}"
             raise ValueError(f"marker {mk.name!r} is on link {mk.link!r}, which is not in the URDF{hint}")
         climb(mk.link)
     order, frontier = [], [root]

@@ -4,33 +4,37 @@ move as the joints say they should.
 
 * The data were loaded for this robot: the same joint columns, and the robot they were read for
   (:attr:`Measurements.robot`) is this one.
-* One minimum of data for every fit: more measured values than twice the unknowns every model has
-  (the instrument frame, 6, and 3 per marker point), so that something is left to judge a fit by.
+* One minimum of data for every fit: at least twice as many measured values as the unknowns every
+  model has (the instrument frame, 6, and 3 per marker point), and more than the geometric errors
+  the poses can identify, so that something is left to judge a fit by.
 * Each measured point moves about as far as the model moves it through the same joint values. A
   point that does not move while the joints do is an instrument fault (lost lock, a repeated
   value); one that moves a thousandth or a thousand times as far has the wrong units.
-* Joint values beyond the URDF's limits are named in a warning: their zero or direction may differ
-  from the URDF's, which a fitted offset would hide.
+* Joint values beyond the URDF's limits (by more than :data:`LIMIT_SLACK` of the range) are named
+  in a warning: their zero or direction may differ from the URDF's, which a fitted offset would hide.
 * Held-out rows that repeat the training rows are named in a warning: their figures are not held out.
 """
 from __future__ import annotations
 
+import math
 import os
 import warnings
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from torchcal.advice import advice
 from torchcal.kinematics.robot import Robot
 from torchcal.measure.data import Measurements
 
 __all__ = ["check_fit_inputs", "check_robot", "check_data_type", "check_enough", "check_motion", "warn_limits",
-           "MOTION_RATIO", "LIMIT_SLACK"]
+           "identifiable_count", "MOTION_RATIO", "LIMIT_SLACK"]
 
 #: a marker whose measured spread differs from the model's spread by more than this factor is refused
 MOTION_RATIO = 20.0
 _STILL_M = 1e-3  # a model spread below this (m) says nothing about the measured one
+_ORIENT = (".droll", ".dpitch", ".dyaw")
 #: joint values further beyond a URDF limit than this fraction of the joint's range are named
 LIMIT_SLACK = 0.02
 
@@ -78,18 +82,58 @@ def _tie(robot: Robot, data: Measurements, who: str) -> None:
                         f"{str(robot.dtype).replace('torch.', '')}: convert them, data.to(dtype=torch.float64)")
 
 
+def identifiable_count(robot: Robot, data: Measurements, q: Tensor | None = None) -> int:
+    """How many of the robot's default free errors the full positions of ``data`` (at joint values
+    ``q``, default the data's) can identify: the rank of their column-scaled Jacobian at the nominal
+    model (marker orientations and markers the data do not measure left out)."""
+    p = robot.params()
+    measured = set(data.marker_names)
+    keep = [f and not any(n.startswith(f"{m}.") and (m not in measured or n.endswith(_ORIENT)) for m in
+                          robot.marker_names) for n, f in zip(p.names, p.free.tolist())]
+    mk = [robot.marker_names.index(m) for m in data.marker_names]
+    J = robot.param_jacobian((data.q if q is None else q).to(robot.dtype), check=False)[:, mk]
+    J = (J[data.seen] if q is None else J.reshape(-1, *J.shape[-2:])).reshape(-1, J.shape[-1])
+    J = J[:, torch.tensor(keep, device=J.device)]
+    if J.numel() == 0:
+        return 0
+    s = torch.linalg.svdvals(J / J.norm(dim=0).clamp(min=1e-300))
+    return int((s > 1e-8 * s[0]).sum()) if float(s[0]) > 0 else 0
+
+
+def _spread_poses(robot: Robot, n: int) -> Tensor:
+    """``(n, dof)`` seeded joint values across the limits (±π where there are none)."""
+    lo, hi = (x.clone() for x in robot.joint_limits)
+    lo = torch.where(torch.isfinite(lo), lo, torch.full_like(lo, -math.pi))
+    hi = torch.where(torch.isfinite(hi), hi, torch.full_like(hi, math.pi))
+    u = torch.rand(n, robot.dof, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    return lo + (hi - lo) * u.to(device=lo.device, dtype=lo.dtype)
+
+
 def check_enough(robot: Robot, data: Measurements, who: str = "training") -> None:
-    """The one minimum of data every fit asks: more than twice as many measured values as the
-    unknowns every model has (instrument frame and marker points)."""
+    """The one minimum of data every fit asks: at least twice as many measured values as the
+    unknowns every model has (instrument frame and marker points), and, for positions, more values
+    than the errors the poses can identify (:func:`identifiable_count`): else a fit passes through
+    every point, its noise estimate collapses to zero and its error reads 0.0000 mm."""
+    M = max(len(data.marker_names), 1)
     unknowns = 6 + 3 * len(data.marker_names)
     need = 2 * unknowns
-    if data.n_values < need:
-        rows = -(-need // (3 * max(len(data.marker_names), 1)))
+    why = (f"every fit identifies at least {unknowns} unknowns (where the instrument stands, and each marker's point), "
+           "and needs at least twice as many values")
+    refuse = data.n_values < need
+    if data.positions_only and int(data.seen.sum()) >= 3:
+        k = identifiable_count(robot, data)
+        if refuse or data.n_values <= k:
+            most = identifiable_count(robot, data, _spread_poses(robot, robot.n_params // 3 + 8))
+            need, refuse = max(most + 1, need), True
+            if data.n_values <= k:
+                why = (f"these poses can identify {k} geometric errors, as many as their values, so a fit passes "
+                       f"through every point and leaves nothing to judge it by (poses spread over the workspace "
+                       f"identify {most} errors of this robot)")
+    if refuse:
+        rows = -(-need // (3 * M))
         src = f" ({data.source})" if data.source else ""
-        raise ValueError(f"too few rows: the {who} data{src} have {len(data)} rows ({data.n_values} measured values); every fit "
-                         f"identifies at least {unknowns} unknowns (where the instrument stands, and each marker's "
-                         f"point), and needs at least twice as many values: measure at least {rows} poses (a "
-                         "geometric calibration wants several times more)")
+        raise ValueError(f"too few rows: the {who} data{src} have {len(data)} rows ({data.n_values} measured values); "
+                         f"{why}: measure at least {rows} poses (a geometric calibration wants several times more)")
 
 
 def _spread(x: np.ndarray) -> float:

@@ -328,7 +328,8 @@ def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[n
             raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.4g}, beyond its limits "
                              f"[{lo[j]:.4g}, {hi[j]:.4g}] rad, which looks like degrees; torchcal expects radians: "
                              "convert (rad = deg × π/180) or declare the unit ("
-                             + advice("load_measurements(..., units=['deg']), or --units deg on the command line", "--units deg") + ")")
+                             + advice("load_measurements(..., units=['deg']), or --units deg on the command line",
+                                      "--units deg") + ")")
         if not rev[j] and v > max(5.0, 3 * span):
             raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.4g}, which looks like "
                              "millimetres; torchcal expects metres: divide by 1000 or declare the unit ("
@@ -339,7 +340,8 @@ def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[n
         if med > 20.0:
             raise UnitsError(f"{path}: {what} have median |value| {med:.4g}, which looks like millimetres; torchcal "
                              "expects metres: divide by 1000 or declare the unit ("
-                             + advice("load_measurements(..., units=['mm']), or --units mm on the command line", "--units mm") + ")")
+                             + advice("load_measurements(..., units=['mm']), or --units mm on the command line",
+                                      "--units mm") + ")")
     return Q, P, D
 
 

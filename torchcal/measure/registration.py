@@ -9,7 +9,7 @@ from torchcal.kinematics.transforms import kabsch, so3_log
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
-__all__ = ["register_base", "registration_inliers", "gross_errors", "GROSS_K", "GROSS_FLOOR"]
+__all__ = ["register_base", "registration_inliers", "gross_errors", "leave_out_gross", "GROSS_K", "GROSS_FLOOR"]
 
 # An observation further from the registered nominal model than GROSS_K times the median error,
 # and than GROSS_FLOOR (m), is a gross error (a glitch, a wrong row): the geometric errors of a robot
@@ -88,3 +88,19 @@ def gross_errors(robot, data: Measurements, params: ParamSet | Tensor) -> Tensor
     e = (robot.positions(data.q, values, check=False)[:, mk] - data.positions).norm(dim=-1)
     out[seen] = ~_within(e[seen])
     return out
+
+
+def leave_out_gross(robot, data: Measurements, params: ParamSet | None = None) -> tuple[Measurements, list[dict]]:
+    """``data`` with its gross errors (:func:`gross_errors` at ``params``, by default the nominal
+    model registered here) marked not seen, for a fit, and the list of them for a report:
+    ``{"row", "marker", "error_mm"}``."""
+    if params is None:
+        params = register_base(robot, data) if int(data.seen.sum()) >= 3 else robot.params()
+    gross = gross_errors(robot, data, params)
+    if not bool(gross.any()):
+        return data, []
+    mk = [robot.marker_names.index(m) for m in data.marker_names]
+    e = (robot.positions(data.q, params.values, check=False)[:, mk] - data.positions).norm(dim=-1)
+    out = [{"row": i, "marker": data.marker_names[m], "error_mm": 1e3 * float(e[i, m])}
+           for i, m in torch.nonzero(gross).tolist()]
+    return data.hide(gross), out

@@ -13,7 +13,7 @@ from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
-from torchcal.measure.registration import gross_errors, register_base
+from torchcal.measure.registration import leave_out_gross, register_base
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import atomic_write_text, staged_dir
@@ -41,12 +41,6 @@ def _position_errors(robot, params: Tensor, data: Measurements | None) -> Tensor
     if data is None or len(data) == 0:
         return torch.zeros(0)
     return PositionResidual(robot, data).errors(params[None])[0]
-
-
-def _position_gap(robot, params: Tensor, data: Measurements) -> Tensor:
-    """``(N, M)`` distance (m) between each measured position and the model's (NaN: not seen)."""
-    mk = [robot.marker_names.index(m) for m in data.marker_names]
-    return (robot.positions(data.q, params, check=False)[:, mk] - data.positions).norm(dim=-1)
 
 
 def _errors(robot, params: Tensor, train: Measurements, test: Measurements | None) -> dict:
@@ -265,10 +259,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         p = register_base(robot, data, p)
     start = p.clone()
     # a gross error (a glitch metres off) is left out of the fit and listed; the statistics keep it
-    gross = gross_errors(robot, data, start)
-    suspects = [{"row": i, "marker": data.marker_names[m], "error_mm": 1e3 * float(e)} for (i, m), e in
-                zip(torch.nonzero(gross).tolist(), _position_gap(robot, start.values, data)[gross].tolist())]
-    fit_data = data.hide(gross) if suspects else data
+    fit_data, suspects = leave_out_gross(robot, data, start)
 
     def p_cand(cur: ParamSet) -> ParamSet:
         nxt = start.clone()

@@ -39,8 +39,7 @@ from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, evaluate, evaluate_prior, folds_of,
                                          geometric_start, noise_sigma, observation_model, split_params)
 from torchcal.pipelines.loop.result import LoopResult
-from torchcal.pipelines.loop.selection import (HUBER_K, OUTLIER_K, SIGMA_FLOOR, T_ACCEPT, compare, penalised,
-                                               rmse_mm)
+from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
 from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_matrix, stage_details
 from torchcal.pipelines.loop.steps import (clipped, compare_at, elm_cv, parameter_table, progress_bar, refit,
                                            refresh, test_gain, try_candidate)
@@ -195,15 +194,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
-    # the first probe is a plain fit without the gross errors (glitches metres off the registered
-    # nominal model): with them it would drag every residual, σ̂ with them, and nothing would look
-    # identifiable; from then on the Huber loss down-weights them
-    gross = gross_errors(robot, train, geo0.values[: robot.n_params])
-    plain = Context(robot, train.hide(gross) if bool(gross.any()) else train, fl, None, 1.0, setup)
+    # a plain first fit without gross errors (a glitch metres off would drag σ̂, and every parameter would look loose)
+    plain = Context(robot, train.hide(gross_errors(robot, train, geo0.values[: robot.n_params])), fl, None, 1.0, setup)
     probe = evaluate(plain, "noise probe", geometric_start(robot, train, None, setup), [], None)
     ctx = Context(robot, train, fl, None, 1.0, setup)
     for _ in range(3):
-        sigma = max(noise_sigma(ctx, probe), SIGMA_FLOOR)  # an exact fit leaves no spread: no zero threshold
+        sigma = noise_sigma(ctx, probe)
         ctx = ctx.at(HUBER_K * sigma, sigma)
         probe = evaluate(ctx, "noise probe", geometric_start(robot, train, None, setup), [], None)
     say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")

@@ -46,14 +46,15 @@ SIGMA_FLOOR = 1e-9
 def robust_sigma(r: Tensor, k_params: int = 0) -> float:
     """Per-axis noise estimate (m) from residual vectors ``r (n_obs, 3)``: 1.4826 × the median
     absolute deviation of all components (blind to outliers), scaled up by ``sqrt(n / (n − k))``
-    for ``k`` fitted parameters, which pull the residuals of the fitted rows in."""
+    for ``k`` fitted parameters, which pull the residuals of the fitted rows in; never below
+    :data:`SIGMA_FLOOR`."""
     x = r.reshape(-1)
     x = x[torch.isfinite(x)]
     if x.numel() == 0:
         return float("nan")
     mad = float((x - x.median()).abs().median())
     n = x.numel()
-    return 1.4826 * mad * math.sqrt(n / max(n - k_params, 1))
+    return max(1.4826 * mad * math.sqrt(n / max(n - k_params, 1)), SIGMA_FLOOR)
 
 
 def row_scores(err: Tensor, rows: Tensor, n_rows: int, c: float | None) -> Tensor:
