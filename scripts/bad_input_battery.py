@@ -1056,6 +1056,14 @@ def limits_warning_once_in_words(root):
     return n == 1 and "warnings.warn" not in p.stderr and "UserWarning" not in p.stderr, f"n={n} {p.stderr[-300:]}"
 
 
+@case
+def refused_run_makes_no_folders(root):
+    d = data_dir(root)
+    rc, _, err = calibrate(d, "--units", "mm", out=root / "new" / "deeper" / "o")
+    ok, why = refused(rc, err, "--units mm")
+    return ok and not (root / "new").exists(), why
+
+
 # ----------------------------------------------------------------------------- main
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

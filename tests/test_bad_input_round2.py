@@ -176,6 +176,11 @@ def test_the_working_directory_is_no_output_and_nothing_is_left(data, tmp_path, 
         _refused(rc, err, "is the current directory", "e.g. --out cell1")
         assert "stage" not in err  # before the work
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["train.csv", "work"]
+    # a refused run makes no folder on the way to its output either
+    rc, _, err = _cli(_loop(data, tmp_path / "new" / "deeper" / "o", train=work / "train.csv", marker="smr@link4"),
+                      capsys)
+    _refused(rc, err, "come after link")
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["train.csv", "work"]
 
 
 def test_a_full_disk_and_an_interrupt_leave_nothing(data, tmp_path, capsys, monkeypatch):

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import hashlib
 import json
 import os
@@ -43,14 +44,25 @@ class OutputBusy(FileExistsError):
     """Another run holds the output (see :func:`claim`)."""
 
 
+def _existing_ancestor(p: Path) -> Path:
+    """The nearest folder above ``p`` that exists (its parent, unless folders are still to make)."""
+    a = p.resolve().parent
+    while not a.exists():
+        a = a.parent
+    return a
+
+
 def _writable_parent(p: Path) -> None:
-    parent = p.parent if str(p.parent) else Path(".")
+    """Check that ``p`` can be written: the nearest existing folder above it takes a file. The
+    folders still missing are made when the result is written, so a refused run leaves none."""
+    parent = _existing_ancestor(p)
     try:
-        parent.mkdir(parents=True, exist_ok=True)
+        if not parent.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "a file stands where a folder should be")
         with tempfile.NamedTemporaryFile(dir=parent, prefix=".torchcal-probe-"):
             pass
     except OSError as e:
-        raise PermissionError(f"cannot write under {parent.resolve()}: {e.strerror or e}; choose another output "
+        raise PermissionError(f"cannot write under {parent}: {e.strerror or e}; choose another output "
                               "path") from None
 
 
@@ -151,8 +163,10 @@ def claim(path) -> Iterator[Path]:
     the first holds it gets :class:`OutputBusy`; a lock left by a run that no longer exists
     (killed) is taken over."""
     p = Path(path).resolve()
-    lock = p.parent / f".{p.name}.torchcal-lock"
     _writable_parent(p)
+    # beside the output, or in the nearest existing folder above it (named for the path below)
+    home = _existing_ancestor(p)
+    lock = home / f".{str(p.relative_to(home)).replace(os.sep, '%')}.torchcal-lock"
     for _ in range(3):
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
@@ -190,6 +204,7 @@ def staged_dir(path, force: bool = False) -> Iterator[Path]:
     it is removed. A result that carries neither ``provenance.json`` nor ``model.json`` gets a
     ``provenance.json``, by which a later ``force`` knows torchcal wrote it."""
     p = check_out_dir(path, force).resolve()
+    p.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{p.name}.", suffix=".partial", dir=p.parent))
     try:
         yield tmp
@@ -210,6 +225,7 @@ def staged_dir(path, force: bool = False) -> Iterator[Path]:
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a temporary file in the same directory and a rename."""
     p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".partial", dir=p.parent if str(p.parent) else ".")
     try:
         with os.fdopen(fd, "wb") as fh:
