@@ -573,20 +573,24 @@ def api_calibrate_path_robot(root):
     return isinstance(e, TypeError) and "Robot.from_urdf" in str(e), repr(e)[:300]
 
 
-@case
-def sigint(root):
-    d = data_dir(root)
-    p = subprocess.Popen([PY, "-m", "torchcal", "loop", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv",
-                          "--out", root / "o"], cwd=root, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
-    first = p.stderr.readline()  # the run has started working (its first log line)
-    time.sleep(1)
+def _interrupt(root: Path, args: list, delay: float) -> tuple[bool, str]:
+    """Ctrl-C ``delay`` seconds after the command's first log line: exit 130, one line, nothing left."""
+    p = subprocess.Popen([PY, "-m", "torchcal", *map(str, args)], cwd=root, env=ENV, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    first = p.stderr.readline()  # the run has started working
+    time.sleep(delay)
     p.send_signal(signal.SIGINT)
     rc = p.wait(60)
     err = first + p.stderr.read()
     left = [x.name for x in root.iterdir() if x.name != "data"]
     lines = [ln for ln in err.strip().splitlines() if "interrupt" in ln.lower()]
     return rc == 130 and "Traceback" not in err and len(lines) == 1 and not left, f"rc={rc} left={left} {err[-300:]}"
+
+
+@case
+def sigint(root):
+    d = data_dir(root)
+    return _interrupt(root, ["loop", "--robot", UR5E, "--marker", SMR, "--data", d / "all.csv", "--out", root / "o"], 0)
 
 
 # ============================================================================ messages that help
@@ -1030,17 +1034,10 @@ def marker_guess_two_numbers(root):
 
 
 @case
-def sigint_calibrate(root):
+def sigint_in_the_diagnosis(root):
     d = data_dir(root)
-    p = subprocess.Popen([PY, "-m", "torchcal", "calibrate", "--robot", UR5E, "--marker", SMR, "--data",
-                          d / "train.csv", "--method", "pso", "--out", root / "o", "--verbose"], cwd=root, env=ENV,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(12)
-    p.send_signal(signal.SIGINT)
-    rc = p.wait(60)
-    err = p.stderr.read()
-    left = [x.name for x in root.iterdir() if x.name != "data"]
-    return rc == 130 and "Traceback" not in err and not left, f"rc={rc} left={left} {err[-300:]}"
+    return _interrupt(root, ["loop", "--robot", UR5E, "--marker", SMR, "--data", d / "all.csv", "--out", root / "o",
+                             "--verbose"], 1.5)
 
 
 @case
