@@ -165,6 +165,9 @@ def test_shipped_kr5_model_reproduces_stored_corrections(tmp_path):
     for g, w in zip(got, want):
         assert (g["converged"], g["reason"]) == (w["converged"], w["reason"])
         for j in joints:  # same machine: identical; another CPU/BLAS: equal to far below 1 µrad
+            if w["converged"] == "0":  # a failed target carries no command
+                assert g[j] == w[j] == "nan", (j, g[j], w[j])
+                continue
             assert abs(float(g[j]) - float(w[j])) <= 1e-9, (j, g[j], w[j])
         assert abs(float(g["predicted_error_mm"]) - float(w["predicted_error_mm"])) <= 1e-6
     assert [r["reason"] for r in want].count("unreachable") == 1

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
+
 __all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
 
 # The one unit table: SI unit -> (factor, unit) in which people read it. m and rad share the
@@ -81,7 +83,10 @@ class ParamSet:
             patterns = [patterns]
         idx = [i for i, n in enumerate(self.names) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
         if not idx:
-            raise NoSuchParameter(f"no parameter matches {list(patterns)}; names look like {self.names[:4]}")
+            raise NoSuchParameter(f"no parameter matches {list(patterns)}; names look like {self.names[:4]} … "
+                                  + advice("(robot.param_names lists them all)",
+                                           "(--free takes glob patterns of these names, e.g. --free 'elbow*' --free "
+                                           "'*.offset'; report.md of a calibration lists them)"))
         return idx
 
     def fix(self, *patterns: str) -> "ParamSet":

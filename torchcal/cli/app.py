@@ -1,7 +1,8 @@
 """Command line: ``torchcal calibrate | loop | simulate | correct | plan | fleet`` (also ``python -m torchcal``).
 
-Every command refuses to overwrite what exists (``--force`` to replace it), checks that its
-output can be written before it works, writes under temporary names, and records in each output
+Every command claims its output (a second run on it is refused), refuses to overwrite what exists
+(``--force`` replaces an earlier torchcal result, never an input), checks that its output can be
+written before it works, writes under temporary names, and records in each output
 directory the exact options (``run.yaml``, which ``--config`` reads back) and the provenance of
 the result (``provenance.json``). Messages go to stderr through :mod:`logging` (``--quiet``,
 ``--verbose``); tables and results to stdout.
@@ -17,17 +18,18 @@ from pathlib import Path
 
 import torch
 
+from torchcal.advice import cli_wording
 from torchcal.cli.bag import add_bag_parser
-from torchcal.cli.common import (add_common, expand_config, fraction, int_at_least, join_negative_values,
-                                 nonnegative_float, report_failure, robot_and_data, run_record, setup_logging)
+from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of, int_at_least, join_negative_values,
+                                 nonnegative_float, parse_markers, report_failure, robot_and_data, run_record,
+                                 setup_logging)
 from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
 from torchcal.kinematics.robot import Robot
-from torchcal.outputs import check_out_dir, check_out_file
-from torchcal.outputs import staged_dir
+from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
 from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
@@ -64,7 +66,7 @@ def _refuse(cmd: str, problems: list[str]) -> int:
 
 
 def _calibrate(a, argv) -> int:
-    check_out_dir(a.out, a.force)
+    check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     t0 = time.perf_counter()
     robot, train, test = robot_and_data(a)
@@ -80,11 +82,14 @@ def _calibrate(a, argv) -> int:
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
     _print_stages(res.stages, test is not None)
     print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
+    if res.suspects:
+        print(f"{len(res.suspects)} gross error(s) left out of the fit, listed in the report (kept in the data and the "
+              "statistics): rows " + ", ".join(str(s["row"]) for s in res.suspects[:10]))
     return 0
 
 
 def _loop(a, argv) -> int:
-    check_out_dir(a.out, a.force)
+    check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     robot, train, test = robot_and_data(a)
     progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
@@ -124,14 +129,21 @@ def _loop(a, argv) -> int:
 def _simulate(a, argv) -> int:
     out = Path(a.out)
     truth = out.with_suffix(".truth.json")
-    check_out_file(out, a.force)
-    check_out_file(truth, a.force)
+    for p in (out, truth):
+        check_out_file(p, a.force, inputs=inputs_of(a))
     torch.set_num_threads(1)
-    robot = Robot.from_urdf(a.robot, markers=a.marker or None)
+    robot = Robot.from_urdf(a.robot, markers=parse_markers(a.marker, None) if a.marker else None)
     cfg = SimConfig(n=a.poses, noise=a.noise_mm * 1e-3, base_distance=a.base_distance, seed=a.seed,
                     length_error=a.length_error_mm * 1e-3, angle_error=a.angle_error_mrad * 1e-3)
     data, tr, effects = simulate_with_effects(robot, cfg, a.effect)
-    write_dataset(out, data, tr, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
+    before = {p: p.stat().st_ino if p.exists() else None for p in (out, truth)}
+    try:
+        write_dataset(out, data, tr, meta={"noise_mm": a.noise_mm, "seed": a.seed, "effects": effects})
+    except BaseException:
+        for p, ino in before.items():  # the data without its truth is half a result: remove what this run wrote
+            if p.exists() and p.stat().st_ino != ino:
+                p.unlink()
+        raise
     print(f"wrote {len(data)} rows to {out} and the truth to {truth} (keep it away from the solver)")
     return 0
 
@@ -213,9 +225,13 @@ def main(argv: list[str] | None = None) -> int:
     # each command sets torch's threads from --threads; the library's own choice would override it
     threads, choice = torch.get_num_threads(), set_threads("caller")
     try:
-        return a.func(a, argv)
+        with cli_wording(), claim(a.out):  # a second run on the same output is refused at once
+            return a.func(a, argv)
+    except KeyboardInterrupt:
+        print(f"torchcal {a.cmd}: interrupted; nothing was written", file=sys.stderr)
+        return 130
     except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
-        return report_failure(a.cmd, e, getattr(a, "verbose", False))
+        return report_failure(a.cmd, e, getattr(a, "verbose", False), getattr(a, "out", None))
     finally:
         set_threads(choice)
         torch.set_num_threads(threads)

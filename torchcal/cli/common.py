@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import argparse
 import dis
+import glob
 import json
 import logging
 import math
 import re
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 import yaml
@@ -23,7 +25,7 @@ from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",
            "setup_logging", "run_record", "robot_and_data", "robot_for", "parse_markers", "PATH_OPTIONS",
-           "is_refusal", "report_failure", "join_negative_values", "EXIT_REFUSED", "EXIT_BUG"]
+           "is_refusal", "report_failure", "join_negative_values", "EXIT_REFUSED", "EXIT_BUG", "inputs_of"]
 
 logger = logging.getLogger("torchcal")
 
@@ -72,10 +74,17 @@ def is_refusal(e: BaseException) -> bool:
     return isinstance(e, OSError) or (isinstance(e, _REFUSED_BY_TORCHCAL) and _raised_by_torchcal(e))
 
 
-def report_failure(cmd: str, e: Exception, verbose: bool) -> int:
-    """Print a refusal or a bug to stderr as the exit status says; return that status."""
+def report_failure(cmd: str, e: Exception, verbose: bool, out=None) -> int:
+    """Print a refusal or a bug to stderr as the exit status says; return that status. An error of
+    the file system (a full disk, a drive gone) names the file and says nothing was written."""
+    if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, FileExistsError, IsADirectoryError,
+                                                     NotADirectoryError, PermissionError)):
+        print(f"torchcal {cmd}: error: could not write {e.filename or out}: {e.strerror or e}; free some space or "
+              "choose another --out, and run again (nothing was written)", file=sys.stderr)
+        return EXIT_REFUSED
     if is_refusal(e):
-        print(f"torchcal {cmd}: error: {e}", file=sys.stderr)
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"torchcal {cmd}: error: {msg}", file=sys.stderr)
         return EXIT_REFUSED
     if verbose:
         traceback.print_exception(e, file=sys.stderr)
@@ -187,15 +196,26 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
         raise SystemExit(f"torchcal {argv[0]}: error: {path} is not valid YAML: {e}") from None
     if not isinstance(data, dict):
         raise SystemExit(f"torchcal {argv[0]}: error: {path} must hold a mapping of option: value")
-    actions = {a.dest: a for a in sub[argv[0]]._actions if a.option_strings}
+    # the options a user may set: hidden ones (help=SUPPRESS) are the command's own business
+    actions = {a.dest: a for a in sub[argv[0]]._actions
+               if a.option_strings and a.help != argparse.SUPPRESS and a.dest not in ("help", "config")}
     tokens: list[str] = []
     for key, value in data.items():
         dest = str(key).replace("-", "_")
         a = actions.get(dest)
-        if a is None or dest in ("help", "config"):
-            known = sorted(k.replace("_", "-") for k in actions if k not in ("help", "config"))
+        where = f"torchcal {argv[0]}: error: {path}: option {key!r}"
+        if a is None:
+            known = sorted(k.replace("_", "-") for k in actions)
             raise SystemExit(f"torchcal {argv[0]}: error: {path}: unknown option {key!r}; options are {known}")
         flag = a.option_strings[-1] if a.option_strings[-1].startswith("--") else a.option_strings[0]
+        switch = isinstance(a, (argparse._StoreTrueAction, argparse.BooleanOptionalAction))
+        if switch and not (isinstance(value, bool) or value is None):
+            # a quoted "false" is text, and text is true: never guess what a switch was meant to be
+            raise SystemExit(f"{where} must be true or false (a YAML boolean, without quotes), got {value!r}")
+        if isinstance(value, (dict, set)):
+            raise SystemExit(f"{where} must be a value or a list of values, got a mapping")
+        if isinstance(value, list) and not (a.nargs in ("*", "+") or isinstance(a, argparse._AppendAction)):
+            raise SystemExit(f"{where} takes one value, got a list {value}")
         if dest in PATH_OPTIONS and value is not None:
             value = str((path.parent / str(value)).resolve()) if not Path(str(value)).is_absolute() else str(value)
         if isinstance(a, argparse._StoreTrueAction):
@@ -215,6 +235,18 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
     return [argv[0]] + tokens + argv[1:]
 
 
+def inputs_of(a: argparse.Namespace) -> list[str]:
+    """The files a command reads (its ``--config``, URDF, data, held-out data, model, targets;
+    a fleet's directories and globs expanded): outputs never go over them."""
+    out = [getattr(a, "config", None)]
+    for k in PATH_OPTIONS:
+        v = getattr(a, k, None)
+        if k == "out" or v is None:
+            continue
+        out += sorted(glob.glob(str(v))) if glob.has_magic(str(v)) else [v]
+    return [str(x) for x in out if x is not None]
+
+
 class _Stderr(logging.StreamHandler):
     """Writes to whatever ``sys.stderr`` is when a message comes (a notebook, a test harness or
     a caller may have replaced it since the handler was made), like logging's last resort."""
@@ -232,7 +264,8 @@ class _Stderr(logging.StreamHandler):
 
 
 def setup_logging(a: argparse.Namespace) -> None:
-    """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``."""
+    """``torchcal`` messages to stderr: warnings only with ``--quiet``, debug with ``--verbose``.
+    Python warnings go the same way, as one line each, once per run (no source line)."""
     level = logging.WARNING if getattr(a, "quiet", False) else logging.DEBUG if getattr(a, "verbose", False) \
         else logging.INFO
     logger.setLevel(level)
@@ -242,6 +275,15 @@ def setup_logging(a: argparse.Namespace) -> None:
         h._torchcal = True
         logger.addHandler(h)
         logger.propagate = False
+    shown: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message)
+        key = re.sub(r"\d+(\.\d+)?(e[-+]?\d+)?", "#", text)  # the same warning with other numbers is the same
+        if key not in shown:
+            shown.add(key)
+            logger.warning(f"torchcal {getattr(a, 'cmd', '')}: warning: {text}")
+    warnings.showwarning = show
 
 
 def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -> dict:

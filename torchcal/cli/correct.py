@@ -10,7 +10,7 @@ Targets CSV (header row, one target per row):
   choose the branch, e.g. elbow up). Without them IK starts mid-range with random restarts;
 * a column per covariate the model needs (``model.required_covariates``, e.g. ``temperature``).
 
-Output CSV: the target columns, the corrected command per joint, ``converged`` (1/0),
+Output CSV: the target columns, the corrected command per joint (``nan`` where the target failed), ``converged`` (1/0),
 ``reason`` (``ok``, ``unreachable``, ``joint_limits``, ``singular``, ``not_converged``,
 ``max_outer``), ``predicted_error_mm`` and, for pose targets, ``predicted_rot_error_mrad``.
 Numbers are written with full float64 precision (``repr``). The command exits with status 3
@@ -28,7 +28,7 @@ import sys
 import torch
 from torch import Tensor
 
-from torchcal.cli.common import add_common, int_at_least, positive_float
+from torchcal.cli.common import add_common, inputs_of, int_at_least, positive_float
 from torchcal.deploy.correct import Corrector
 from torchcal.measure.io import UnitsError, read_csv
 from torchcal.outputs import atomic_write_text, check_out_file
@@ -74,7 +74,7 @@ def read_targets(path, robot, covariates: list[str] | None = None):
 
     p = torch.stack([num(c) for c in _POS], -1)
     if float(p.abs().max()) > 50:
-        raise UnitsError(f"{path}: target positions reach {float(p.abs().max()):.1f}, which looks like "
+        raise UnitsError(f"{path}: target positions reach {float(p.abs().max()):.4g}, which looks like "
                          "millimetres; torchcal expects metres: divide by 1000")
     has_quat = bool(nq)
     if has_quat:
@@ -117,7 +117,8 @@ def write_corrections(path, targets: Tensor, res, robot) -> None:
         row = [repr(float(v)) for v in p[i]]
         if pose:
             row += [repr(float(v)) for v in qt[i]]
-        row += [repr(float(v)) for v in res.q[i]]
+        # a failed target's commands are not sent anywhere: no real-looking values in their place
+        row += [repr(float(v)) if bool(res.converged[i]) else "nan" for v in res.q[i]]
         row += [int(bool(res.converged[i])), res.reason[i], repr(float(res.predicted_error_mm[i]))]
         if pose:
             row.append(repr(float(res.predicted_rot_error_mrad[i])))
@@ -151,7 +152,7 @@ def add_correct_parser(sub) -> argparse.ArgumentParser:
 
 def correct_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Run ``torchcal correct`` with parsed arguments (see :func:`add_correct_parser`)."""
-    check_out_file(a.out, a.force, inputs=(a.targets,))
+    check_out_file(a.out, a.force, inputs=inputs_of(a))
     torch.set_num_threads(a.threads)
     model = load(a.model)
     targets, q0, cov, _ = read_targets(a.targets, model.robot, model.required_covariates)

@@ -13,7 +13,8 @@ from pathlib import Path
 
 import torch
 
-from torchcal.cli.common import add_common, int_at_least, positive_float, probability, robot_for, run_record
+from torchcal.cli.common import (add_common, inputs_of, int_at_least, positive_float, probability, robot_for,
+                                 run_record)
 from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.report.fleet import FALSE_ALARM
 from torchcal.measure.io import UnitsError, load_measurements, read_csv
@@ -26,7 +27,9 @@ __all__ = ["add_fleet_parser", "fleet_main", "fleet_files"]
 def fleet_files(spec: str) -> list[Path]:
     """The CSV files of a fleet: every ``*.csv`` in a directory, or the files a glob matches."""
     p = Path(spec)
-    files = sorted(p.glob("*.csv")) if p.is_dir() else sorted(Path(f) for f in glob.glob(spec) if f.endswith(".csv"))
+    # .CSV as Windows tools write it is a CSV too
+    files = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() == ".csv") if p.is_dir() else \
+        sorted(Path(f) for f in glob.glob(spec) if f.lower().endswith(".csv"))
     if not files:
         where = f"the directory {spec}" if p.is_dir() else f"{spec!r}"
         raise ValueError(f"no CSV files in {where}; give a directory of <robot>.csv files or a glob such as "
@@ -98,7 +101,7 @@ def add_fleet_parser(sub) -> argparse.ArgumentParser:
 
 def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Run ``torchcal fleet`` with parsed arguments (see :func:`add_fleet_parser`)."""
-    check_out_dir(a.out, a.force)
+    check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     units = list(a.units or [])
     files = fleet_files(a.data)
@@ -117,6 +120,9 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     out = Path(a.out)
     print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s; wrote {out}{os.sep}<robot>/ and "
           f"{out / 'fleet.md'}")
+    gross = {n: len(r.suspects) for n, r in zip(fr.names, fr.results) if r.suspects}
+    if gross:
+        print(f"gross errors left out of the fit (listed in each robot's report): {gross}")
     if fr.flags:
         print(f"{len(fr.flags)} flag(s) (robust |z| > {a.z:g}):")
         for fl in fr.flags[:20]:

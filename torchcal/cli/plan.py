@@ -12,7 +12,8 @@ import argparse
 
 import torch
 
-from torchcal.cli.common import add_common, int_at_least, nonnegative_float, parse_markers, positive_float
+from torchcal.cli.common import (add_common, inputs_of, int_at_least, nonnegative_float, parse_markers,
+                                 positive_float)
 from torchcal.outputs import check_out_file, provenance
 from torchcal.pipelines.plan.run import PLANNABLE_EFFECTS, check_plannable, plan_paths, plan_poses
 from torchcal.pipelines.plan.design import CRITERIA
@@ -84,7 +85,7 @@ def plan_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
                          "fewer poses")
     paths = plan_paths(a.out)
     for p in paths:
-        check_out_file(p, a.force, inputs=(a.robot,))
+        check_out_file(p, a.force, inputs=inputs_of(a))
     torch.set_num_threads(a.threads)
     robot = Robot.from_urdf(a.robot, markers=parse_markers(a.marker, None) if a.marker else None)
     margin = None if a.collision_margin_mm is None else a.collision_margin_mm * 1e-3

@@ -29,6 +29,7 @@ from torch import Tensor
 from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
 from torchcal.kinematics.ik import solve_ik, target_frames
 from torchcal.threads import threads_by_size
+from torchcal.measure.io import UnitsError
 
 __all__ = ["Corrector", "CorrectionResult"]
 
@@ -111,6 +112,19 @@ class Corrector:
         opts.update(ik_options or {})
         self.ik_options = opts
 
+    def _check_units(self, p: Tensor) -> None:
+        """Refuse targets far beyond the robot's reach (from the frame's origin): millimetres."""
+        robot = self.model.robot
+        reach = sum(float(torch.as_tensor(j.origin[:3, 3]).norm()) for j in robot.joints) + \
+            max(float(torch.as_tensor(m.xyz).norm()) for m in robot.markers)
+        if self.frame == "instrument":
+            reach += float(robot.base_transform(self.model.params.values)[1].norm())
+        far = float(p.norm(dim=-1).max()) if p.numel() else 0.0
+        if far > 10 * reach + 1.0:
+            raise UnitsError(f"targets lie up to {far:.4g} from the {self.frame} frame's origin, but the robot reaches "
+                             f"about {reach:.3g} m: they look like millimetres; torchcal expects metres (divide by "
+                             "1000)")
+
     @threads_by_size("targets")
     def correct(self, targets, q0=None, covariates=None) -> CorrectionResult:
         """Commands that make the model's predicted pose of the marker equal the targets.
@@ -125,6 +139,7 @@ class Corrector:
         """
         model, robot = self.model, self.model.robot
         R_t, p_t = target_frames(robot, targets)
+        self._check_units(p_t)
         if self.frame == "base":  # into the instrument frame the model predicts in
             Rb, tb = robot.base_transform(model.params.values)
             p_t = p_t @ Rb.T + tb

@@ -31,6 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.deploy.elm import ELM
 from torchcal.deploy.model import ERROR_NAMES, CalibratedModel
 from torchcal.effects.registry import effect_class, effect_type
@@ -148,11 +149,24 @@ def _write(model: CalibratedModel, robot, text: str, out: Path) -> None:
     (out / _JSON).write_text(_dumps(meta) + "\n")
 
 
+def _nearby_model(d: Path) -> str:
+    """Where a model directory is, for a path one level off: the folder of a ``model.json`` given
+    as the path, or the sub-folders of ``d`` that hold one."""
+    if d.name == _JSON and d.is_file():
+        return f"; give the folder that holds it: {d.parent}"
+    near = sorted(x for x in d.iterdir() if (x / _JSON).is_file())[:3] if d.is_dir() else []
+    if near:
+        return "; did you mean " + " or ".join(str(x) for x in near) + "?"
+    if not d.exists():
+        return f"; {d} does not exist"
+    return "; " + advice("write one with torchcal.save", "give the model folder of a 'torchcal loop' result (OUT/model)")
+
+
 def _read_meta(d: Path) -> dict:
     f = d / _JSON
     if not f.is_file():
         raise FileNotFoundError(f"{d} is not a torchcal model directory: {f.name} is missing "
-                                f"(a model directory holds {_JSON}, {_TENSORS} and {_URDF}; write one with torchcal.save)")
+                                f"(a model directory holds {_JSON}, {_TENSORS} and {_URDF}){_nearby_model(d)}")
     try:
         meta = json.loads(f.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:

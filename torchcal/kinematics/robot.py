@@ -32,7 +32,7 @@ from torchcal.kinematics.fk import ForwardKinematics
 from torchcal.kinematics.jacobian import Jacobians
 from torchcal.kinematics.transforms import homogeneous, so3_exp
 from torchcal.kinematics.tree import JointSpec, Marker, parse_marker, select_subtree
-from torchcal.kinematics.urdf import load_joints
+from torchcal.kinematics.urdf import load_joints, read_urdf_text
 from torchcal.params import ParamSet
 
 __all__ = ["Robot"]
@@ -80,6 +80,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
             raise ValueError(f"marker names must be unique, got {names}")
         self.root, self.joints = select_subtree(joints, markers)
         self._file_order = {j.name: i for i, j in enumerate(joints)}
+        self._described = [(j.name, j.type, j.parent, j.child) for j in joints if j.mimic is None]
         if root is not None and root != self.root:
             raise ValueError(f"expected root link {root!r}, found {self.root!r}")
         self.markers = markers
@@ -101,7 +102,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         """
 
         is_xml = isinstance(path, str) and path.lstrip().startswith("<")
-        text = path if is_xml else (Path(path).read_text() if Path(path).is_file() else None)
+        text = path if is_xml else (read_urdf_text(path) if Path(path).is_file() else None)
         name, joints, _ = load_joints(path)
         if markers is None:
             parents = {j.parent for j in joints}
@@ -140,7 +141,10 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self.dof = len(self.joint_names)
         self._specs = {jt.name: jt for jt in self.joints}
         if self.dof == 0:
-            raise ValueError("no movable joint lies between the root and the markers; check the marker links")
+            where = ", ".join(f"{m.name} on {m.link!r}" for m in self.markers)
+            raise ValueError(f"no movable joint lies between the root link {self.root!r} and the markers ({where}): "
+                             "nothing would move them. Declare each marker on the link that carries it (the flange or "
+                             "tool link)")
 
         # motion: q_j = mult * (q[src] + offset[src]) + moff
         src, mult, moff = [], [], []
@@ -312,6 +316,24 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         r._build()
         return r
 
+    def other_joints(self) -> dict[str, str | None]:
+        """The movable joints of the description that are not columns of ``q`` (they move no
+        marker): name -> the marker link they come after, or None for another branch. A data
+        column named like one that comes after a marker's link says the marker sits further out."""
+        after = {}
+        kids: dict[str, list] = {}
+        for name, jtype, parent, child in self._described:
+            kids.setdefault(parent, []).append((name, jtype, child))
+        for mk in self.markers:
+            stack = [mk.link]
+            while stack:
+                for name, jtype, child in kids.get(stack.pop(), []):
+                    if jtype != "fixed":
+                        after.setdefault(name, mk.link)
+                    stack.append(child)
+        return {n: after.get(n) for n, jtype, _, _ in self._described
+                if jtype != "fixed" and n not in self.joint_names}
+
     @property
     def urdf_text(self) -> str | None:
         """The URDF text this robot was loaded from (None for a robot built from a DH table)."""
@@ -337,11 +359,11 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
                         torch.tensor(self._default_free, device=self.device), -big, big)
 
     # ------------------------------------------------------------------ validation
-    def check_q(self, q, what: str = "q", *, _stacklevel: int = 2) -> Tensor:
+    def check_q(self, q, what: str = "q", *, _stacklevel: int = 2, units_judged: bool = False) -> Tensor:
         """Validate joint values and return them as a ``(N, dof)`` tensor on this robot's device.
 
         Raises on wrong shape and NaN/inf; warns when revolute values look like degrees or
-        prismatic values look like millimetres."""
+        prismatic values look like millimetres (unless ``units_judged``: the caller has)."""
         q = torch.as_tensor(q, dtype=self.dtype, device=self.device)
         shape = tuple(q.shape)
         if q.ndim == 1:
@@ -354,13 +376,15 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         if bad:
             raise ValueError(f"{what} has NaN or inf in joint(s) {bad}; drop or fill those rows first")
         lo, hi = self.joint_limits[0].tolist(), self.joint_limits[1].tolist()
-        for n, v, u, l, h in zip(self.joint_names, amax, self._units, lo, hi):
+        for n, v, u, l, h in zip(self.joint_names, amax if not units_judged else [], self._units, lo, hi):
             span = max(abs(l), abs(h)) if np.isfinite(l) and np.isfinite(h) else None
             if u == "rad" and v > max(2.2 * np.pi, 1.5 * span if span else 0.0):
-                warnings.warn(f"joint {n!r} reaches |q| = {v:.1f}, which looks like degrees; torchcal expects "
+                # a continuous joint may turn many times: radians may be right there
+                maybe = "" if span else " (unless it is a continuous joint that turned several times)"
+                warnings.warn(f"joint {n!r} reaches |q| = {v:.4g}, which looks like degrees{maybe}; torchcal expects "
                               "radians (use numpy.deg2rad)", stacklevel=_stacklevel)
             elif u == "m" and v > max(5.0, 3 * span if span else 0.0):
-                warnings.warn(f"prismatic joint {n!r} reaches |q| = {v:.1f}, which looks like millimetres; "
+                warnings.warn(f"prismatic joint {n!r} reaches |q| = {v:.4g}, which looks like millimetres; "
                               "torchcal expects metres (divide by 1000)", stacklevel=_stacklevel)
         return q
 

@@ -5,6 +5,7 @@ records and :class:`torchcal.kinematics.robot.Robot` turns them into batched ten
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
@@ -118,6 +119,12 @@ def parse_marker(spec) -> Marker:
         raise TypeError(f"a marker is a link name, 'name@link=x,y,z' or a Marker, got {type(spec).__name__}")
     m = _MARKER_RE.match(spec)
     if not m:
+        name = spec.split("=")[0].split("@")[0].strip()
+        if any(c.isspace() for c in name):
+            fixed = "_".join(name.split())
+            raise ValueError(f"marker name {name!r} has a space; a marker's name names its CSV columns "
+                             f"({name}.x, …) and parameters, which take no spaces: rename it {fixed!r} in the marker "
+                             f"and in the CSV header ({fixed}.x, {fixed}.y, {fixed}.z)")
         raise ValueError(f"cannot read marker {spec!r}; write 'link' or 'name@link=x,y,z' (metres)")
     name, link, guess = m.groups()
     xyz = (0.0, 0.0, 0.0)
@@ -129,6 +136,9 @@ def parse_marker(spec) -> Marker:
                              "like 'm1@arm_7_link=0.05,0,0.1'") from None
         if len(vals) != 3:
             raise ValueError(f"marker {spec!r}: the initial guess has {len(vals)} numbers, expected 3 (x,y,z in m)")
+        if not all(math.isfinite(v) for v in vals):
+            raise ValueError(f"marker {spec!r}: the initial guess must be three finite numbers in metres, like "
+                             f"'{name}@{link or name}=0.05,0,0.1' (give 0,0,0 when it is unknown)")
         xyz = tuple(vals)
     return Marker(name=name, link=link or name, xyz=xyz)
 
@@ -169,8 +179,9 @@ def select_subtree(joints: list[JointSpec], markers: list[Marker]) -> tuple[str,
     for mk in markers:
         if mk.link not in links:
             close = [l for l in sorted(links) if mk.link.lower() in l.lower() or l.lower() in mk.link.lower()][:5]
-            hint = (f"; did you mean {', '.join(close)}?" if close
-                    else "; list the links with torchcal.kinematics.urdf.urdf_links(path)")
+            listed = sorted(links)
+            more = f" and {len(listed) - 12} more" if len(listed) > 12 else ""
+            hint = f"; did you mean {', '.join(close)}?" if close else f"; its links are {listed[:12]}{more}"
             raise ValueError(f"marker {mk.name!r} is on link {mk.link!r}, which is not in the URDF{hint}")
         climb(mk.link)
     order, frontier = [], [root]

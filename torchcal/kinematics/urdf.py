@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from lxml import etree
 from torchcal.kinematics.transforms import matrix_to_rpy
 from torchcal.kinematics.tree import JointSpec
 
-__all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions"]
+__all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions", "read_urdf_text"]
 
 
 def _strict_parse(text: str, where: str) -> None:
@@ -27,15 +28,38 @@ def _strict_parse(text: str, where: str) -> None:
                          "matched) and load it again") from None
 
 
+def read_urdf_text(path) -> str:
+    """The text of a URDF file, refused with the file's name when it is not UTF-8 or is a xacro
+    file (whose macros only ``xacro`` expands: read as URDF, their joints would be lost)."""
+    p = Path(path)
+    if p.is_dir():
+        raise IsADirectoryError(f"URDF path {p} is a directory; give the .urdf file")
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"URDF file {p} is not UTF-8 text (byte 0x{e.object[e.start]:02x} at position {e.start}); "
+                         "save it as UTF-8 (e.g. iconv -f latin1 -t utf-8 in.urdf > out.urdf)") from None
+    _refuse_xacro(text, str(p))
+    return text
+
+
+def _refuse_xacro(text: str, where: str) -> None:
+    # xacro's output may keep the namespace and mention the .xacro it came from, but holds no xacro element
+    if "<xacro:" in re.sub(r"<!--.*?-->", "", text, flags=re.S) or where.endswith(".xacro"):
+        raise ValueError(f"{where} is a xacro file: its macros and properties are not URDF. Run xacro first "
+                         "(xacro robot.urdf.xacro > robot.urdf) and give the URDF it writes")
+
+
 def _load(path_or_xml):
 
     kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
               load_collision_meshes=False)
     is_xml = isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<")
     if is_xml:
+        _refuse_xacro(path_or_xml, "the URDF string")
         _strict_parse(path_or_xml, "string")
-    elif Path(path_or_xml).is_file():
-        _strict_parse(Path(path_or_xml).read_text(), str(path_or_xml))
+    elif Path(path_or_xml).is_file() or Path(path_or_xml).is_dir():
+        _strict_parse(read_urdf_text(path_or_xml), str(path_or_xml))
     try:
         if isinstance(path_or_xml, (str, os.PathLike)) and not str(path_or_xml).lstrip().startswith("<"):
             p = Path(path_or_xml)

@@ -26,6 +26,8 @@ class Measurements:
         distances: ``(a, b) -> (N,)`` measured distances (m, NaN = not measured) from marker ``a``
             to marker ``b`` in the same row, or to the fixed point named ``b`` when ``b`` is not a
             marker of these rows.
+        robot: the name of the robot the rows were loaded for (:func:`~torchcal.measure.io.load_measurements`),
+            or None; a fit for another robot refuses them.
     """
 
     q: Tensor
@@ -38,6 +40,7 @@ class Measurements:
     planes: Tensor | None = None
     plane_names: list[str] = field(default_factory=list)
     distances: dict[tuple[str, str], Tensor] = field(default_factory=dict)
+    robot: str | None = None
 
     def __post_init__(self):
         N = self.q.shape[0]
@@ -127,7 +130,7 @@ class Measurements:
 
     def _with(self, q, positions, markers, quaternions, covariates, planes, distances) -> "Measurements":
         return Measurements(q, positions, markers, list(self.joint_names), quaternions, covariates, self.source,
-                            planes, list(self.plane_names), distances)
+                            planes, list(self.plane_names), distances, self.robot)
 
     def subset(self, idx) -> "Measurements":
         """Rows ``idx`` (indices or a bool mask)."""
@@ -139,6 +142,13 @@ class Measurements:
                           {k: v[idx] for k, v in self.covariates.items()},
                           None if self.planes is None else self.planes[idx],
                           {k: v[idx] for k, v in self.distances.items()})
+
+    def hide(self, mask: Tensor) -> "Measurements":
+        """The same rows with the position observations ``mask (N, M)`` marked not seen (NaN), e.g.
+        gross errors left out of a fit."""
+        pos = self.positions.masked_fill(mask[..., None].to(self.positions.device), float("nan"))
+        return self._with(self.q, pos, list(self.marker_names), self.quaternions, dict(self.covariates), self.planes,
+                          dict(self.distances))
 
     def select_markers(self, names: list[str]) -> "Measurements":
         """The same rows with only the markers ``names`` (in that order), e.g. one point of a

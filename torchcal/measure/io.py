@@ -30,6 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchcal.advice import advice
+from torchcal.measure.checks import check_motion, check_robot
 from torchcal.measure.data import Measurements
 from torchcal.outputs import atomic_write_text
 
@@ -37,6 +39,10 @@ __all__ = ["load_measurements", "save_measurements", "marker_columns_in", "read_
 
 UNITS = ("deg", "mm")
 logger = logging.getLogger("torchcal")
+
+
+logger = logging.getLogger("torchcal")
+_ABSURD = 1e6  # |value| beyond any joint (rad, m, deg) or instrument reading (m, mm)
 
 
 class UnitsError(ValueError):
@@ -73,6 +79,10 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     a semicolon-separated file (Excel in many locales) is named as such, every row has the
     header's number of cells, column names are unique."""
     p = Path(path)
+    if p.is_dir():
+        inside = sorted(x.name for x in p.glob("*.csv"))[:5]
+        raise IsADirectoryError(f"{what} {p} is a directory; give the CSV file itself"
+                                + (f", e.g. {p / inside[0]} (it holds {inside})" if inside else " (it holds no .csv)"))
     if not p.is_file():
         raise FileNotFoundError(f"{what} not found: {p}")
     try:
@@ -83,10 +93,17 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
     if not rows:
         raise ValueError(f"{p}: the file is empty; it needs a header row and one row per pose")
+    if rows[0][0].lstrip().startswith("#"):
+        raise ValueError(f"{p}: line 1 starts with '#' ({','.join(rows[0])[:60]!r}); torchcal reads the column names "
+                         "from the first line, as they are: delete comment lines above the header, and the '#' before "
+                         "a header (numpy.savetxt writes one unless comments='')")
     if len(rows[0]) == 1 and rows[0][0].count(";") >= 2:
         raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales); torchcal reads "
                          "comma-separated files with '.' as the decimal point: save it as 'CSV UTF-8 (comma "
                          "delimited)' or convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(out)")
+    if len(rows[0]) == 1 and rows[0][0].count("\t") >= 1:
+        raise ValueError(f"{p} is separated by tabs; torchcal reads comma-separated files: save it as CSV (comma "
+                         "delimited) or convert it, e.g. pandas.read_csv(path, sep='\\t').to_csv(out, index=False)")
     header = [h.strip() for h in rows[0]]
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -141,6 +158,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     Raises ``ValueError`` saying exactly what is wrong; warns about rows that repeat another
     row exactly (they count twice; cross-validation keeps them in one fold).
     """
+    check_robot(robot, precision=False)
+    units = [units] if isinstance(units, str) else list(units)  # units="deg" is one unit, not three letters
     bad_units = [u for u in units if u not in UNITS]
     if bad_units:
         raise ValueError(f"unknown unit(s) {bad_units}; declare 'deg' (joint angles) and/or 'mm' (positions)")
@@ -195,7 +214,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     plane_cols = {m: m + _PLANE for m in measured if m + _PLANE in cols}
     used = (set(joints) | {m + s for m in measured for s in _POS} | {m + s for m in has_quat for s in _QUAT}
             | set(plane_cols.values()) | set(dist_cols))
-    covariates = [c for c in header if c not in used]
+    other = robot.other_joints()  # a column named like a joint of the URDF is a joint, never a covariate
+    covariates = [c for c in header if c not in used and c not in other]
     idx = {c: i for i, c in enumerate(header)}
     numeric = [c for c in header if c not in plane_cols.values()]
     N = len(rows)
@@ -204,7 +224,9 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
         for c in numeric:
             j = idx[c]
             data[i, j] = _number(r[j], i + 2, c, path)
+    _absurd(path, data, header, set(covariates))
     Q = data[:, [idx[j] for j in joints]]
+    _joints_past_markers(path, robot, other, {c: data[:, idx[c]] for c in header if c in other})
     bad = np.argwhere(~np.isfinite(Q))
     if len(bad):
         i, j = bad[0]
@@ -259,19 +281,56 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
                                      "give unit quaternions (qw, qx, qy, qz)")
                 Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
     dt = dtype or robot.dtype
-    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", _stacklevel=3).to(robot.device)
+    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", units_judged=True).to(robot.device)
     cov = {c: torch.as_tensor(data[:, idx[c]], dtype=dt, device=robot.device) for c in covariates}
-    return Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
-                        None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path),
-                        None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
-                        {k: torch.as_tensor(v, dtype=dt, device=robot.device) for k, v in D.items()})
+    out = Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
+                       None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path),
+                       None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
+                       {k: torch.as_tensor(v, dtype=dt, device=robot.device) for k, v in D.items()}, robot.name)
+    check_motion(robot, out, units, where=str(path))
+    return out
+
+
+def _absurd(path, data: np.ndarray, header: list[str], covariates: set[str]) -> None:
+    """Refuse a joint or measurement cell no unit makes plausible (1e308 is a broken export, not
+    a gross error), naming its line."""
+    cols = [j for j, c in enumerate(header) if c not in covariates]
+    x = data[:, cols]
+    big = np.isfinite(x) & (np.abs(np.where(np.isfinite(x), x, 0.0)) > _ABSURD)  # inf: named by the checks below
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        raise ValueError(f"{path}, line {i + 2}, column {header[cols[j]]!r}: {data[i, cols[j]]:.4g} is not a plausible "
+                         "joint value or measurement in any unit (radians, metres, degrees, millimetres); correct the "
+                         "cell, or drop the row")
+
+
+def _joints_past_markers(path, robot, other: dict, columns: dict) -> None:
+    """Refuse joint columns that move in the data but come after a marker's link: the marker is
+    declared on a link before the one that carries it, and those joints would have no effect."""
+    moving = [c for c, v in columns.items() if other[c] is not None and np.nanmax(v) - np.nanmin(v) > 1e-6]
+    if moving:
+        links = sorted({other[c] for c in moving})
+        raise ValueError(f"{path}: joint column(s) {moving} move, but come after link(s) {links}, where the markers "
+                         f"are declared ({[f'{m.name}@{m.link}' for m in robot.markers]}): on that link the marker "
+                         "would not feel them. Declare each marker on the link that carries it (the flange or tool "
+                         "beyond those joints), e.g. " + advice(f"markers=['{robot.markers[0].name}@LINK=x,y,z']",
+                                                                f"--marker {robot.markers[0].name}@LINK=x,y,z"))
+    if columns:
+        logger.info(f"{path}: column(s) {sorted(columns)} are joints of the URDF that move no declared marker; not "
+                    "used")
 
 
 def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Convert declared units; refuse values that look like degrees or millimetres otherwise."""
+    """Convert declared units; refuse values that look like degrees or millimetres otherwise, and
+    declared units whose converted values are implausible (degrees declared on radians)."""
     rev = np.array([u == "rad" for u in robot.joint_units])
     if "deg" in units:
         Q = np.where(rev, np.deg2rad(Q), Q)
+        reach = float(np.abs(Q[:, rev]).max()) if rev.any() else 1.0
+        if reach < 0.15:
+            raise UnitsError(f"{path}: with the joint columns read as degrees, no revolute joint moves more than "
+                             f"{np.rad2deg(reach):.3g}° ({reach:.3g} rad) from zero; they look like radians already: "
+                             + advice("leave out units=['deg']", "leave out --units deg"))
     if "mm" in units:
         Q = np.where(rev, Q, Q / 1000.0)
         P = P / 1000.0
@@ -279,21 +338,28 @@ def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[n
     lo, hi = (x.cpu().numpy() for x in robot.joint_limits)
     for j, n in enumerate(robot.joint_names):
         v = float(np.abs(Q[:, j]).max())
-        span = max(abs(lo[j]), abs(hi[j])) if np.isfinite(lo[j]) and np.isfinite(hi[j]) else 0.0
-        if rev[j] and v > max(2.2 * np.pi, 1.5 * span):
-            raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.1f}, which looks like degrees; torchcal "
-                             "expects radians: convert (rad = deg × π/180) or declare the unit (--units deg, "
-                             "load_measurements(..., units=['deg']))")
+        bounded = bool(np.isfinite(lo[j]) and np.isfinite(hi[j]))
+        span = max(abs(lo[j]), abs(hi[j])) if bounded else 0.0
+        # a continuous joint may turn many times: its values alone cannot say degrees (the bounded
+        # joints of the same file do)
+        if rev[j] and bounded and v > max(2.2 * np.pi, 1.5 * span):
+            raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.4g}, beyond its limits "
+                             f"[{lo[j]:.4g}, {hi[j]:.4g}] rad, which looks like degrees; torchcal expects radians: "
+                             "convert (rad = deg × π/180) or declare the unit ("
+                             + advice("load_measurements(..., units=['deg']), or --units deg on the command line",
+                                      "--units deg") + ")")
         if not rev[j] and v > max(5.0, 3 * span):
-            raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.1f}, which looks like "
-                             "millimetres; torchcal expects metres: divide by 1000 or declare --units mm")
+            raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.4g}, which looks like "
+                             "millimetres; torchcal expects metres: divide by 1000 or declare the unit ("
+                             + advice("units=['mm'], or --units mm on the command line", "--units mm") + ")")
     for what, vals in (("marker coordinates", P[np.isfinite(P)]),
                        ("distances", np.concatenate([v[np.isfinite(v)] for v in D.values()] or [np.zeros(0)]))):
         med = float(np.median(np.abs(vals))) if vals.size else 0.0
         if med > 20.0:
-            raise UnitsError(f"{path}: {what} have median |value| {med:.0f}, which looks like millimetres; torchcal "
-                             "expects metres: divide by 1000 or declare the unit (--units mm, "
-                             "load_measurements(..., units=['mm']))")
+            raise UnitsError(f"{path}: {what} have median |value| {med:.4g}, which looks like millimetres; torchcal "
+                             "expects metres: divide by 1000 or declare the unit ("
+                             + advice("load_measurements(..., units=['mm']), or --units mm on the command line",
+                                      "--units mm") + ")")
     return Q, P, D
 
 

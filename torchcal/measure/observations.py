@@ -56,7 +56,14 @@ def setup_refs(data: Measurements) -> tuple[list[str], list[str]]:
 
 def check_heldout(train: Measurements, test: Measurements) -> None:
     """Refuse held-out rows that touch a plane or measure to a fixed point the training rows never
-    do: its pose would be unknown, since the set-up is identified from the training rows only."""
+    do: its pose would be unknown, since the set-up is identified from the training rows only. And
+    held-out rows without a covariate column of the training rows: a model that reads it could not
+    be measured on them."""
+    lack = [c for c in train.covariates if c not in test.covariates]
+    if lack:
+        raise ValueError(f"the held-out rows ({test.source or 'test'}) have no column for covariate(s) {lack[:5]}, "
+                         f"which the training rows ({train.source or 'data'}) have; effects and the residual ELM may "
+                         "read them: add the column(s) to the held-out file, or drop them from the training file")
     (tp, tb), (hp, hb) = setup_refs(train), setup_refs(test)
     unknown = [p for p in hp if p not in tp] + [b for b in hb if b not in tb]
     if unknown:

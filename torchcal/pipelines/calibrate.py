@@ -11,8 +11,9 @@ from torch import Tensor
 
 from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
 from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
+from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
-from torchcal.measure.registration import register_base, register_marker_rotations
+from torchcal.measure.registration import leave_out_gross, register_base, register_marker_rotations
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import staged_dir
@@ -102,6 +103,7 @@ class CalibrationResult:
     implausible: dict = field(default_factory=dict)  # joint errors beyond their plausible size: name -> value
     plausible: dict = field(default_factory=dict)
     held_by_prior: dict = field(default_factory=dict)  # fitted, but tied: the prior's share, and why
+    suspects: list = field(default_factory=list)  # gross errors left out of the fit: {"row", "marker", "error_mm"}
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -146,7 +148,7 @@ class CalibrationResult:
             "solver": {"method": self.solver.method, "fun": self.solver.fun, "n_iter": self.solver.n_iter,
                        "n_evals": self.solver.n_evals, "wall_time_s": self.solver.wall_time_s,
                        "converged": self.solver.converged, "message": self.solver.message},
-            "wall_time_s": self.wall_time_s, "problems": self.problems(),
+            "wall_time_s": self.wall_time_s, "problems": self.problems(), "suspects": self.suspects,
             "prior_mm": self.prior_mm, "prior_reason": self.prior_reason, "prior_tried": self.prior_tried,
             "status": {n: st for n, (st, _) in self.statuses().items()},
         }
@@ -234,6 +236,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             (the identifiable subset alone, as a fleet without a prior fits each robot).
     """
     t0 = time.perf_counter()
+    check_fit_inputs(robot, data, test, enough=False)
     if kind not in ("position", "pose"):
         raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
     if len(data) == 0:
@@ -246,6 +249,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
             raise ValueError(f"the {what} rows hold plane contacts or distances, which calibrate() does not fit (it "
                              "fits positions, partial ones included): use torchcal.run_loop / 'torchcal loop', which "
                              "identifies the planes' poses and the fixed points with the robot")
+    check_enough(robot, data)
     p = _select_free(params if params is not None else robot.params(), free)
     if not (set(data.marker_names) <= set(robot.marker_names)):
         raise ValueError(f"the data has markers {data.marker_names} but the robot has {robot.marker_names}")
@@ -264,6 +268,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         # started from the mean measured rotation
         p = register_marker_rotations(robot, data, p)
     start = p.clone()
+    # a gross error (a glitch metres off) is left out of the fit and listed; the statistics keep it
+    fit_data, suspects = leave_out_gross(robot, data, start)
 
     def p_cand(cur: ParamSet) -> ParamSet:
         nxt = start.clone()
@@ -272,8 +278,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
 
     def blocks(loss_obj):
         if kind == "pose":
-            return [PoseResidual(robot, data, rot_weight=rot_weight, loss=loss_obj)]
-        return [PositionResidual(robot, data, loss=loss_obj)]
+            return [PoseResidual(robot, fit_data, rot_weight=rot_weight, loss=loss_obj)]
+        return [PositionResidual(robot, fit_data, loss=loss_obj)]
 
     nominal = start.values
     stages = [{"name": "nominal", "n_params": 0, "train": stage_stats(robot, nominal, data)}]
@@ -311,7 +317,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     for rnd in range(1 if loss == "l2" or loss_scale is not None else 12):
         if loss != "l2":
             scale = float(loss_scale) if loss_scale is not None else max(
-                2.5 * 1.4826 * float(PositionResidual(robot, data).errors(p.values[None])[0].median()), 1e-9)
+                2.5 * 1.4826 * float(PositionResidual(robot, fit_data).errors(p.values[None])[0].median()), 1e-9)
             if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
                 break
             scale_prev = scale
@@ -366,7 +372,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     return CalibrationResult(robot=robot, params=p, std_errors=std_errors, unidentifiable=unident, stages=stages,
                              solver=s, method=method, n_train=len(data), n_test=0 if test is None else len(test),
                              start=start, identifiability=report, loss=loss if loss_obj is None else repr(loss_obj),
-                             wall_time_s=time.perf_counter() - t0, errors=errors,
+                             wall_time_s=time.perf_counter() - t0, errors=errors, suspects=suspects,
                              prior_mm=None if choice is None else choice.prior_mm, prior_reason=why,
                              prior_tried=[] if choice is None else choice.tried,
                              implausible=implausible_values(p, robot, plausible), plausible=plausible,

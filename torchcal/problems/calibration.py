@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.kinematics.fk_compact import PositionKernel
 from torchcal.measure.blocks import Loss, PositionResidual
 from torchcal.measure.observations import Observations, Setup
@@ -39,7 +40,9 @@ class CalibrationProblem(Problem):
             raise ValueError("a calibration problem needs at least one residual block")
         idx = params.free_index
         if idx.numel() == 0:
-            raise ValueError("no free parameter: unfix some with ParamSet.unfix('pattern')")
+            raise ValueError("no free parameter: every parameter is fixed; choose some to identify ("
+                             + advice("free=['pattern'] in calibrate, or ParamSet.unfix('pattern')",
+                                      "--free PATTERN, e.g. --free '*.offset'") + ")")
         self.robot, self.params, self.blocks, self.fitness_kind = robot, params, blocks, fitness
         self.compact = compact
         self.fitness_is_sse = fitness == "sse"  # lets LM reuse its own sum of squares

@@ -298,10 +298,10 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
     s_all = np.linalg.svd(An, compute_uv=False) if k and m else np.zeros(0)
     svd_rank = int(np.sum(s_all > rtol * s_all[0])) if s_all.size and s_all[0] > 0 else 0
     if svd_rank != rank:
-        warnings.warn(f"numerical rank is ambiguous at rtol={rtol:g}: pivoted QR keeps {rank} parameters, the "
-                      f"SVD counts {svd_rank} (singular values near the threshold: "
-                      f"{np.array2string(s_all[max(0, min(rank, svd_rank) - 1):max(rank, svd_rank) + 1], precision=3)}); "
-                      "the pose set nearly fails to identify some parameters", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"the poses nearly fail to identify some parameters: whether {min(rank, svd_rank)} or "
+                      f"{max(rank, svd_rank)} of them are seen depends on rounding (pivoted QR keeps {rank}, the SVD "
+                      f"counts {svd_rank} at rtol={rtol:g}); poses that move every joint further apart settle it",
+                      RuntimeWarning, stacklevel=2)
 
     # reasons: each dropped column as a least-squares combination of the identifiable columns
     reasons, relations, residuals = {}, {}, {}

@@ -32,11 +32,13 @@ def stage_problems(stages: list[dict]) -> list[str]:
         out.append(f"the calibrated model ({fin['train']['mean_mm']:.4f} mm) is worse than the nominal one "
                    f"({nom['train']['mean_mm']:.4f} mm) on its own training rows: the fit failed (check the joint "
                    "order and units of the data, the declared markers, and the method's settings)")
-    tr, te = fin["train"]["mean_mm"], (fin.get("test") or {}).get("mean_mm")
+    # medians: one glitch among the held-out rows is a gross error, not another robot
+    test = fin.get("test") or {}
+    tr, te = fin["train"].get("median_mm", fin["train"]["mean_mm"]), test.get("median_mm", test.get("mean_mm"))
     if te is not None and te > FOREIGN_RATIO * max(tr, 1e-9):
-        out.append(f"the held-out rows do not belong to this robot's model: their error ({te:.3f} mm) is "
-                   f"{te / tr:.0f}× the training error ({tr:.4f} mm); are they from another robot, another set-up "
-                   "(the instrument moved), or another marker?")
+        out.append(f"the held-out rows do not belong to this robot's model: their median error ({te:.4g} mm) is "
+                   f"{te / max(tr, 1e-9):.0f}× the training rows' ({tr:.4g} mm); are they from another robot, another "
+                   "set-up (the instrument moved), or another marker?")
     return out
 
 
@@ -144,6 +146,10 @@ def calibration_markdown(res) -> str:
                     sv, us = shown(float(res.params[n]), res.params.units[res.params.index(n)], 4)
                     val = f" = {sv} {us}"
                 lines.append(f"- `{n}`{val}: {why}")
+    if getattr(res, "suspects", None):
+        lines += ["", "## Gross errors left out of the fit (kept in the statistics)", "",
+                  "| row | marker | error at the registered nominal model (mm) |", "|---|---|---|"]
+        lines += [f"| {s['row']} | {s['marker']} | {s['error_mm']:.4g} |" for s in res.suspects]
     if res.problems():
         lines += ["", "**Not fit to save or deploy:** " + "; ".join(res.problems())]
     s = res.solver

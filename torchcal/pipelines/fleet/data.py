@@ -9,6 +9,7 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
+from torchcal.measure.checks import check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
@@ -165,6 +166,11 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
         for n, d in zip(names, tests):
             if d is not None and (not isinstance(d, Measurements) or list(d.joint_names) != list(robot.joint_names)):
                 raise ValueError(f"robot {n!r}: held-out data must be Measurements with the model's joint columns")
+    for i, (n, d) in enumerate(zip(names, datasets)):  # the rules every fit has, robot by robot
+        try:
+            check_fit_inputs(robot, d, None if tests is None else tests[i])
+        except (ValueError, TypeError) as e:
+            raise type(e)(f"robot {n!r}: {e}") from None
     return names, datasets, tests
 
 

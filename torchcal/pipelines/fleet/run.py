@@ -28,7 +28,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.kinematics.robot import Robot
+from torchcal.measure.registration import leave_out_gross
 from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
@@ -285,7 +287,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         raise ValueError(f"prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
                          + (", which is estimated from the fleet" if prior_scale is None else "")
                          + f": {len(names)} robot(s) are too few to tell. Give at least {need} robots"
-                         + (" (or prior_scale={'m': …, 'rad': …} with 2)" if prior_scale is None else "")
+                         + (advice(" (or prior_scale={'m': …, 'rad': …} with 2)", "") if prior_scale is None else "")
                          + ", or leave out the prior")
     if identify not in (None, "per_robot", "pooled"):
         raise ValueError(f"identify must be 'per_robot' or 'pooled', got {identify!r}")
@@ -305,7 +307,9 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                                    prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, false_alarm=false_alarm,
                                    plausible=plausible, options=options)
     template = fleet_template(robot, datasets[0].marker_names, params, free)
-    fd = FleetData.build(robot, datasets)
+    # a gross error (a glitch metres off) would drag its robot's fit and noise: left out, listed
+    fit_sets, gross = zip(*(leave_out_gross(robot, d) for d in datasets))
+    fd = FleetData.build(robot, list(fit_sets))
     fd_test = None
     if tests is not None:
         none = torch.zeros(0, dtype=torch.long)
@@ -330,6 +334,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                                                                     prefer, opts, plausible)
         results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin,
                            J_fin, time.perf_counter() - t0)
+    for res, g in zip(results, gross):
+        res.suspects = g
     spread, flags = parameter_spread(names, results, z_threshold, extra=extra, false_alarm=false_alarm)
     return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
                        identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,

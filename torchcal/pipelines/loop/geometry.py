@@ -87,13 +87,16 @@ def orientation_weight(ctx: Context, robot, data: Measurements, setup, rounds: i
     return w
 
 
-def estimate_noise(ctx: Context, robot, data: Measurements, setup, rounds: int = 3) -> tuple[Context, Model, ParamSet]:
+def estimate_noise(ctx: Context, robot, data: Measurements, setup, rounds: int = 3,
+                   clean: Measurements | None = None) -> tuple[Context, Model, ParamSet]:
     """The largest identifiable set refitted under Huber until the robust noise estimate
-    settles. Returns (the context at that threshold, the full-set model, the markers' fit)."""
-    found = _markers_found(ctx, robot, data, setup)
+    settles; the first, plain fits on ``clean`` (the rows without gross errors, marked unseen) when
+    given. Returns (the context at that threshold, the full-set model, the markers' fit)."""
+    plain = ctx if clean is None else Context(robot, clean, ctx.folds, ctx.c, ctx.sigma, ctx.setup, ctx.rot_weight)
+    found = _markers_found(plain, robot, plain.data, setup)
     turns = ctx.rot_weight is not None
     full = lambda: warm_start(geometric_start(robot, data, None, setup, turns), found)  # noqa: E731
-    probe = evaluate(ctx, "noise probe", full(), [], None)
+    probe = evaluate(plain, "noise probe", full(), [], None)
     for _ in range(rounds):
         sigma = noise_sigma(ctx, probe)
         ctx = ctx.at(HUBER_K * sigma, sigma)

@@ -30,8 +30,10 @@ import torch
 
 from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
+from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
+from torchcal.measure.registration import gross_errors
 from torchcal.measure.stats import noise_floor
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mean_mm, duplicate_groups, folds_of,
@@ -163,6 +165,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     Returns:
         A :class:`LoopResult`.
     """
+    check_fit_inputs(robot, train, test, enough=False)
     names = list(EFFECTS) if candidates is None else list(candidates)
     unknown = [n for n in names if n not in EFFECTS]
     if unknown:
@@ -185,6 +188,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None
     if test is not None:
         Observations(robot, test, setup)  # the held-out rows fit this robot and set-up, before any fitting
+    check_enough(robot, train)
     if setup is not None:
         say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
@@ -213,7 +217,10 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
 
     # 2. noise: the largest identifiable set, refitted under Huber until the scale settles
     t1 = time.perf_counter()
-    ctx, probe, found = estimate_noise(ctx, robot, train, setup)
+    # the first, plain fits leave gross errors out (a glitch metres off would drag σ̂, and every
+    # parameter would look loose); the Huber fits after them keep every row
+    clean = train.hide(gross_errors(robot, train, geo0.values[: robot.n_params]))
+    ctx, probe, found = estimate_noise(ctx, robot, train, setup, clean=clean)
     say(f"noise estimate σ̂ = {1e3 * ctx.sigma:.4f} mm per axis; Huber threshold {1e3 * ctx.c:.4f} mm")
 
     # 3. geometry: nested sets, each from the one before, then the full set under priors

@@ -28,8 +28,8 @@ from statistics import NormalDist
 import torch
 from torch import Tensor
 
-__all__ = ["T_ACCEPT", "T_EXIT", "HUBER_K", "OUTLIER_K", "robust_sigma", "row_scores", "compare", "rmse_mm",
-           "effective_params", "selection_threshold"]
+__all__ = ["T_ACCEPT", "T_EXIT", "HUBER_K", "OUTLIER_K", "SIGMA_FLOOR", "robust_sigma", "row_scores", "compare",
+           "rmse_mm", "effective_params", "selection_threshold"]
 
 T_ACCEPT = 3.0
 # A mode accepted earlier leaves when its t, judged as if added last, falls below this: lower than
@@ -40,17 +40,23 @@ HUBER_K = 3.0    # Huber threshold on the 3-D error norm, in units of the per-ax
 OUTLIER_K = 5.0  # an observation further than this many σ̂ from the model is a suspect
 
 
+# the smallest noise estimate (m per axis), far below any instrument's: rows a model fits exactly
+# (as many unknowns as values) leave no spread, and a zero Huber threshold would mean nothing
+SIGMA_FLOOR = 1e-9
+
+
 def robust_sigma(r: Tensor, k_params: int = 0) -> float:
     """Per-axis noise estimate (m) from residual vectors ``r (n_obs, 3)``: 1.4826 × the median
     absolute deviation of all components (blind to outliers), scaled up by ``sqrt(n / (n − k))``
-    for ``k`` fitted parameters, which pull the residuals of the fitted rows in."""
+    for ``k`` fitted parameters, which pull the residuals of the fitted rows in; never below
+    :data:`SIGMA_FLOOR`."""
     x = r.reshape(-1)
     x = x[torch.isfinite(x)]
     if x.numel() == 0:
         return float("nan")
     mad = float((x - x.median()).abs().median())
     n = x.numel()
-    return 1.4826 * mad * math.sqrt(n / max(n - k_params, 1))
+    return max(1.4826 * mad * math.sqrt(n / max(n - k_params, 1)), SIGMA_FLOOR)
 
 
 def row_scores(err: Tensor, rows: Tensor, n_rows: int, c: float | None) -> Tensor:
