@@ -110,24 +110,29 @@ def _gram(J: Tensor, free: Tensor) -> Tensor:
 
 
 def _equations(A: Tensor, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upper: Tensor,
-               bounded: bool):
+               bounded: bool, with_Ae: bool = True):
     """``Jᵀr`` over the free columns, and the normal equations with parameters held on an active
     bound removed too (1 on their diagonal, so their step is 0). ``A`` is :func:`_gram` of ``J``:
-    a step that keeps the Jacobian changes only the residuals, so only ``Jᵀr`` is recomputed."""
+    a step that keeps the Jacobian changes only the residuals, so only ``Jᵀr`` is recomputed
+    (and, without bounds, nothing else: ``with_Ae=False`` then returns ``Ae`` None)."""
     g = torch.bmm(J.transpose(-1, -2), r[..., None])[..., 0] * free.to(J.dtype)
     move = free
     if bounded:
         held = ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
         move = move & ~held
     f = move.to(A.dtype)
-    Ae = A * f[:, :, None] * f[:, None, :] + torch.diag_embed(1.0 - f)
+    Ae = None
+    if with_Ae or bounded:
+        Ae = A * (f[:, :, None] * f[:, None, :])
+        Ae.diagonal(dim1=-2, dim2=-1).add_(1.0 - f)
     ge = g * f
     return g, Ae, ge
 
 
-def _gcos(ge: Tensor, A: Tensor, S: Tensor) -> Tensor:
-    """MINPACK's scale-free gradient test per problem: the largest cosine between r and a column of J."""
-    den = torch.sqrt(A.diagonal(dim1=-2, dim2=-1).clamp(min=1e-300) * S.clamp(min=1e-300)[:, None])
+def _gcos(ge: Tensor, dA: Tensor, S: Tensor) -> Tensor:
+    """MINPACK's scale-free gradient test per problem: the largest cosine between r and a column of J
+    (``dA``: the diagonal of JᵀJ, the columns' squared norms)."""
+    den = torch.sqrt(dA.clamp(min=1e-300) * S.clamp(min=1e-300)[:, None])
     return torch.where(S > 0, (ge.abs() / den).amax(-1), torch.zeros_like(S))
 
 
@@ -157,7 +162,8 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         jacobian: ``(X (b, K), idx (b,)) -> (b, m, c)`` their Jacobians over ``columns``.
         columns: ``(c,)`` the parameters (indices into K) whose columns the jacobian callback
             returns (default all K); every parameter a problem fits must be among them.
-        jac0: ``(B, m, c)`` the Jacobian at ``x0`` when the caller has it (saves one evaluation).
+        jac0: ``(B, m, c)`` the Jacobian at ``x0`` when the caller has it (saves one evaluation);
+            float64 is used as it is and updated in place (it becomes the returned ``jacobian``).
         x0: ``(B, K)`` start; ``free``: ``(B, K)`` bool, what each problem fits.
         lower, upper: ``(K,)`` or ``(B, K)`` bounds, as :class:`~torchcal.optim.LevenbergMarquardt`
             uses them (clipping plus an active set).
@@ -192,8 +198,8 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         X[:, cols] = xr
         return X
 
-    def equations(idx: Tensor):
-        return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded)
+    def equations(idx: Tensor, with_Ae: bool = True):
+        return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded, with_Ae)
 
     r = residuals(full, everyone).to(_F64)
     n_iter = torch.zeros(B, dtype=torch.long, device=x.device)
@@ -202,15 +208,15 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         J = jacobian(full, everyone).to(_F64)  # the callback's columns, returned
         n_jac += 1
     else:
-        J = jac0.to(_F64).clone()
+        J = jac0.to(_F64)
     Jc = J[:, :, pos]  # the columns the solver works on
     x, free, lower, upper = x[:, cols], free[:, cols], lower[:, cols], upper[:, cols]
     A = _gram(Jc, free)  # JᵀJ of the current Jacobians; these are filled in place from here on
     g, Ae, ge = equations(everyone)
     S = (r * r).sum(-1)
-    gnorm = _gcos(ge, A, S)
+    dA = A.diagonal(dim1=-2, dim2=-1)  # a view: it follows A as A is filled in place
+    gnorm = _gcos(ge, dA, S)
     xnorm = torch.linalg.vector_norm(x * free, dim=-1)
-    dA = A.diagonal(dim1=-2, dim2=-1)
     dmax = dA.amax(-1, keepdim=True)
     # floor the scaling: a near-zero column would otherwise get no damping (as the single solver)
     Dvec = torch.where(dmax > 0, torch.maximum(dA, 1e-6 * dmax), torch.ones_like(dA))
@@ -237,17 +243,21 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
             xJ[idx] = x[idx]
 
     def relinearise(idx: Tensor, new_jac: bool) -> None:
-        g[idx], Ae[idx], ge[idx] = equations(idx)
+        g[idx], Ae_i, ge[idx] = equations(idx, with_Ae=new_jac)
+        if Ae_i is not None:
+            Ae[idx] = Ae_i
         if new_jac:
-            Dvec[idx] = torch.maximum(Dvec[idx], A[idx].diagonal(dim1=-2, dim2=-1))
-        gnorm[idx] = _gcos(ge[idx], A[idx], S[idx])
+            Dvec[idx] = torch.maximum(Dvec[idx], dA[idx])
+        gnorm[idx] = _gcos(ge[idx], dA[idx], S[idx])
 
     while True:
         act = torch.nonzero(~done & (n_iter < max_iter)).flatten()
         if act.numel() == 0:
             break
         n_iter[act] += 1
-        L, info = torch.linalg.cholesky_ex(Ae[act] + mu[act, None, None] * torch.diag_embed(Dvec[act]))
+        M = Ae[act]
+        M.diagonal(dim1=-2, dim2=-1).add_(mu[act, None] * Dvec[act])
+        L, info = torch.linalg.cholesky_ex(M)
         ok = info == 0
         # mu tiny against a singular JᵀJ lost positive definiteness: damp harder
         mu_a, nu_a = mu[act], nu[act]

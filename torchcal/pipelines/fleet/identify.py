@@ -97,7 +97,8 @@ def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> T
     return kept
 
 
-def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1e-9) -> FleetDecision:
+def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1e-9,
+           out: Tensor | None = None) -> FleetDecision:
     """The identifiable columns of each robot's Jacobian.
 
     Args:
@@ -105,10 +106,13 @@ def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1
             candidate parameters ``names``, m per unit).
         markers, prefer, rtol: as for :func:`~torchcal.problems.identifiability.analyse_jacobian` (whose
             SVD cross-check of the rank is :func:`check_rank`).
+        out: ``(B, k)`` bool, columns to leave out (judged as zero columns), without a masked copy of ``J``.
     """
     J = J.to(torch.float64)
     Bn, m, k = J.shape
     norms = J.norm(dim=1)
+    if out is not None:
+        norms = norms.masked_fill(out, 0.0)
     big = norms.amax(-1, keepdim=True)
     zero = torch.where(big > 0, norms <= rtol * big, torch.ones_like(norms, dtype=torch.bool))
     An = J * torch.where(zero, 0.0, 1.0 / torch.where(zero, 1.0, norms))[:, None, :]

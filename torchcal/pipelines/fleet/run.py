@@ -23,7 +23,7 @@ from __future__ import annotations
 import numbers
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -93,7 +93,7 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
             d = pooled_decision(robot, fd, X, cand, names_c, prefer)
             return d, d.kept.expand(idx.numel(), -1), torch.zeros(idx.numel(), dtype=torch.long, device=dev)
         # a parameter already fixed for imprecision is no candidate: its column is left out (zero)
-        d = decide(J * (~loose[idx])[:, None, :].to(J.dtype), names_c, robot.marker_names, prefer)
+        d = decide(J, names_c, robot.marker_names, prefer, out=loose[idx])
         return d, d.kept, torch.arange(idx.numel(), device=dev)
 
     J = jacobian(X0, everyone)
@@ -113,7 +113,7 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
                          free[sub], template.lower, template.upper, jac0=J0, columns=cand, **opts)
         X[sub], r_fin[sub], J_fin[sub] = res.x, res.residuals, res.jacobian
         fit_of[sub], at[sub] = len(fits), torch.arange(sub.numel(), device=dev)
-        fits.append(res)
+        fits.append(replace(res, residuals=res.residuals[:0], jacobian=res.jacobian[:0]))  # a record needs neither
         return res
 
     for i in range(rounds):
