@@ -102,6 +102,11 @@ class FleetSolvers(Sequence):
             self._made[b] = self.fits[self.fit_of[b]].result(self.at[b], self.free[b])
         return self._made[b]
 
+    def converged(self) -> list[bool]:
+        """Whether each robot's solver converged, read from the fits' tensors."""
+        flags = [f.converged.tolist() for f in self.fits]
+        return [flags[f][j] for f, j in zip(self.fit_of, self.at)]
+
 
 class FleetResults(Sequence):
     """Every robot's :class:`~torchcal.pipelines.calibrate.CalibrationResult`, built on first access.
@@ -148,10 +153,18 @@ class FleetResults(Sequence):
                 self._all_stats = self._stats(slice(None), offset=0)
         return (self[b] for b in range(len(self)))
 
-    def table(self) -> tuple[list, list, list]:
-        """``(values, free, std_errors)``: ``(R, K)`` nested lists, read from the tensors (the fleet
-        report's parameter spread needs no per-robot result)."""
-        return self.X.tolist(), self.free.tolist(), self.se.tolist()
+    def converged(self) -> list[bool]:
+        """Whether each robot's solver converged, without building the results."""
+        if hasattr(self.solver, "converged"):
+            return self.solver.converged()
+        return [s.converged for s in self.solver]
+
+    def table(self) -> dict:
+        """The parameters' ``names``, ``units``, the robot's ``markers`` and, as ``(R, K)`` nested
+        lists read from the tensors, ``values``, ``free`` and ``std_errors`` (the fleet report's
+        parameter spread needs no per-robot result)."""
+        return {"names": self.template.names, "units": self.template.units, "markers": self.robot.marker_names,
+                "values": self.X.tolist(), "free": self._host["free"], "std_errors": self._host["se"]}
 
     # ------------------------------------------------------------------ building one robot
     @cached_property
@@ -175,20 +188,25 @@ class FleetResults(Sequence):
             out["test"] = [errors_by_marker_batched(e[k][sel], self.fd_test.seen[sel], mk) for k in ("Et0", "Et")]
         return out
 
+    @cached_property
+    def _host(self) -> dict:
+        """What building a result reads as Python numbers, fetched from the device once."""
+        return {"free": self.free.tolist(), "se": self.se.tolist(), "n_extra": self.n_extra.tolist(),
+                "cand": self.template.free.tolist()}
+
     def _build(self, b: int, stats: dict) -> CalibrationResult:
-        e, s = self.errors, b - stats["offset"]
+        e, s, h = self.errors, b - stats["offset"], self._host
         p = self.template.clone()
         p.values, p.free = self.X[b].clone(), self.free[b].clone()
         start = self.template.clone()
         start.values = self.X0[b].clone()
-        fb = torch.nonzero(self.free[b]).flatten()
-        std = dict(zip(p.free_names, self.se[b, fb].tolist()))
-        cand = self.template.free.tolist()
-        dropped = [n for n, c, f in zip(p.names, cand, p.free.tolist()) if c and not f]
+        free = h["free"][b]
+        std = {n: v for n, v, f in zip(p.names, h["se"][b], free) if f}
+        dropped = [n for n, c, f in zip(p.names, h["cand"], free) if c and not f]
         reasons = self.reasons[b]
         has_test = self.has_test[b]
         stages, errors = [], {}
-        last = (self.stage, "E", "Et", int(p.free.sum() + self.n_extra[b]))
+        last = (self.stage, "E", "Et", sum(free) + h["n_extra"][b])
         for i, (name, tr, te, k) in enumerate((("nominal", "E0", "Et0", 0), last)):
             st = {"name": name, "n_params": k, "train": stats["train"][i][s]}
             errors[name] = {"train": e[tr][b][self.fd.seen[b]], "test": torch.zeros(0)}
