@@ -46,7 +46,14 @@ class FleetReasons(Sequence):
         self.row = torch.zeros(R_, dtype=torch.long, device=dev)
         for t, (_, row, who) in enumerate(decisions):
             self.entry[who], self.row[who] = t, row
-        self.decisions, self.names, self.units = decisions, names, units
+        # keep only the rows some robot ends with: a decision holds a (k, k) factor per row
+        self.decisions = []
+        for t, (d, _, _) in enumerate(decisions):
+            mine = self.entry == t
+            rows, at = torch.unique(self.row[mine], return_inverse=True)
+            self.row[mine] = at
+            self.decisions.append(FleetDecision(d.kept[rows], d.zero[rows], d.An[rows], d.norms[rows]))
+        self.names, self.units = names, units
         self.loose, self.loose_se, self.loose_noise = loose, loose_se, loose_noise
         self._words: dict[int, dict[str, str]] = {}
 
@@ -69,7 +76,7 @@ class FleetReasons(Sequence):
         for t in sorted(set(entry)):
             mine = [(b, rw) for b, e, rw in zip(todo, entry, row) if e == t]
             uniq = sorted({rw for _, rw in mine})
-            at = dict(zip(uniq, explain(self.decisions[t][0], self.names, self.units, rows=uniq)))
+            at = dict(zip(uniq, explain(self.decisions[t], self.names, self.units, rows=uniq)))
             for b, rw in mine:
                 self._words[b] = {**at[rw], **loose[b]}
 
