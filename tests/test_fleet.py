@@ -551,3 +551,30 @@ def test_fleet_on_cuda_equals_cpu(ragged):
         for n, se in ra.std_errors.items():
             assert abs(ra.params[n] - rb.params[n]) <= 1e-3 * se, n
     assert [(f["robot"], f["parameter"]) for f in a.flags] == [(f["robot"], f["parameter"]) for f in b.flags]
+
+
+def test_fleet_waits_for_the_device_as_often_for_twice_the_robots(kr5, ragged):
+    """No decision reads one robot at a time: calibrating every robot twice over (the same work per
+    robot) takes as many host reads of device values (.tolist, .item, bool(), nonzero, boolean
+    masks) as calibrating each once. On a GPU each read is a wait."""
+    from torch.overrides import TorchFunctionMode
+
+    class Reads(TorchFunctionMode):
+        n = 0
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            mask = name in ("__getitem__", "__setitem__") and any(
+                isinstance(a, torch.Tensor) and a.dtype == torch.bool and a.ndim
+                for a in (args[1] if isinstance(args[1], tuple) else (args[1],)))
+            if mask or name in ("tolist", "item", "__bool__", "__int__", "__float__", "nonzero", "unique"):
+                Reads.n += 1
+            return func(*args, **(kwargs or {}))
+
+    counts = []
+    for data in (ragged[:3], [d for d in ragged[:3] for _ in range(2)]):
+        Reads.n = 0
+        with Reads():
+            calibrate_fleet(kr5, data)
+        counts.append(Reads.n)
+    assert counts[0] == counts[1] > 0
