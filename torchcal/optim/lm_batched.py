@@ -93,14 +93,20 @@ class BatchedLMResult:
             at += n
         return out
 
+    @cached_property
+    def _numbers(self) -> dict[str, list]:
+        """The per-problem counts and flags as Python lists, read from the device once."""
+        return {k: getattr(self, k).tolist() for k in ("sse", "n_evals", "n_iter", "converged", "n_jac", "n_rejected")}
+
     def result(self, b: int, free: Tensor) -> Result:
         """Problem ``b`` as a single solver's :class:`~torchcal.optim.Result` (``x`` over its
         free entries ``free (K,)``)."""
-        S = float(self.sse[b])
-        return Result(x=self.x[b, free], fun=S, history=list(self.history[b]), n_evals=int(self.n_evals[b]),
-                      n_iter=int(self.n_iter[b]), wall_time_s=self.wall_time_s, converged=bool(self.converged[b]),
+        h = self._numbers
+        S = h["sse"][b]
+        return Result(x=self.x[b, free], fun=S, history=list(self.history[b]), n_evals=h["n_evals"][b],
+                      n_iter=h["n_iter"][b], wall_time_s=self.wall_time_s, converged=h["converged"][b],
                       message=self.messages[b], method="lm",
-                      extra={"cost": 0.5 * S, "n_jac": int(self.n_jac[b]), "n_rejected": int(self.n_rejected[b])})
+                      extra={"cost": 0.5 * S, "n_jac": h["n_jac"][b], "n_rejected": h["n_rejected"][b]})
 
 
 def _gram(J: Tensor, free: Tensor) -> Tensor:
@@ -109,20 +115,20 @@ def _gram(J: Tensor, free: Tensor) -> Tensor:
     return torch.bmm(J.transpose(-1, -2), J)
 
 
-def _equations(A: Tensor, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upper: Tensor,
-               bounded: bool, with_Ae: bool = True):
+def _equations(A: Tensor | None, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor | None,
+               upper: Tensor | None):
     """``Jᵀr`` over the free columns, and the normal equations with parameters held on an active
-    bound removed too (1 on their diagonal, so their step is 0). ``A`` is :func:`_gram` of ``J``:
-    a step that keeps the Jacobian changes only the residuals, so only ``Jᵀr`` is recomputed
-    (and, without bounds, nothing else: ``with_Ae=False`` then returns ``Ae`` None)."""
+    bound (``lower``/``upper`` given) removed too (1 on their diagonal, so their step is 0). ``A``
+    is :func:`_gram` of ``J``: a step that keeps the Jacobian changes only the residuals, so only
+    ``Jᵀr`` is recomputed (and, without bounds, nothing else: ``A`` None then returns ``Ae`` None)."""
     g = torch.bmm(J.transpose(-1, -2), r[..., None])[..., 0] * free.to(J.dtype)
     move = free
-    if bounded:
+    if lower is not None:
         held = ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
         move = move & ~held
-    f = move.to(A.dtype)
+    f = move.to(g.dtype)
     Ae = None
-    if with_Ae or bounded:
+    if A is not None:
         Ae = A * (f[:, :, None] * f[:, None, :])
         Ae.diagonal(dim1=-2, dim2=-1).add_(1.0 - f)
     ge = g * f
@@ -199,7 +205,9 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         return X
 
     def equations(idx: Tensor, with_Ae: bool = True):
-        return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded, with_Ae)
+        if bounded:
+            return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx])
+        return _equations(A[idx] if with_Ae else None, Jc[idx], r[idx], x[idx], free[idx], None, None)
 
     r = residuals(full, everyone).to(_F64)
     n_iter = torch.zeros(B, dtype=torch.long, device=x.device)

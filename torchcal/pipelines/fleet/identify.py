@@ -23,6 +23,8 @@ from torchcal.problems.identifiability_report import dependency_reason, zero_col
 
 __all__ = ["FleetDecision", "decide", "explain", "check_rank"]
 
+_CPU_CHUNK = 256  # robots per greedy selection on a CPU
+
 
 @dataclass
 class FleetDecision:
@@ -119,7 +121,9 @@ def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1
     if m > k:
         An = torch.linalg.qr(An, mode="r").R
     tiers = [t for t in preference_tiers(markers, names, prefer) if t]
-    kept = _greedy(An, tiers, ~zero, rtol)
+    # a few hundred robots at a time on a CPU: a step's working set then stays in cache
+    step = _CPU_CHUNK if An.device.type == "cpu" else Bn
+    kept = torch.cat([_greedy(An[a:a + step], tiers, ~zero[a:a + step], rtol) for a in range(0, max(Bn, 1), step)])
     return FleetDecision(kept, zero, An, norms)
 
 

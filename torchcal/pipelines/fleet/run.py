@@ -152,8 +152,12 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
         # from, and a parameter the data barely pin down stops wherever they lead (by 1e-7 m)
         J = res.jacobian[change] if not bool(reset.any()) else None
     _check_ranks(decisions, names)
-    f = free[:, cand]
-    se = in_k(standard_errors(J_fin * f[:, None, :].to(J_fin.dtype), r_fin, f, 3 * fd.n_obs))
+    # over the columns some robot fits: the others would only pad every robot's inverse
+    use = torch.nonzero(free.any(0)).flatten()
+    f = free[:, use]
+    pos = torch.searchsorted(cand, use)
+    se = torch.zeros_like(X).index_copy_(1, use, standard_errors(J_fin[:, :, pos] * f[:, None, :].to(J_fin.dtype),
+                                                                 r_fin, f, 3 * fd.n_obs))
     return _Independent(X=X, free=free, se=se, r=r_fin,
                         reasons=FleetReasons(decisions, names_c, units_c, loose, loose_se, loose_noise),
                         solver=FleetSolvers(fits, fit_of, at, free))

@@ -201,8 +201,17 @@ class FleetResults(Sequence):
         return {"free": self.free.tolist(), "se": self.se.tolist(), "n_extra": self.n_extra.tolist(),
                 "cand": self.template.free.tolist()}
 
+    @cached_property
+    def _host_errors(self) -> dict:
+        """The errors and observation masks on the host: each robot's observed errors are then cut
+        out without a wait for the device per robot (a result's ``errors`` are for plots and reports)."""
+        out = {k: None if v is None else v.cpu() for k, v in self.errors.items()}
+        out["seen"] = self.fd.seen.cpu()
+        out["seen_test"] = None if self.fd_test is None else self.fd_test.seen.cpu()
+        return out
+
     def _build(self, b: int, stats: dict) -> CalibrationResult:
-        e, s, h = self.errors, b - stats["offset"], self._host
+        e, s, h = self._host_errors, b - stats["offset"], self._host
         p = self.template.clone()
         p.values, p.free = self.X[b].clone(), self.free[b].clone()
         start = self.template.clone()
@@ -216,10 +225,10 @@ class FleetResults(Sequence):
         last = (self.stage, "E", "Et", sum(free) + h["n_extra"][b])
         for i, (name, tr, te, k) in enumerate((("nominal", "E0", "Et0", 0), last)):
             st = {"name": name, "n_params": k, "train": stats["train"][i][s]}
-            errors[name] = {"train": e[tr][b][self.fd.seen[b]], "test": torch.zeros(0)}
+            errors[name] = {"train": e[tr][b][e["seen"][b]], "test": torch.zeros(0)}
             if has_test:
                 st["test"] = stats["test"][i][s]
-                errors[name]["test"] = e[te][b][self.fd_test.seen[b]]
+                errors[name]["test"] = e[te][b][e["seen_test"][b]]
             stages.append(st)
         return CalibrationResult(robot=self.robot, params=p, std_errors=std,
                                  unidentifiable={n: reasons.get(n, "not identifiable") for n in dropped},
