@@ -113,7 +113,8 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
                          free[sub], template.lower, template.upper, jac0=J0, columns=cand, **opts)
         X[sub], r_fin[sub], J_fin[sub] = res.x, res.residuals, res.jacobian
         fit_of[sub], at[sub] = len(fits), torch.arange(sub.numel(), device=dev)
-        fits.append(replace(res, residuals=res.residuals[:0], jacobian=res.jacobian[:0]))  # a record needs neither
+        # a record needs neither the residuals nor the (b, m, k) Jacobian: keep copies of nothing, not views
+        fits.append(replace(res, residuals=res.residuals.new_zeros(0), jacobian=res.jacobian.new_zeros(0)))
         return res
 
     for i in range(rounds):
@@ -152,12 +153,8 @@ def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, p
         # from, and a parameter the data barely pin down stops wherever they lead (by 1e-7 m)
         J = res.jacobian[change] if not bool(reset.any()) else None
     _check_ranks(decisions, names)
-    # over the columns some robot fits: the others would only pad every robot's inverse
-    use = torch.nonzero(free.any(0)).flatten()
-    f = free[:, use]
-    pos = torch.searchsorted(cand, use)
-    se = torch.zeros_like(X).index_copy_(1, use, standard_errors(J_fin[:, :, pos] * f[:, None, :].to(J_fin.dtype),
-                                                                 r_fin, f, 3 * fd.n_obs))
+    f = free[:, cand]
+    se = in_k(standard_errors(J_fin * f[:, None, :].to(J_fin.dtype), r_fin, f, 3 * fd.n_obs))
     return _Independent(X=X, free=free, se=se, r=r_fin,
                         reasons=FleetReasons(decisions, names_c, units_c, loose, loose_se, loose_noise),
                         solver=FleetSolvers(fits, fit_of, at, free))
@@ -309,9 +306,10 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         extra, prior_info = sol.effects, sol.prior
         stage = "geometric + joint_compliance" if effects else "geometric"
         wall = time.perf_counter() - t0
+        held_out = sol.test_errors(fd_test) if fd_test is not None and sol.test_errors else None
         results = FleetResults(robot, names, datasets, tests, fd, fd_test, template, X0, sol.X, sol.free, sol.se,
                                sol.r, sol.reasons, sol.solver, wall, stage=stage, n_extra=sol.n_extra,
-                               test_errors=sol.test_errors(fd_test) if fd_test is not None and sol.test_errors else None)
+                               test_errors=held_out)
         X, free = sol.X, sol.free[:, : X0.shape[1]]
     else:
         sol = _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible)
