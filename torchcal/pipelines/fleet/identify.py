@@ -122,7 +122,7 @@ def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1
         An = torch.linalg.qr(An, mode="r").R
     tiers = [t for t in preference_tiers(markers, names, prefer) if t]
     # a few hundred robots at a time on a CPU: a step's working set then stays in cache
-    step = _CPU_CHUNK if An.device.type == "cpu" else Bn
+    step = _CPU_CHUNK if An.device.type == "cpu" else max(Bn, 1)
     kept = torch.cat([_greedy(An[a:a + step], tiers, ~zero[a:a + step], rtol) for a in range(0, max(Bn, 1), step)])
     return FleetDecision(kept, zero, An, norms)
 
