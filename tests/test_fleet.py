@@ -101,6 +101,8 @@ def test_lm_batched_replicates_single_lm(kr5):
     for b, s in enumerate(singles):
         assert int(res.n_iter[b]) == s.n_iter and res.messages[b] == s.message
         assert torch.allclose(res.x[b, p.free_index], s.x, atol=1e-12, rtol=0)
+        # the sums of squares recorded per iteration as tensors: the single solver's history
+        assert res.history[b] == pytest.approx(s.history, rel=1e-12)
 
 
 def test_batched_identifiability_equals_analyse_jacobian(kr5):
@@ -381,3 +383,226 @@ def test_batched_error_stats_equal_per_robot():
             for k, v in theirs.items():
                 if k != "per_marker":
                     assert mine[k] == pytest.approx(v, rel=1e-12, abs=1e-15), k
+
+
+# ============================================================================ batched decisions
+def _reference_rounds(robot, data):
+    """The fleet's rounds as first written, robot by robot in Python: reasons worded for every robot
+    at once, each robot's solver record built as it finishes, the rank cross-checked by an SVD. The
+    batched path must reproduce it. Returns values, free flags, reasons, solver messages and the
+    robots whose SVD rank differs from the kept count."""
+    from torchcal.pipelines.fitting import PLAUSIBLE, drop_imprecise, imprecise_reason
+    from torchcal.pipelines.fleet.data import FleetData, fleet_template, register_fleet
+    from torchcal.problems.uncertainty import residual_noise
+    template = fleet_template(robot, data[0].marker_names)
+    fd = FleetData.build(robot, data)
+    X0 = register_fleet(robot, fd, template.values.expand(len(data), -1).clone())
+    R_, K = X0.shape
+    cand = template.free_index
+    names_c = [template.names[i] for i in cand.tolist()]
+    units_c = [template.units[i] for i in cand.tolist()]
+    limit = torch.tensor([PLAUSIBLE[u] for u in units_c], dtype=X0.dtype)
+    everyone = torch.arange(R_)
+    loose = torch.zeros(R_, K, dtype=torch.bool)
+    loose_why = [{} for _ in range(R_)]
+
+    def judge(J):
+        return decide(J[:, :, cand] * (~loose[idx][:, cand])[:, None, :].to(J.dtype), names_c, robot.marker_names)
+
+    idx = everyone
+    J = fd.jacobian(robot, X0, everyone)
+    dec = judge(J)
+    decisions = [(dec, torch.arange(R_), everyone)]
+    free = torch.zeros(R_, K, dtype=torch.bool)
+    free[:, cand] = dec.kept
+    X, solver, todo = X0.clone(), [None] * R_, everyone
+
+    def fit(sub, J0):
+        res = lm_batched(lambda Xb, i: fd.residuals(robot, Xb, sub[i]), lambda Xb, i: fd.jacobian(robot, Xb, sub[i]),
+                         X[sub], free[sub], template.lower, template.upper, jac0=J0, tau=1e-6, reuse=0.9)
+        X[sub] = res.x
+        for j, b in enumerate(sub.tolist()):
+            solver[b] = res.result(j, free[b])
+        return res
+
+    for i in range(3):
+        sub = idx = todo
+        res = fit(sub, J)
+        d2 = judge(res.jacobian)
+        nxt = torch.zeros(sub.numel(), K, dtype=torch.bool)
+        nxt[:, cand] = d2.kept
+        new_loose = torch.zeros_like(nxt)
+        noise = residual_noise(res.residuals, free[sub].sum(-1))
+        step, se = drop_imprecise(d2.An * d2.norms[:, None, :], d2.kept, limit, noise)
+        drop = step >= 0
+        nxt[:, cand] &= ~drop
+        new_loose[:, cand] = drop
+        for j, c in torch.nonzero(drop).tolist():
+            loose_why[int(sub[j])][names_c[c]] = imprecise_reason(names_c[c], units_c[c], float(se[j, c]),
+                                                                  float(noise[j]))
+        loose[sub] |= new_loose
+        new_loose &= free[sub]
+        change = (nxt & ~free[sub]).any(-1) | new_loose.any(-1)
+        if not bool(change.any()):
+            break
+        todo = sub[change]
+        decisions.append((d2, torch.nonzero(change).flatten(), todo))
+        reset = new_loose[change]
+        X[todo] = torch.where(loose[todo], X0[todo], X[todo])
+        if i == 2:
+            refit = todo[reset.any(-1)]
+            if refit.numel():
+                free[refit] &= ~loose[refit]
+                fit(refit, None)
+            break
+        free[todo] = nxt[change]
+        J = res.jacobian[change] if not bool(reset.any()) else None
+    reasons, odd = [{} for _ in range(R_)], set()
+    last = {b: t for t, (_, _, who) in enumerate(decisions) for b in who.tolist()}
+    for t, (d, rows, who) in enumerate(decisions):
+        for rw, b in zip(rows.tolist(), who.tolist()):
+            if last[b] == t:
+                reasons[b] = {**explain(d, names_c, units_c, rows=[rw])[0], **loose_why[b]}
+                s = torch.linalg.svdvals(d.An[rw])
+                if int((s > 1e-9 * s[0]).sum()) != int(d.kept[rw].sum()):
+                    odd.add(b)
+    return X, free, reasons, [s.message for s in solver], odd
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    """A seeded fleet whose rounds grow, drop imprecise parameters and reset robots: short robots
+    (12 poses), ragged ones, and two whose wrist barely moves (a rank near the tolerance)."""
+    robot = shipped("kuka_kr5_arc")
+    data, _, _ = simulate_fleet(robot, 5, SimConfig(n=12, seed=7), spread=0.2)
+    data += [simulate(robot, SimConfig(n=n, seed=500 + n))[0] for n in (20, 31)]
+    for i, s in enumerate((1e-7, 3e-9)):
+        g = torch.Generator().manual_seed(900 + i)
+        q = random_configs(robot, 30, g)
+        q[:, 5] = 0.3 + s * torch.randn(30, generator=g, dtype=torch.float64)
+        q[:, 3] = -0.2 + s * torch.randn(30, generator=g, dtype=torch.float64)
+        data.append(simulate(robot, SimConfig(n=30, seed=900 + i, noise=0.0), q=q)[0])
+    return robot, data
+
+
+def test_batched_rounds_equal_the_robot_by_robot_reference(mixed):
+    """Decisions as tensors, reasons and solver records as views: the same values (to 1e-9; in fact
+    to the bit), free sets, reasons in words, solver messages and rank warnings as the rounds run
+    robot by robot."""
+    robot, data = mixed
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fr = calibrate_fleet(robot, data)
+    X, free, reasons, messages, odd = _reference_rounds(robot, data)
+    assert torch.equal(fr.free, free)
+    assert torch.allclose(fr.values, X, atol=1e-9, rtol=0)
+    assert any("plausibly" in w for r in reasons for w in r.values())  # imprecise drops were judged
+    warned = {n for w in caught if "rank is ambiguous" in str(w.message) for n in fr.names if repr(n) in str(w.message)}
+    assert warned == {fr.names[b] for b in odd} and warned  # the near-tolerance wrist warns, as the SVD says
+    for b, r in enumerate(fr.results):
+        dropped = {n for n, c, f in zip(r.params.names, fr.results.template.free.tolist(), free[b].tolist())
+                   if c and not f}
+        assert r.unidentifiable == {n: reasons[b][n] for n in sorted(dropped, key=r.params.names.index)}
+        assert r.solver.message == messages[b]
+
+
+def test_reasons_are_worded_when_read(kr5, ragged):
+    """The solve words no reason; reading one robot words that robot's, a pass over all words the
+    rest at once, with the same sentences."""
+    fr = calibrate_fleet(kr5, ragged)
+    words = fr.results.reasons
+    assert not words._words
+    one = dict(fr.results[3].unidentifiable)
+    assert set(words._words) == {3} and one
+    alone = {b: dict(calibrate_fleet(kr5, ragged).results[b].unidentifiable) for b in (0, 5)}
+    every = [r.unidentifiable for r in fr.results]
+    assert set(words._words) == set(range(len(ragged)))
+    assert every[3] == one and all(every[b] == alone[b] for b in alone)
+
+
+def test_rank_check_needs_no_svd_where_the_factor_decides(mixed):
+    """The Cholesky factor of the kept columns proves the rank of well-conditioned robots (no SVD);
+    where it cannot, the SVD decides, so the warnings are the SVD's."""
+    from torchcal.pipelines.fleet.data import fleet_template
+    from torchcal.pipelines.fleet.identify import _rank_unsure, check_rank
+    robot, data = mixed
+    p = fleet_template(robot, data[0].marker_names)
+    names = p.free_names
+    Js = [PositionResidual(robot, d).jacobian(p.values)[:, p.free_index] for d in data]
+    m = max(j.shape[0] for j in Js)
+    J = torch.stack([torch.cat([j, j.new_zeros(m - j.shape[0], j.shape[1])]) for j in Js])
+    dec = decide(J, names, robot.marker_names)
+    s = torch.linalg.svdvals(dec.An)
+    odd = (s > 1e-9 * s[:, :1]).sum(-1) != dec.kept.sum(-1)
+    unsure = _rank_unsure(dec, torch.arange(len(data)), 1e-9)
+    assert not (odd & ~unsure).any()  # never certain where the SVD disagrees
+    assert not unsure[5:7].any()  # 20 and 31 ordinary poses: no SVD
+    assert odd.any()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_rank(dec, labels=lambda b: f"r{b}")
+    said = {f"r{b}" for b in range(len(data)) if any(repr(f"r{b}") in str(w.message) for w in caught)}
+    assert said == {f"r{b}" for b in torch.nonzero(odd).flatten().tolist()}
+
+
+def test_fleet_data_build_equals_robot_by_robot(kr5, ragged):
+    """One copy per field for all robots: the padded batch a robot-by-robot fill gives (ragged rows,
+    hidden markers, a robot listing its markers in another order)."""
+    from torchcal.pipelines.fleet.data import FleetData
+    sets = list(ragged[:3]) + [ragged[3].select_markers(["b", "smr"])]
+    fd = FleetData.build(kr5, sets)
+    for r, d in enumerate(sets):
+        n = len(d)
+        for j, mname in enumerate(d.marker_names):
+            k = kr5.marker_names.index(mname)
+            s = d.seen[:, j]
+            assert torch.equal(fd.seen[r, :n, k], s) and not fd.seen[r, n:].any()
+            assert torch.equal(fd.measured[r, :n, k][s], d.positions[:, j][s])
+        assert torch.equal(fd.q[r, :n], d.q) and not fd.q[r, n:].any()
+    assert fd.rows == [len(d) for d in sets]
+
+
+@pytest.mark.gpu
+def test_fleet_on_cuda_equals_cpu(ragged):
+    """The fleet on a CUDA device: the CPU's decisions, values (within a thousandth of a standard
+    error), reasons and flags."""
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device: the GPU comparison runs on a machine with one (scripts/gpu_check.sh)")
+    cpu = Robot.from_urdf(urdf_path("kuka_kr5_arc"), markers=MARKERS)
+    gpu = Robot.from_urdf(urdf_path("kuka_kr5_arc"), markers=MARKERS, device="cuda")
+    a = calibrate_fleet(cpu, ragged)
+    b = calibrate_fleet(gpu, [d.to("cuda") for d in ragged])
+    assert torch.equal(a.free, b.free.cpu())
+    for ra, rb in zip(a.results, b.results):
+        assert ra.params.free_names == rb.params.free_names
+        assert sorted(ra.unidentifiable) == sorted(rb.unidentifiable)
+        for n, se in ra.std_errors.items():
+            assert abs(ra.params[n] - rb.params[n]) <= 1e-3 * se, n
+    assert [(f["robot"], f["parameter"]) for f in a.flags] == [(f["robot"], f["parameter"]) for f in b.flags]
+
+
+def test_fleet_waits_for_the_device_as_often_for_twice_the_robots(kr5, ragged):
+    """No decision reads one robot at a time: calibrating every robot twice over (the same work per
+    robot) takes as many host reads of device values (.tolist, .item, bool(), nonzero, boolean
+    masks) as calibrating each once. On a GPU each read is a wait."""
+    from torch.overrides import TorchFunctionMode
+
+    class Reads(TorchFunctionMode):
+        n = 0
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            mask = name in ("__getitem__", "__setitem__") and any(
+                isinstance(a, torch.Tensor) and a.dtype == torch.bool and a.ndim
+                for a in (args[1] if isinstance(args[1], tuple) else (args[1],)))
+            if mask or name in ("tolist", "item", "__bool__", "__int__", "__float__", "nonzero", "unique"):
+                Reads.n += 1
+            return func(*args, **(kwargs or {}))
+
+    counts = []
+    for data in (ragged[:3], [d for d in ragged[:3] for _ in range(2)]):
+        Reads.n = 0
+        with Reads():
+            calibrate_fleet(kr5, data)
+        counts.append(Reads.n)
+    assert counts[0] == counts[1] > 0

@@ -10,11 +10,17 @@ it stops, so the remaining ones are not slowed by those already done.
 Ragged problems (different numbers of rows) are padded: padded residual rows and Jacobian rows are
 zero and change nothing. Fixed parameters are masked: their Jacobian columns are zeroed and they
 are held like a parameter on an active bound, so each problem solves exactly its own free system.
+
+Every decision is a batched tensor: an iteration waits for the device four times (which problems
+are still going, which steps could be tried, which were taken, which need a new Jacobian),
+however many problems there are. Why each problem stopped is a code and its sums of squares are
+recorded per iteration; both become words and per-problem lists only when read.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import torch
@@ -28,6 +34,11 @@ _F64 = torch.float64
 # With Jacobian reuse, a Jacobian computed within this relative distance of the current point
 # counts as fresh: its error moves the solution by about this fraction of the last correction.
 _JTOL = 1e-6
+# Why a problem stopped, by code (0: the iteration cap).
+_GTOL, _FTOL, _XTOL, _BLOWN, _GTOL0 = 1, 2, 3, 4, 5
+_WHY = {_GTOL: "projected gradient below gtol", _FTOL: "relative decrease of the sum of squares below ftol",
+        _XTOL: "step below xtol", _BLOWN: "damping overflowed: no decrease found along any step",
+        _GTOL0: "projected gradient below gtol at the start"}
 
 
 @dataclass
@@ -36,14 +47,15 @@ class BatchedLMResult:
 
     Attributes:
         x: ``(B, K)`` solutions (fixed entries keep their start values).
-        residuals: ``(B, m)`` residuals at ``x`` (padded rows zero); ``jacobian``: ``(B, m, K)``
-            Jacobian at ``x``, all K columns (fixed ones included: judging the parameters again at
-            the solution needs them).
+        residuals: ``(B, m)`` residuals at ``x`` (padded rows zero); ``jacobian``: ``(B, m, c)``
+            Jacobian at ``x`` over the callback's columns (all K unless ``columns`` named them;
+            fixed ones included: judging the parameters again at the solution needs them).
         sse: ``(B,)`` sums of squares (m² for position residuals).
         n_iter, n_evals, n_jac, n_rejected: ``(B,)`` trial steps, residual evaluations, Jacobian
             evaluations and rejected steps per problem.
-        converged: ``(B,)`` bool; ``messages``: why each stopped; ``history``: the sum of squares
-            at the current point after each trial step, per problem.
+        converged: ``(B,)`` bool; ``stop``: ``(B,)`` why each stopped, as a code (:attr:`messages`
+            in words); ``trace``: per trial step, the problems that took it and their sums of
+            squares afterwards (index 0: every problem at the start; :attr:`history` per problem).
     """
 
     x: Tensor
@@ -55,18 +67,46 @@ class BatchedLMResult:
     n_jac: Tensor
     n_rejected: Tensor
     converged: Tensor
-    messages: list[str]
-    history: list[list[float]] = field(default_factory=list)
+    stop: Tensor
+    max_iter: int
+    trace: list[tuple[Tensor, Tensor]] = field(default_factory=list)
     wall_time_s: float = 0.0
+
+    @cached_property
+    def messages(self) -> list[str]:
+        """Why each problem stopped, in words."""
+        cap = f"reached max_iter={self.max_iter}"
+        return [_WHY.get(c, cap) for c in self.stop.tolist()]
+
+    @cached_property
+    def history(self) -> list[list[float]]:
+        """Per problem, the sum of squares at its current point after each trial step."""
+        B = self.sse.shape[0]
+        who = torch.cat([w for w, _ in self.trace])
+        val = torch.cat([s for _, s in self.trace])
+        order = torch.sort(who, stable=True).indices  # per problem, in the order the steps came
+        counts = torch.bincount(who, minlength=B).tolist()
+        flat = val[order].tolist()
+        out, at = [], 0
+        for n in counts:
+            out.append(flat[at:at + n])
+            at += n
+        return out
+
+    @cached_property
+    def _numbers(self) -> dict[str, list]:
+        """The per-problem counts and flags as Python lists, read from the device once."""
+        return {k: getattr(self, k).tolist() for k in ("sse", "n_evals", "n_iter", "converged", "n_jac", "n_rejected")}
 
     def result(self, b: int, free: Tensor) -> Result:
         """Problem ``b`` as a single solver's :class:`~torchcal.optim.Result` (``x`` over its
         free entries ``free (K,)``)."""
-        S = float(self.sse[b])
-        return Result(x=self.x[b, free].clone(), fun=S, history=list(self.history[b]), n_evals=int(self.n_evals[b]),
-                      n_iter=int(self.n_iter[b]), wall_time_s=self.wall_time_s, converged=bool(self.converged[b]),
+        h = self._numbers
+        S = h["sse"][b]
+        return Result(x=self.x[b, free], fun=S, history=list(self.history[b]), n_evals=h["n_evals"][b],
+                      n_iter=h["n_iter"][b], wall_time_s=self.wall_time_s, converged=h["converged"][b],
                       message=self.messages[b], method="lm",
-                      extra={"cost": 0.5 * S, "n_jac": int(self.n_jac[b]), "n_rejected": int(self.n_rejected[b])})
+                      extra={"cost": 0.5 * S, "n_jac": h["n_jac"][b], "n_rejected": h["n_rejected"][b]})
 
 
 def _gram(J: Tensor, free: Tensor) -> Tensor:
@@ -75,38 +115,61 @@ def _gram(J: Tensor, free: Tensor) -> Tensor:
     return torch.bmm(J.transpose(-1, -2), J)
 
 
-def _equations(A: Tensor, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor, upper: Tensor,
-               bounded: bool):
+def _equations(A: Tensor | None, J: Tensor, r: Tensor, x: Tensor, free: Tensor, lower: Tensor | None,
+               upper: Tensor | None):
     """``Jᵀr`` over the free columns, and the normal equations with parameters held on an active
-    bound removed too (1 on their diagonal, so their step is 0). ``A`` is :func:`_gram` of ``J``:
-    a step that keeps the Jacobian changes only the residuals, so only ``Jᵀr`` is recomputed."""
+    bound (``lower``/``upper`` given) removed too (1 on their diagonal, so their step is 0). ``A``
+    is :func:`_gram` of ``J``: a step that keeps the Jacobian changes only the residuals, so only
+    ``Jᵀr`` is recomputed (and, without bounds, nothing else: ``A`` None then returns ``Ae`` None)."""
     g = torch.bmm(J.transpose(-1, -2), r[..., None])[..., 0] * free.to(J.dtype)
     move = free
-    if bounded:
+    if lower is not None:
         held = ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
         move = move & ~held
-    f = move.to(A.dtype)
-    Ae = A * f[:, :, None] * f[:, None, :] + torch.diag_embed(1.0 - f)
+    f = move.to(g.dtype)
+    Ae = None
+    if A is not None:
+        Ae = A * (f[:, :, None] * f[:, None, :])
+        Ae.diagonal(dim1=-2, dim2=-1).add_(1.0 - f)
     ge = g * f
     return g, Ae, ge
 
 
-def _gcos(ge: Tensor, A: Tensor, S: Tensor) -> Tensor:
-    """MINPACK's scale-free gradient test per problem: the largest cosine between r and a column of J."""
-    den = torch.sqrt(A.diagonal(dim1=-2, dim2=-1).clamp(min=1e-300) * S.clamp(min=1e-300)[:, None])
+def _gcos(ge: Tensor, dA: Tensor, S: Tensor) -> Tensor:
+    """MINPACK's scale-free gradient test per problem: the largest cosine between r and a column of J
+    (``dA``: the diagonal of JᵀJ, the columns' squared norms)."""
+    den = torch.sqrt(dA.clamp(min=1e-300) * S.clamp(min=1e-300)[:, None])
     return torch.where(S > 0, (ge.abs() / den).amax(-1), torch.zeros_like(S))
+
+
+
+def _positions(columns: Tensor | None, cols: Tensor, K: int) -> Tensor:
+    """Where the fitted parameters ``cols`` sit among the Jacobian callback's ``columns``."""
+    if columns is None:
+        return cols
+    where = torch.full((K,), -1, dtype=torch.long, device=cols.device)
+    where[columns] = torch.arange(columns.numel(), device=cols.device)
+    pos = where[cols]
+    if bool((pos < 0).any()):
+        raise ValueError("lm_batched: a free parameter is missing from `columns`, the parameters the jacobian "
+                         "callback returns; name every parameter any problem fits")
+    return pos
 
 
 def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable[[Tensor, Tensor], Tensor],
                x0: Tensor, free: Tensor, lower: Tensor, upper: Tensor, *, jac0: Tensor | None = None,
-               max_iter: int = 500, tau: float = 1e-6, gtol: float = 1e-10, xtol: float = 1e-10,
-               ftol: float = 1e-12, reuse: float | None = None) -> BatchedLMResult:
+               columns: Tensor | None = None, max_iter: int = 500,
+               tau: float = 1e-6, gtol: float = 1e-10, xtol: float = 1e-10, ftol: float = 1e-12,
+               reuse: float | None = None) -> BatchedLMResult:
     """Minimise ``B`` independent sums of squares with Levenberg-Marquardt (Marquardt scaling).
 
     Args:
         residuals: ``(X (b, K), idx (b,)) -> (b, m)`` residuals of problems ``idx`` at ``X``.
-        jacobian: ``(X (b, K), idx (b,)) -> (b, m, K)`` their Jacobians (all K columns).
-        jac0: the Jacobian at ``x0`` when the caller has it (saves one evaluation).
+        jacobian: ``(X (b, K), idx (b,)) -> (b, m, c)`` their Jacobians over ``columns``.
+        columns: ``(c,)`` the parameters (indices into K) whose columns the jacobian callback
+            returns (default all K); every parameter a problem fits must be among them.
+        jac0: ``(B, m, c)`` the Jacobian at ``x0`` when the caller has it (saves one evaluation);
+            float64 is used as it is and updated in place (it becomes the returned ``jacobian``).
         x0: ``(B, K)`` start; ``free``: ``(B, K)`` bool, what each problem fits.
         lower, upper: ``(K,)`` or ``(B, K)`` bounds, as :class:`~torchcal.optim.LevenbergMarquardt`
             uses them (clipping plus an active set).
@@ -133,6 +196,7 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
     everyone = torch.arange(B, device=x.device)
     # work on the columns some problem fits: a fleet fixes the same many parameters everywhere
     cols = torch.nonzero(free.any(0)).flatten()
+    pos = _positions(columns, cols, K)
     full = x.clone()
 
     def at(xr: Tensor, idx: Tensor) -> Tensor:
@@ -140,31 +204,35 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         X[:, cols] = xr
         return X
 
-    def equations(idx: Tensor):
-        return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx], bounded)
+    def equations(idx: Tensor, with_Ae: bool = True):
+        if bounded:
+            return _equations(A[idx], Jc[idx], r[idx], x[idx], free[idx], lower[idx], upper[idx])
+        return _equations(A[idx] if with_Ae else None, Jc[idx], r[idx], x[idx], free[idx], None, None)
 
     r = residuals(full, everyone).to(_F64)
-    J = (jacobian(full, everyone) if jac0 is None else jac0).to(_F64).clone()  # all K columns, returned
-    Jc = J[:, :, cols]  # the columns the solver works on
+    n_iter = torch.zeros(B, dtype=torch.long, device=x.device)
+    n_evals, n_jac, n_rej = torch.ones_like(n_iter), torch.zeros_like(n_iter), torch.zeros_like(n_iter)
+    if jac0 is None:
+        J = jacobian(full, everyone).to(_F64)  # the callback's columns, returned
+        n_jac += 1
+    else:
+        J = jac0.to(_F64)
+    Jc = J[:, :, pos]  # the columns the solver works on
     x, free, lower, upper = x[:, cols], free[:, cols], lower[:, cols], upper[:, cols]
     A = _gram(Jc, free)  # JᵀJ of the current Jacobians; these are filled in place from here on
     g, Ae, ge = equations(everyone)
     S = (r * r).sum(-1)
-    gnorm = _gcos(ge, A, S)
+    dA = A.diagonal(dim1=-2, dim2=-1)  # a view: it follows A as A is filled in place
+    gnorm = _gcos(ge, dA, S)
     xnorm = torch.linalg.vector_norm(x * free, dim=-1)
-    dA = A.diagonal(dim1=-2, dim2=-1)
     dmax = dA.amax(-1, keepdim=True)
     # floor the scaling: a near-zero column would otherwise get no damping (as the single solver)
     Dvec = torch.where(dmax > 0, torch.maximum(dA, 1e-6 * dmax), torch.ones_like(dA))
     mu = torch.full((B,), float(tau), dtype=_F64, device=x.device)
     nu = torch.full_like(mu, 2.0)
-    n_iter = torch.zeros(B, dtype=torch.long, device=x.device)
-    n_evals, n_jac, n_rej = torch.ones_like(n_iter), torch.ones_like(n_iter), torch.zeros_like(n_iter)
-    if jac0 is not None:
-        n_jac.zero_()
     converged = gnorm < gtol
-    messages = ["projected gradient below gtol at the start" if c else "" for c in converged.tolist()]
-    history = [[s] for s in S.tolist()]
+    stop = torch.where(converged, _GTOL0, 0)
+    trace = [(everyone, S.clone())]
     done = converged.clone()
     xJ = x.clone()  # where each problem's Jacobian was computed
 
@@ -176,30 +244,34 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         if idx.numel():
             Jn = jacobian(at(x[idx], idx), idx).to(_F64)
             J[idx] = Jn
-            Jn = Jn[:, :, cols]
+            Jn = Jn[:, :, pos]
             Jc[idx] = Jn
             A[idx] = _gram(Jn, free[idx])
             n_jac[idx] += 1
             xJ[idx] = x[idx]
 
     def relinearise(idx: Tensor, new_jac: bool) -> None:
-        g[idx], Ae[idx], ge[idx] = equations(idx)
+        g[idx], Ae_i, ge[idx] = equations(idx, with_Ae=new_jac)
+        if Ae_i is not None:
+            Ae[idx] = Ae_i
         if new_jac:
-            Dvec[idx] = torch.maximum(Dvec[idx], A[idx].diagonal(dim1=-2, dim2=-1))
-        gnorm[idx] = _gcos(ge[idx], A[idx], S[idx])
+            Dvec[idx] = torch.maximum(Dvec[idx], dA[idx])
+        gnorm[idx] = _gcos(ge[idx], dA[idx], S[idx])
 
     while True:
         act = torch.nonzero(~done & (n_iter < max_iter)).flatten()
         if act.numel() == 0:
             break
         n_iter[act] += 1
-        L, info = torch.linalg.cholesky_ex(Ae[act] + mu[act, None, None] * torch.diag_embed(Dvec[act]))
+        M = Ae[act]
+        M.diagonal(dim1=-2, dim2=-1).add_(mu[act, None] * Dvec[act])
+        L, info = torch.linalg.cholesky_ex(M)
         ok = info == 0
-        fail = act[~ok]
         # mu tiny against a singular JᵀJ lost positive definiteness: damp harder
-        mu[fail] *= nu[fail]
-        nu[fail] *= 2.0
-        n_rej[fail] += 1
+        mu_a, nu_a = mu[act], nu[act]
+        mu[act] = torch.where(ok, mu_a, mu_a * nu_a)
+        nu[act] = torch.where(ok, nu_a, nu_a * 2.0)
+        n_rej[act] += (~ok).long()
         o = act[ok]
         if o.numel():
             h = torch.cholesky_solve(-ge[o, :, None], L[ok])[..., 0]
@@ -221,19 +293,20 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
             small_f = (gain.abs() <= ftol * S_old) & (pred <= ftol * S_old) & (rho <= 2.0)
             small_x = torch.sqrt(hh) <= xtol * (xnorm[o] + xtol)
             acc = rho > 0
-            ia, rj = o[acc], o[~acc]
+            ia = o[acc]
             stale_step = stale(o)
-            if ia.numel():
-                x[ia], r[ia], S[ia] = x_new[acc], r_new[acc], S_new[acc]
-                xnorm[ia] = torch.linalg.vector_norm(x[ia] * free[ia], dim=-1)
-                mu[ia] *= torch.clamp(1.0 - (2.0 * rho[acc] - 1.0) ** 3, min=1.0 / 3.0)
-                nu[ia] = 2.0
-            n_rej[rj] += 1
-            grow = rj[~stale_step[~acc]]  # a step from an old Jacobian is retried with a new one
-            mu[grow] *= nu[grow]
-            nu[grow] *= 2.0
+            x[ia], r[ia], S[ia] = x_new[acc], r_new[acc], S_new[acc]
+            xnorm[ia] = torch.linalg.vector_norm(x[ia] * free[ia], dim=-1)
+            # accepted: damping from the gain ratio; rejected on a fresh Jacobian: damp harder (a
+            # step from an old Jacobian is retried with a new one)
+            grow = ~acc & ~stale_step
+            mu_o, nu_o = mu[o], nu[o]
+            mu[o] = torch.where(acc, mu_o * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0),
+                                torch.where(grow, mu_o * nu_o, mu_o))
+            nu[o] = torch.where(acc, torch.full_like(nu_o, 2.0), torch.where(grow, nu_o * 2.0, nu_o))
+            n_rej[o] += (~acc).long()
             if reuse is None:
-                need = ia
+                got, need = acc, ia
             else:
                 # a new Jacobian where the old one predicted badly and is not from (nearly) here,
                 # where a step from an old one failed, and where a stopping test fired on an old one
@@ -241,29 +314,21 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
                 # and xtol's at the step's start); one batched evaluation for all of them
                 relinearise(ia, False)
                 want = (acc & ((rho <= reuse) | (gnorm[o] < gtol))) | ((~acc | small_f | small_x) & stale_step)
-                need = o[want]
-                need = need[stale(need)]
+                got = want & stale(o)
+                need = o[got]
             new_jacobian(need)
-            relinearise(ia if reuse is None else need, True)
+            relinearise(need, True)
             fresh_now, fresh_step = ~stale(o), ~stale_step
-            c_g = (acc | torch.isin(o, need)) & (gnorm[o] < gtol) & fresh_now
+            c_g = (acc | got) & (gnorm[o] < gtol) & fresh_now
             c_f = ~c_g & small_f & fresh_step
             c_x = ~c_g & ~c_f & small_x & fresh_step
-            for b, why in zip(o.tolist(), (c_g.long() + 2 * c_f.long() + 3 * c_x.long()).tolist()):
-                if why:
-                    messages[b] = ("projected gradient below gtol", "relative decrease of the sum of squares below "
-                                   "ftol", "step below xtol")[why - 1]
+            why = torch.where(c_g, _GTOL, torch.where(c_f, _FTOL, torch.where(c_x, _XTOL, stop[o])))
+            stop[o] = why
             converged[o] = c_g | c_f | c_x
-        for b, s in zip(act.tolist(), S[act].tolist()):
-            history[b].append(s)
-        blown = act[~converged[act] & ~torch.isfinite(mu[act])]
-        for b in blown.tolist():
-            messages[b] = "damping overflowed: no decrease found along any step"
-        done[act] = converged[act]
-        done[blown] = True
-    for b in range(B):
-        if not messages[b]:
-            messages[b] = f"reached max_iter={max_iter}"
-    return BatchedLMResult(x=at(x, everyone), residuals=r, jacobian=J, sse=S, n_iter=n_iter, n_evals=n_evals, n_jac=n_jac,
-                           n_rejected=n_rej, converged=converged, messages=messages, history=history,
-                           wall_time_s=time.perf_counter() - t0)
+        trace.append((act, S[act]))
+        blown = ~converged[act] & ~torch.isfinite(mu[act])
+        stop[act] = torch.where(blown, _BLOWN, stop[act])
+        done[act] = converged[act] | blown
+    return BatchedLMResult(x=at(x, everyone), residuals=r, jacobian=J, sse=S, n_iter=n_iter, n_evals=n_evals,
+                           n_jac=n_jac, n_rejected=n_rej, converged=converged, stop=stop, max_iter=max_iter,
+                           trace=trace, wall_time_s=time.perf_counter() - t0)

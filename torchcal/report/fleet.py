@@ -47,17 +47,25 @@ _MAD = 1.4826  # MAD -> standard deviation for a normal distribution
 
 def _columns(results, extra) -> list[tuple[str, str, list[float | None], list[float | None]]]:
     """(name, unit, value per robot or None where not fitted, standard error per robot)."""
-    p0 = results[0].params
-    markers = set(results[0].robot.marker_names)
+    if hasattr(results, "table"):  # a fleet's results, built lazily: read its tensors, build no robot's result
+        t = results.table()
+        pnames, punits, markers = t["names"], t["units"], set(t["markers"])
+        values, free, ses = t["values"], t["free"], t["std_errors"]
+    else:
+        p0 = results[0].params
+        pnames, punits, markers = p0.names, p0.units, set(results[0].robot.marker_names)
+        values = [r.params.values.tolist() for r in results]  # one conversion per robot, not per entry
+        free = [r.params.free.tolist() for r in results]
+        ses = None
     cols = []
-    values = [r.params.values.tolist() for r in results]  # one conversion per robot, not per entry
-    free = [r.params.free.tolist() for r in results]
-    for i, (n, u) in enumerate(zip(p0.names, p0.units)):
+    for i, (n, u) in enumerate(zip(pnames, punits)):
         if n.startswith("base.") or n.split(".")[0] in markers:
             continue
         vals = [v[i] if f[i] else None for v, f in zip(values, free)]
         if any(v is not None for v in vals):
-            cols.append((n, u, vals, [r.std_errors.get(n) for r in results]))
+            se = [r.std_errors.get(n) for r in results] if ses is None else [s[i] if f[i] else None
+                                                                               for s, f in zip(ses, free)]
+            cols.append((n, u, vals, se))
     if extra:
         for j, (n, u) in enumerate(zip(extra["names"], extra["units"])):
             vals = [v[j] if f[j] else None for v, f in zip(extra["values"], extra["free"])]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -16,6 +17,9 @@ from torchcal.params import ParamSet
 __all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "check_rows", "BASE_NAMES"]
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
+# Jacobian entries evaluated at once, per device: a CPU's caches hold a few hundred robots' worth;
+# a GPU wants large batches but the kinematics' intermediates are ~15 times the Jacobian
+_CHUNK = {"cpu": 1 << 20, "cuda": 1 << 26}
 
 
 @dataclass
@@ -38,19 +42,27 @@ class FleetData:
 
     @classmethod
     def build(cls, robot: Robot, datasets: list[Measurements]) -> "FleetData":
+        """Pad and stack the robots' measurements: one copy per field for all robots that list
+        their markers in the same order (not one per robot)."""
         R, N, M = len(datasets), max(len(d) for d in datasets), len(robot.marker_names)
         dt = dict(dtype=robot.dtype, device=robot.device)
-        q = torch.zeros(R, N, robot.dof, **dt)
-        meas = torch.zeros(R, N, M, 3, **dt)
-        seen = torch.zeros(R, N, M, dtype=torch.bool, device=robot.device)
+        lens = [len(d) for d in datasets]
+        q = torch.zeros(R * N, robot.dof, **dt)
+        meas = torch.zeros(R * N, M, 3, **dt)
+        seen = torch.zeros(R * N, M, dtype=torch.bool, device=robot.device)
+        groups: dict[tuple, list[int]] = {}
         for r, d in enumerate(datasets):
-            n = len(d)
-            mk = [robot.marker_names.index(m) for m in d.marker_names]
-            q[r, :n] = d.q.to(**dt)
-            s = d.seen.to(robot.device)
-            seen[r, :n, mk] = s
-            meas[r, :n, mk] = torch.where(s[..., None], d.positions.to(**dt), 0.0)
-        return cls(q, meas, seen, [len(d) for d in datasets], [dict(d.covariates) for d in datasets])
+            groups.setdefault(tuple(d.marker_names), []).append(r)
+        for order, members in groups.items():
+            rows = torch.as_tensor(_rows(members, [lens[r] for r in members], N), device=robot.device)
+            mk = torch.as_tensor([robot.marker_names.index(m) for m in order], device=robot.device)
+            q[rows] = torch.cat([datasets[r].q for r in members]).to(**dt)
+            pos = torch.cat([datasets[r].positions for r in members]).to(**dt)
+            s = ~torch.isnan(pos).any(-1)
+            seen[rows[:, None], mk[None, :]] = s
+            meas[rows[:, None], mk[None, :]] = torch.where(s[..., None], pos, 0.0)
+        return cls(q.view(R, N, -1), meas.view(R, N, M, 3), seen.view(R, N, M), lens,
+                   [dict(d.covariates) for d in datasets])
 
     @property
     def n_obs(self) -> Tensor:
@@ -67,11 +79,28 @@ class FleetData:
         r = (self.positions(robot, X, idx) - self.measured[idx]) * self.seen[idx][..., None]
         return r.reshape(r.shape[0], -1)
 
-    def jacobian(self, robot: Robot, X: Tensor, idx: Tensor, q: Tensor | None = None) -> Tensor:
-        """``(b, N·M·3, K)`` analytic Jacobian of :meth:`residuals` (m per unit)."""
-        J = robot.param_jacobian(self.q[idx] if q is None else q, X, check=False)
-        J = J * self.seen[idx][..., None, None]
-        return J.reshape(J.shape[0], -1, J.shape[-1])
+    def jacobian(self, robot: Robot, X: Tensor, idx: Tensor, q: Tensor | None = None,
+                 cols: list[int] | None = None) -> Tensor:
+        """``(b, N·M·3, c)`` analytic Jacobian of :meth:`residuals` (m per unit) over the parameters
+        ``cols`` (indices into K, ascending; default all K).
+
+        Evaluated a chunk of robots at a time: the kinematics' intermediates then stay in cache on
+        a CPU and within bounds on a GPU, whatever the fleet's size."""
+        b, N, M = idx.numel(), self.q.shape[1], self.seen.shape[2]
+        q = self.q[idx] if q is None else q
+        K = X.shape[1]
+        runs = _runs(range(K) if cols is None else cols)  # copying runs of columns beats a gather
+        out = X.new_empty(b, N * M * 3, sum(e - a for a, e in runs))
+        step = max(1, _CHUNK.get(X.device.type, 1 << 24) // (N * M * 3 * K))
+        for a in range(0, b, step):
+            J = robot.param_jacobian(q[a:a + step], X[a:a + step], check=False)
+            seen = self.seen[idx[a:a + step]][..., None, None]
+            dst = out[a:a + step].view(*J.shape[:-1], -1)
+            at = 0
+            for c0, c1 in runs:
+                torch.mul(J[..., c0:c1], seen, out=dst[..., at:at + c1 - c0])
+                at += c1 - c0
+        return out
 
     def error_vectors(self, robot: Robot, X: Tensor) -> Tensor:
         """``(R, N, M, 3)`` model minus measured positions (m) of every robot with its own
@@ -93,6 +122,41 @@ class FleetData:
         dist = (self.measured + V - t[:, None, None]).norm(dim=-1)
         e = V.norm(dim=-1)
         return [{"e": e[b][s], "xyz": V[b][s], "dist": dist[b][s]} for b, s in enumerate(self.seen)]
+
+
+def _rows(robots: list[int], lens: list[int], N: int) -> np.ndarray:
+    """Flat row indices ``r·N + i`` (``i < lens``) of ``robots`` in an ``(R·N, …)`` padded layout."""
+    lens_ = np.asarray(lens, dtype=np.int64)
+    start = np.repeat(np.asarray(robots, dtype=np.int64) * N - np.cumsum(lens_) + lens_, lens_)
+    return start + np.arange(int(lens_.sum()), dtype=np.int64)
+
+
+def _observations(datasets: list[Measurements]) -> list[int]:
+    """Marker positions seen per data set, counted in one pass over all of them."""
+    groups: dict[int, list[int]] = {}
+    for r, d in enumerate(datasets):
+        groups.setdefault(len(d.marker_names), []).append(r)
+    out = [0] * len(datasets)
+    for members in groups.values():
+        seen = (~torch.isnan(torch.cat([datasets[r].positions for r in members])).any(-1)).sum(-1)
+        ends = torch.cumsum(seen, 0).tolist()
+        at = 0
+        for r in members:
+            n = len(datasets[r])
+            out[r] = int(ends[at + n - 1] - (ends[at - 1] if at else 0)) if n else 0
+            at += n
+    return out
+
+
+def _runs(cols) -> list[tuple[int, int]]:
+    """Ascending column indices as ``[start, stop)`` runs of consecutive ones."""
+    runs: list[list[int]] = []
+    for c in cols:
+        if runs and runs[-1][1] == c:
+            runs[-1][1] += 1
+        else:
+            runs.append([c, c + 1])
+    return [(a, e) for a, e in runs]
 
 
 def fleet_template(robot: Robot, marker_names: list[str], params: ParamSet | None = None, free=None) -> ParamSet:
@@ -150,8 +214,9 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
         elif sorted(d.marker_names) != first[1]:
             raise ValueError(f"robot {n!r} measures markers {sorted(d.marker_names)} but robot {first[0]!r} measures "
                              f"{first[1]}; the robots of a fleet share one marker set")
-        if len(d) < min_rows or int(d.seen.sum()) < 3:
-            raise ValueError(f"robot {n!r} has {len(d)} rows ({int(d.seen.sum())} marker observations); a calibration "
+    for n, d, k in zip(names, datasets, _observations(datasets)):
+        if len(d) < min_rows or k < 3:
+            raise ValueError(f"robot {n!r} has {len(d)} rows ({k} marker observations); a calibration "
                              f"needs at least {max(min_rows, 3)} rows. Measure more poses or leave this robot out")
     tests = None
     if test is not None:
@@ -185,10 +250,12 @@ def register_fleet(robot: Robot, fd: FleetData, X: Tensor) -> Tensor:
     R_, N, M = fd.seen.shape
     w = fd.seen.reshape(R_, N * M).to(X.dtype)
     try:
-        Rb, t = kabsch(model.reshape(R_, N * M, 3), fd.measured.reshape(R_, N * M, 3), weights=w)
+        # on the host: a GPU's batched SVD of many 3 x 3 matrices is slow, and R·N·M points cost
+        # little to move
+        Rb, t = kabsch(model.reshape(R_, N * M, 3).cpu(), fd.measured.reshape(R_, N * M, 3).cpu(), weights=w.cpu())
     except ValueError as e:
         raise ValueError(f"base registration failed: {e} (problems are robots in fleet order)") from None
-    X[:, bi] = torch.cat([t, so3_log(Rb)], -1)
+    X[:, bi] = torch.cat([t, so3_log(Rb)], -1).to(X)
     return X
 
 

@@ -23,6 +23,8 @@ from torchcal.problems.identifiability_report import dependency_reason, zero_col
 
 __all__ = ["FleetDecision", "decide", "explain", "check_rank"]
 
+_CPU_CHUNK = 256  # robots per greedy selection on a CPU
+
 
 @dataclass
 class FleetDecision:
@@ -42,7 +44,12 @@ class FleetDecision:
 
 def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> Tensor:
     """Tiered greedy column selection, batched: in each tier pick the column with the largest
-    (boosted) residual norm while its residual norm exceeds ``rtol`` times the first pick's."""
+    (boosted) residual norm while its residual norm exceeds ``rtol`` times the first pick's.
+
+    A column within that tolerance of the kept span stays there (its residual only shrinks) and is
+    never picked: columns so for every robot still picking leave the tier's working set, so that
+    each step costs what the columns still in play cost (most of a URDF robot's origin errors
+    duplicate the joint offsets, base and marker kept before them, or the tier's first picks)."""
     Bn, n, k = An.shape
     dev = An.device
     # columns as rows (B, k, n): every norm and projection then runs along contiguous memory
@@ -66,29 +73,34 @@ def _greedy(An: Tensor, tiers: list[list[int]], valid: Tensor, rtol: float) -> T
         cols = torch.as_tensor(tier, device=dev)
         going = avail.any(-1)
         for _ in range(len(tier)):
-            if not bool(going.any()):
-                break
-            nrm = torch.where(avail, T.norm(dim=-1), -1.0)
-            best, j = nrm.max(-1)
+            nrm = torch.linalg.vector_norm(T, dim=-1)
+            best, j = torch.where(avail, nrm, -1.0).max(-1)
             d = best / boost[j]
             fresh = going & ~tol_set
             tol = torch.where(fresh, rtol * torch.where(d > 0, d, torch.ones_like(d)), tol)
             tol_set |= fresh
             going = going & (d > tol)
-            if not bool(going.any()):
+            live = avail & going[:, None] & (nrm / boost > tol[:, None])
+            flags = torch.cat([going.any()[None], live.any(0)]).tolist()  # the step's one wait for the device
+            if not flags[0]:
                 break
             v = T[rows, j]
-            v = v * (going / v.norm(dim=-1).clamp(min=1e-300))[:, None]
-            T = T - (T @ v[:, :, None]) * v[:, None, :]
+            v = v * (going / torch.linalg.vector_norm(v, dim=-1).clamp(min=1e-300))[:, None]
+            T.addcmul_(T @ v[:, :, None], v[:, None, :], value=-1.0)
             Q[:, nq] = v
             nq += 1
             avail[rows, j] &= ~going
             kept[rows, cols[j]] |= going
             going = going & avail.any(-1)
+            alive = [i for i, a in enumerate(flags[1:]) if a]
+            if len(alive) < cols.numel():
+                at = torch.as_tensor(alive, dtype=torch.long, device=dev)
+                T, avail, cols, boost = T[:, at], avail[:, at], cols[at], boost[at]
     return kept
 
 
-def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1e-9) -> FleetDecision:
+def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1e-9,
+           out: Tensor | None = None) -> FleetDecision:
     """The identifiable columns of each robot's Jacobian.
 
     Args:
@@ -96,32 +108,82 @@ def decide(J: Tensor, names: list[str], markers=(), prefer=None, rtol: float = 1
             candidate parameters ``names``, m per unit).
         markers, prefer, rtol: as for :func:`~torchcal.problems.identifiability.analyse_jacobian` (whose
             SVD cross-check of the rank is :func:`check_rank`).
+        out: ``(B, k)`` bool, columns to leave out (judged as zero columns), without a masked copy of ``J``.
     """
     J = J.to(torch.float64)
     Bn, m, k = J.shape
     norms = J.norm(dim=1)
+    if out is not None:
+        norms = norms.masked_fill(out, 0.0)
     big = norms.amax(-1, keepdim=True)
     zero = torch.where(big > 0, norms <= rtol * big, torch.ones_like(norms, dtype=torch.bool))
     An = J * torch.where(zero, 0.0, 1.0 / torch.where(zero, 1.0, norms))[:, None, :]
     if m > k:
         An = torch.linalg.qr(An, mode="r").R
     tiers = [t for t in preference_tiers(markers, names, prefer) if t]
-    kept = _greedy(An, tiers, ~zero, rtol)
+    # a few hundred robots at a time on a CPU: a step's working set then stays in cache
+    step = _CPU_CHUNK if An.device.type == "cpu" else max(Bn, 1)
+    kept = torch.cat([_greedy(An[a:a + step], tiers, ~zero[a:a + step], rtol) for a in range(0, max(Bn, 1), step)])
     return FleetDecision(kept, zero, An, norms)
 
 
-def check_rank(dec: FleetDecision, rows: list[int] | None = None, labels=None, rtol: float = 1e-9) -> None:
+def _rank_unsure(dec: FleetDecision, rows: Tensor, rtol: float) -> Tensor:
+    """``(b,)`` bool: the decision rows ``rows`` whose SVD rank the Cholesky factor of their kept
+    columns' Gram matrix cannot prove equal to the number kept.
+
+    With unit columns ``1 ≤ σ1 ≤ ‖An‖_F``; the kept columns bound ``σ_r`` from below by
+    ``1 / sqrt(tr((A_KᵀA_K)⁻¹))``, and the residual of the other columns on their span bounds
+    ``σ_{r+1}`` from above. Where both bounds clear ``rtol σ1`` by a margin the Cholesky factor's
+    rounding cannot close (a well-conditioned kept set: every robot of a usable pose set), the
+    SVD would count the same rank."""
+    An, kept, zero = dec.An[rows], dec.kept[rows], dec.zero[rows]
+    use = torch.nonzero(kept.any(0)).flatten()  # the columns some robot keeps: the others are out everywhere
+    A, f = An[:, :, use], kept[:, use].to(An.dtype)
+    u = use.numel()
+    L, info = torch.linalg.cholesky_ex((A.transpose(-1, -2) @ A) * f[:, :, None] * f[:, None, :]
+                                       + torch.diag_embed(1.0 - f))
+    eye = torch.eye(u, dtype=An.dtype, device=An.device)
+    Li = torch.linalg.solve_triangular(L, eye.expand_as(L), upper=False)
+    trace = ((Li * Li).sum((-2, -1)) - (u - f.sum(-1))).clamp(min=1e-300)  # Σ 1/σ² of the kept columns
+    s1_hi = (~zero).sum(-1).to(An.dtype).sqrt()
+    cond = s1_hi * trace.sqrt()  # at least the kept columns' condition number
+    eps = torch.finfo(An.dtype).eps
+    accurate = (info == 0) & (u * eps * cond * cond <= 1e-2)
+    low = trace.rsqrt() > 2.0 * rtol * s1_hi
+    # the other columns minus their projection on the kept span (semi-normal equations: an error of
+    # about eps·cond per unit column, added to the residual below)
+    Af = A * f[:, None, :]
+    res = An - Af @ torch.cholesky_solve(Af.transpose(-1, -2) @ An, L)
+    res = torch.linalg.vector_norm(res * (~kept).to(An.dtype)[:, None, :], dim=(-2, -1))
+    high = res + 16.0 * eps * cond * An.shape[-1] ** 0.5 <= 0.5 * rtol
+    return ~((accurate & low & high) | zero.all(-1))
+
+
+def check_rank(dec: FleetDecision, rows=None, labels=None, rtol: float = 1e-9) -> None:
     """Warn, as :func:`~torchcal.problems.identifiability.analyse_jacobian` does, where the SVD of a robot's
-    Jacobian counts another rank than the selection kept (the rank is ambiguous at ``rtol``);
-    ``labels[row]`` names the robot of a decision row."""
-    rows = list(range(dec.kept.shape[0])) if rows is None else list(rows)
-    if not rows:
+    Jacobian counts another rank than the selection kept (the rank is ambiguous at ``rtol``).
+
+    No SVD runs on a fleet whose kept columns are well conditioned: the Cholesky factor of their Gram
+    matrix proves the rank (:func:`_rank_unsure`); only the rows it cannot decide (a pose set on
+    the edge of identifying a parameter) get their singular values, on the host.
+
+    Args:
+        rows: decision rows to check (a list or tensor; default all); ``labels``: ``row -> robot``
+            name (a mapping or a callable).
+    """
+    dev = dec.kept.device
+    rows = torch.arange(dec.kept.shape[0], device=dev) if rows is None else torch.as_tensor(rows, device=dev)
+    if not rows.numel():
         return
-    s = torch.linalg.svdvals(dec.An[rows])
+    unsure = rows[_rank_unsure(dec, rows, rtol)].tolist()
+    if not unsure:
+        return
+    s = torch.linalg.svdvals(dec.An[unsure].cpu())
     svd_rank = (s > rtol * s[:, :1]).sum(-1) * (s[:, 0] > 0)
-    odd = torch.nonzero(svd_rank != dec.kept[rows].sum(-1)).flatten().tolist()
+    odd = [b for b, a, c in zip(unsure, svd_rank.tolist(), dec.kept[unsure].sum(-1).tolist()) if a != c]
     if odd:
-        who = [labels[rows[i]] if labels else str(rows[i]) for i in odd[:5]]
+        name = labels if callable(labels) else (lambda b: labels[b]) if labels else str
+        who = [name(b) for b in odd[:5]]
         warnings.warn(f"numerical rank is ambiguous at rtol={rtol:g} for robot(s) {who}: the pose set nearly fails "
                       "to identify some parameters", RuntimeWarning, stacklevel=2)
 

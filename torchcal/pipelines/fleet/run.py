@@ -23,6 +23,7 @@ from __future__ import annotations
 import numbers
 import os
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -31,16 +32,15 @@ from torch import Tensor
 from torchcal.advice import advice
 from torchcal.kinematics.robot import Robot
 from torchcal.measure.registration import leave_out_gross
-from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
-from torchcal.pipelines.calibrate import CalibrationResult
 from torchcal.pipelines.fleet.coupled import solve_coupled
 from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
                                            validate_fleet)
-from torchcal.pipelines.fitting import check_plausible, drop_imprecise, imprecise_reason
-from torchcal.pipelines.fleet.identify import check_rank, decide, explain
+from torchcal.pipelines.fitting import check_plausible, drop_imprecise
+from torchcal.pipelines.fleet.identify import FleetDecision, check_rank, decide
 from torchcal.pipelines.fleet.result import FleetResult
+from torchcal.pipelines.fleet.views import FleetReasons, FleetResults, FleetSolvers
 from torchcal.problems.uncertainty import residual_noise
 from torchcal.report.fleet import FALSE_ALARM, parameter_spread
 from torchcal.threads import threads_by_size
@@ -59,112 +59,147 @@ def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_
     xm[:, bi] = 0.0
     R_ = X.shape[0]
     idx = torch.arange(R_, device=X.device)
-    J = fd.jacobian(robot, xm.expand(R_, -1), idx)[:, :, cand]
+    J = fd.jacobian(robot, xm.expand(R_, -1), idx, cols=cand.tolist())
     return decide(J.reshape(1, -1, J.shape[-1]), names_c, robot.marker_names, prefer)
 
 
-def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible):
+def _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible) -> _Independent:
     """Rounds of judge -> batched LM -> judge again at the solution, per robot, as
     :func:`torchcal.pipelines.fitting.fit_identified` does for one robot (with ``noise="residuals"``,
     as :func:`~torchcal.pipelines.calibrate.calibrate` calls it): a parameter that grows identifiable
     is fitted in the next round; one the robot's data pin down worse than its plausible size is
     fixed at its start for good and the robot refitted without it. The LM's Jacobian at its
-    solution serves the next judgement and the next round's start; the reasons in words are
-    written once, for the decision each robot ends with."""
+    solution serves the next judgement and the next round's start.
+
+    Every decision is a batched tensor over the candidate parameters; a round waits for the device
+    only to learn which robots go on. The reasons in words and each robot's solver record are
+    views, written when read (:mod:`torchcal.pipelines.fleet.views`)."""
     R_, K = X0.shape
     dev = X0.device
     cand = template.free_index
+    in_k = lambda t: torch.zeros(t.shape[0], K, dtype=t.dtype, device=dev).index_copy_(1, cand, t)  # noqa: E731
     names_c = [template.names[i] for i in cand.tolist()]
     units_c = [template.units[i] for i in cand.tolist()]
     limit = torch.tensor([plausible.get(u, float("inf")) for u in units_c], dtype=X0.dtype, device=dev)
     everyone = torch.arange(R_, device=dev)
     precise = identify != "pooled"  # a pooled design pins every robot's parameters down together
-    loose = torch.zeros(R_, K, dtype=torch.bool, device=dev)  # fixed for imprecision, for good
-    loose_why: list[dict] = [{} for _ in range(R_)]
+    loose = torch.zeros(R_, cand.numel(), dtype=torch.bool, device=dev)  # fixed for imprecision, for good
+    loose_se, loose_noise = X0.new_zeros(loose.shape), X0.new_zeros(loose.shape)
+
+    cand_list = cand.tolist()
+
+    def jacobian(Xb, idx):
+        return fd.jacobian(robot, Xb, idx, cols=cand_list)
 
     def judge(X, J, idx):
         if identify == "pooled":
             d = pooled_decision(robot, fd, X, cand, names_c, prefer)
             return d, d.kept.expand(idx.numel(), -1), torch.zeros(idx.numel(), dtype=torch.long, device=dev)
         # a parameter already fixed for imprecision is no candidate: its column is left out (zero)
-        Jc = J[:, :, cand] * (~loose[idx][:, cand])[:, None, :].to(J.dtype)
-        d = decide(Jc, names_c, robot.marker_names, prefer)
+        d = decide(J, names_c, robot.marker_names, prefer, out=loose[idx])
         return d, d.kept, torch.arange(idx.numel(), device=dev)
 
-    J = fd.jacobian(robot, X0, everyone)
+    J = jacobian(X0, everyone)
     dec, kept, row = judge(X0, J, everyone)
     decisions = [(dec, row, everyone)]  # (decision, its row per robot, robots): later entries win
-    free = torch.zeros(R_, K, dtype=torch.bool, device=dev)
-    free[:, cand] = kept
+    free = in_k(kept)
     check_rows(fd, free, names)
     X = X0.clone()
-    m = J.shape[1]
-    r_fin, J_fin = X.new_zeros(R_, m), X.new_zeros(R_, m, K)
-    solver = [None] * R_
+    r_fin, J_fin = X.new_zeros(R_, J.shape[1]), torch.zeros_like(J)
+    fits: list = []
+    fit_of, at = torch.zeros(R_, dtype=torch.long, device=dev), torch.zeros(R_, dtype=torch.long, device=dev)
     todo = everyone
     rounds = 3
 
     def fit(sub, J0):
-        res = lm_batched(lambda Xb, i: fd.residuals(robot, Xb, sub[i]), lambda Xb, i: fd.jacobian(robot, Xb, sub[i]),
-                         X[sub], free[sub], template.lower, template.upper, jac0=J0, **opts)
+        res = lm_batched(lambda Xb, i: fd.residuals(robot, Xb, sub[i]), lambda Xb, i: jacobian(Xb, sub[i]), X[sub],
+                         free[sub], template.lower, template.upper, jac0=J0, columns=cand, **opts)
         X[sub], r_fin[sub], J_fin[sub] = res.x, res.residuals, res.jacobian
-        for j, b in enumerate(sub.tolist()):
-            solver[b] = res.result(j, free[b])
+        fit_of[sub], at[sub] = len(fits), torch.arange(sub.numel(), device=dev)
+        # a record needs neither the residuals nor the (b, m, k) Jacobian: keep copies of nothing, not views
+        fits.append(replace(res, residuals=res.residuals.new_zeros(0), jacobian=res.jacobian.new_zeros(0)))
         return res
 
     for i in range(rounds):
         sub = todo
         res = fit(sub, J)
-        d2, kept2, row2 = judge(X[sub], res.jacobian, sub)
-        nxt = torch.zeros(sub.numel(), K, dtype=torch.bool, device=dev)
-        nxt[:, cand] = kept2
+        d2, nxt, row2 = judge(X[sub], res.jacobian, sub)
+        was = free[sub][:, cand]
         new_loose = torch.zeros_like(nxt)
         if precise:
             noise = residual_noise(res.residuals, free[sub].sum(-1))
-            # the judgement's R factor times the column norms has the Jacobian's Gram matrix in k rows
-            step, se = drop_imprecise(d2.An * d2.norms[:, None, :], kept2, limit, noise)
-            drop = step >= 0
-            nxt[:, cand] &= ~drop
-            new_loose[:, cand] = drop
-            for j, c in torch.nonzero(drop).tolist():
-                loose_why[int(sub[j])][names_c[c]] = imprecise_reason(names_c[c], units_c[c], float(se[j, c]),
-                                                                      float(noise[j]))
-            loose[sub] |= new_loose
-            new_loose &= free[sub]  # dropped now, fitted until now
-        grew = (nxt & ~free[sub]).any(-1)
-        change = grew | new_loose.any(-1)
+            drop, se = _imprecise(d2, nxt, limit, noise)
+            nxt = nxt & ~drop
+            loose_se[sub] = torch.where(drop, se, loose_se[sub])
+            loose_noise[sub] = torch.where(drop, noise[:, None], loose_noise[sub])
+            loose[sub] |= drop
+            new_loose = drop & was  # dropped now, fitted until now
+        change = (nxt & ~was).any(-1) | new_loose.any(-1)
         if not bool(change.any()):
             break
         todo = sub[change]
         decisions.append((d2, row2[change], todo))
-        reset = new_loose[change]
-        X[todo] = torch.where(loose[todo], X0[todo], X[todo])  # imprecise values back to their start
+        reset = new_loose[change].any(-1)
+        lk = in_k(loose[todo])
+        X[todo] = torch.where(lk, X0[todo], X[todo])  # imprecise values back to their start
         if i == rounds - 1:
             # a robot that grows after the last round is judged, not refitted (as fit_identified),
             # but none keeps a value its data cannot pin down
-            refit = todo[reset.any(-1)]
+            refit = todo[reset]
             if refit.numel():
-                free[refit] &= ~loose[refit]
+                free[refit] &= ~in_k(loose[refit])
                 fit(refit, None)
             break
-        free[todo] = nxt[change]
-        # a robot whose values were reset starts away from the solution: its Jacobian is computed anew
+        free[todo] = in_k(nxt[change])
+        # a robot whose values were reset starts away from the solution: its Jacobian is computed anew.
+        # So is every other robot's then: the LM's iterates depend on where its Jacobians come
+        # from, and a parameter the data barely pin down stops wherever they lead (by 1e-7 m)
         J = res.jacobian[change] if not bool(reset.any()) else None
-    reasons: list[dict] = [{} for _ in range(R_)]
-    last = torch.full((R_,), -1, dtype=torch.long, device=dev)
+    _check_ranks(decisions, names)
+    f = free[:, cand]
+    se = in_k(standard_errors(J_fin * f[:, None, :].to(J_fin.dtype), r_fin, f, 3 * fd.n_obs))
+    return _Independent(X=X, free=free, se=se, r=r_fin,
+                        reasons=FleetReasons(decisions, names_c, units_c, loose, loose_se, loose_noise),
+                        solver=FleetSolvers(fits, fit_of, at, free))
+
+
+def _imprecise(d: FleetDecision, kept: Tensor, limit: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
+    """``(drop, se)``: ``(B, k)`` the kept candidates each robot's data pin down worse than ``limit``
+    (:func:`~torchcal.pipelines.fitting.drop_imprecise`) and their standard errors. Only the
+    columns some robot keeps take part: the others are outside every robot's set anyway."""
+    use = torch.nonzero(kept.any(0)).flatten()
+    # the judgement's R factor times the column norms has the Jacobian's Gram matrix in k rows
+    J = (d.An * d.norms[:, None, :])[:, :, use]
+    step, se = drop_imprecise(J, kept[:, use], limit[use], noise)
+    drop = torch.zeros_like(kept).index_copy_(1, use, step >= 0)
+    return drop, torch.zeros_like(d.norms).index_copy_(1, use, se)
+
+
+def _check_ranks(decisions: list, names: list[str]) -> None:
+    """:func:`check_rank` of each robot's last decision, one call per judgement."""
+    R_ = decisions[0][2].numel()
+    last = torch.full((R_,), -1, dtype=torch.long, device=decisions[0][2].device)
     for t, (_, _, who) in enumerate(decisions):
         last[who] = t
     for t, (d, row, who) in enumerate(decisions):
-        mine = torch.nonzero(last[who] == t).flatten()
-        if mine.numel():
-            rows = row[mine].tolist()
-            uniq = sorted(set(rows))
-            check_rank(d, uniq, {rw: names[b] for rw, b in zip(rows, who[mine].tolist())})
-            at = dict(zip(uniq, explain(d, names_c, units_c, rows=uniq)))
-            for b, rw in zip(who[mine].tolist(), rows):
-                reasons[b] = {**at[rw], **loose_why[b]}
-    J_fin = J_fin * free[:, None, :].to(X.dtype)  # the Jacobian of each robot's final free set
-    return X, free, reasons, solver, r_fin, J_fin
+        mine = last[who] == t
+        rows, robots = row[mine], who[mine]
+
+        def label(rw, rows=rows, robots=robots):
+            return names[int(robots[rows == rw][-1])]
+        check_rank(d, torch.unique(rows), label)
+
+
+@dataclass
+class _Independent:
+    """What the independent solve leaves for the per-robot views."""
+
+    X: Tensor
+    free: Tensor
+    se: Tensor
+    r: Tensor
+    reasons: FleetReasons
+    solver: FleetSolvers
 
 
 def standard_errors(J: Tensor, r: Tensor, free: Tensor, n_res: Tensor) -> Tensor:
@@ -177,54 +212,6 @@ def standard_errors(J: Tensor, r: Tensor, free: Tensor, n_res: Tensor) -> Tensor
     sigma2 = (r * r).sum(-1) / dof
     se = torch.sqrt(inv.diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
     return torch.where((info != 0)[:, None], torch.full_like(se, float("nan")), se)
-
-
-def assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin, J_fin,
-             wall_time_s: float, test_errors=None, stage: str = "geometric", n_extra: Tensor | None = None,
-             se: Tensor | None = None) -> list[CalibrationResult]:
-    """Per robot, the :class:`~torchcal.pipelines.calibrate.CalibrationResult` ``calibrate()`` would return.
-
-    ``test_errors``: ``(R, N', M, 3)`` held-out error vectors (m) of the final model (default: the
-    geometry ``X`` alone); ``stage``, ``n_extra``: the final stage's name and each robot's parameters
-    beyond the geometry; ``se``: ``(R, K)`` standard errors when the solver has its own."""
-    K = X.shape[1]
-    se = (standard_errors(J_fin, r_fin, free, 3 * fd.n_obs) if se is None else se)[:, :K]
-    free = free[:, :K]
-    R_, N, M = fd.seen.shape
-    V = {"train": (fd.error_vectors(robot, X0), r_fin.reshape(R_, -1)[:, :N * M * 3].reshape(R_, N, M, 3))}
-    if fd_test is not None:
-        V["test"] = (fd_test.error_vectors(robot, X0), fd_test.error_vectors(robot, X) if test_errors is None
-                     else test_errors)
-    n_extra = torch.zeros(R_, dtype=torch.long) if n_extra is None else n_extra
-    # every robot's error statistics and plotted errors per stage, in one pass per statistic
-    mk, fds = robot.marker_names, {"train": fd, "test": fd_test}
-    stats = {k: [errors_by_marker_batched(v.norm(dim=-1), fds[k].seen, mk) for v in vs] for k, vs in V.items()}
-    details = {k: [fds[k].details(robot, x, v) for x, v in zip((X0, X), vs)] for k, vs in V.items()}
-    out = []
-    cand = template.free
-    for b in range(R_):
-        p = template.clone()
-        p.values, p.free = X[b].clone(), free[b].clone()
-        start = template.clone()
-        start.values = X0[b].clone()
-        fb = torch.nonzero(free[b]).flatten()
-        std = dict(zip(p.free_names, se[b, fb].tolist()))
-        dropped = [n for n, c, f in zip(p.names, cand.tolist(), free[b].tolist()) if c and not f]
-        has_test = tests is not None and tests[b] is not None
-        stages, errors = [], {}
-        for i, (name, k) in enumerate((("nominal", 0), (stage, int(free[b].sum() + n_extra[b])))):
-            st = {"name": name, "n_params": k}
-            errors[name] = {"test": torch.zeros(0)}
-            for split in ("train", "test") if has_test else ("train",):
-                st[split] = stats[split][i][b]
-                errors[name][split], errors[name][f"{split}_details"] = details[split][i][b]["e"], details[split][i][b]
-            stages.append(st)
-        out.append(CalibrationResult(robot=robot, params=p, std_errors=std,
-                                     unidentifiable={n: reasons[b].get(n, "not identifiable") for n in dropped},
-                                     stages=stages, solver=solver[b], method="lm", n_train=len(datasets[b]),
-                                     n_test=len(tests[b]) if has_test else 0, start=start, loss="l2",
-                                     wall_time_s=wall_time_s, errors=errors))
-    return out
 
 
 @threads_by_size("data", "test")
@@ -325,17 +312,17 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         extra, prior_info = sol.effects, sol.prior
         stage = "geometric + joint_compliance" if effects else "geometric"
         wall = time.perf_counter() - t0
-        results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, sol.X, sol.free, sol.reasons,
-                           sol.solver, sol.r, sol.J, wall, stage=stage, n_extra=sol.n_extra, se=sol.se,
-                           test_errors=sol.test_errors(fd_test) if fd_test is not None and sol.test_errors else None)
+        held_out = sol.test_errors(fd_test) if fd_test is not None and sol.test_errors else None
+        results = FleetResults(robot, names, datasets, tests, fd, fd_test, template, X0, sol.X, sol.free, sol.se,
+                               sol.r, sol.reasons, sol.solver, wall, stage=stage, n_extra=sol.n_extra,
+                               test_errors=held_out)
         X, free = sol.X, sol.free[:, : X0.shape[1]]
     else:
-        X, free, reasons, solver, r_fin, J_fin = _solve_independent(robot, fd, template, X0, names, identify,
-                                                                    prefer, opts, plausible)
-        results = assemble(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, reasons, solver, r_fin,
-                           J_fin, time.perf_counter() - t0)
-    for res, g in zip(results, gross):
-        res.suspects = g
+        sol = _solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible)
+        X, free = sol.X, sol.free
+        results = FleetResults(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, sol.se, sol.r,
+                               sol.reasons, sol.solver, time.perf_counter() - t0)
+    results.suspects = list(gross)  # per robot, its gross errors left out of the fit
     spread, flags = parameter_spread(names, results, z_threshold, extra=extra, false_alarm=false_alarm)
     return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
                        identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,
@@ -354,9 +341,12 @@ def import_ray():
 
 
 def _solve_shard(robot, data: dict, test: dict | None, kwargs: dict, threads: int):
-    """One shard, solved in-process on a worker (one torch thread per CPU Ray gave the task)."""
+    """One shard, solved in-process on a worker (one torch thread per CPU Ray gave the task); its
+    per-robot results are built there, so that only they travel back."""
     torch.set_num_threads(threads)
-    return calibrate_fleet(robot, data, test=test or None, **kwargs)
+    fr = calibrate_fleet(robot, data, test=test or None, **kwargs)
+    fr.results = list(fr.results)
+    return fr
 
 
 def calibrate_fleet_ray(robot, data: dict, *, test: dict | None = None, address: str | None = "local",
