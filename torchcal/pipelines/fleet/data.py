@@ -2,7 +2,7 @@
 registration of every robot's instrument frame."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -11,10 +11,12 @@ from torch import Tensor
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
 from torchcal.measure.checks import check_fit_inputs
+from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
-__all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "check_rows", "BASE_NAMES"]
+__all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
+           "check_rows", "BASE_NAMES"]
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 # Jacobian entries evaluated at once, per device: a CPU's caches hold a few hundred robots' worth;
@@ -231,9 +233,14 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
         for n, d in zip(names, tests):
             if d is not None and (not isinstance(d, Measurements) or list(d.joint_names) != list(robot.joint_names)):
                 raise ValueError(f"robot {n!r}: held-out data must be Measurements with the model's joint columns")
+    checked: set[tuple[int, int]] = set()
     for i, (n, d) in enumerate(zip(names, datasets)):  # the rules every fit has, robot by robot
+        t = None if tests is None else tests[i]
+        if (id(d), id(t)) in checked:  # the same data given twice is checked once
+            continue
+        checked.add((id(d), id(t)))
         try:
-            check_fit_inputs(robot, d, None if tests is None else tests[i])
+            check_fit_inputs(robot, d, t)
         except (ValueError, TypeError) as e:
             raise type(e)(f"robot {n!r}: {e}") from None
     return names, datasets, tests
@@ -257,6 +264,35 @@ def register_fleet(robot: Robot, fd: FleetData, X: Tensor) -> Tensor:
         raise ValueError(f"base registration failed: {e} (problems are robots in fleet order)") from None
     X[:, bi] = torch.cat([t, so3_log(Rb)], -1).to(X)
     return X
+
+
+def register_fleet_robust(robot: Robot, fd: FleetData, X: Tensor, rounds: int = 5) -> tuple[Tensor, Tensor]:
+    """:func:`register_fleet`, then again without each robot's gross errors (further from its
+    registered nominal model than ``GROSS_K`` times its median error and than ``GROSS_FLOOR``:
+    :mod:`~torchcal.measure.registration`), until they settle, all robots at once. Returns
+    ``(X (R, K), gross (R, N, M) bool)``: a glitch metres off drags neither its robot's frame nor
+    its fit."""
+    gross = torch.zeros_like(fd.seen)
+    for _ in range(rounds):
+        Xr = register_fleet(robot, replace(fd, seen=fd.seen & ~gross), X)
+        E = fd.errors(robot, Xr)
+        med = torch.where(fd.seen, E, torch.full_like(E, float("nan"))).flatten(1).nanmedian(1).values
+        lim = (GROSS_K * med).clamp(min=GROSS_FLOOR)
+        nxt = fd.seen & (E > lim[:, None, None])
+        if torch.equal(nxt, gross):  # one read a round for the whole fleet
+            break
+        gross = nxt
+    return Xr, gross
+
+
+def gross_lists(fd: FleetData, gross: Tensor, E: Tensor, marker_names: list[str]) -> list[list[dict]]:
+    """Per robot, its gross errors as a report lists them: ``{"row", "marker", "error_mm"}``
+    (one read of the device for the whole fleet)."""
+    out: list[list[dict]] = [[] for _ in range(gross.shape[0])]
+    idx = torch.nonzero(gross)
+    for (r, i, m), e in zip(idx.tolist(), E[gross].tolist()):
+        out[r].append({"row": i, "marker": marker_names[m], "error_mm": 1e3 * e})
+    return out
 
 
 def check_rows(fd: FleetData, free: Tensor, names: list[str]) -> None:

@@ -31,12 +31,11 @@ from torch import Tensor
 
 from torchcal.advice import advice
 from torchcal.kinematics.robot import Robot
-from torchcal.measure.registration import leave_out_gross
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
 from torchcal.pipelines.fleet.coupled import solve_coupled
-from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, register_fleet,
-                                           validate_fleet)
+from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, gross_lists,
+                                           register_fleet_robust, validate_fleet)
 from torchcal.pipelines.fitting import check_plausible, drop_imprecise
 from torchcal.pipelines.fleet.identify import FleetDecision, check_rank, decide
 from torchcal.pipelines.fleet.result import FleetResult
@@ -271,7 +270,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                          f"between 0 and 1 (default {FALSE_ALARM}), got {false_alarm!r}")
     need = _PRIOR_MIN_ROBOTS if prior_scale is None else 2
     if prior is not None and len(names) < need:
-        raise ValueError(f"prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
+        raise ValueError("prior='fleet' pulls each robot towards the fleet mean by how far robots spread around it"
                          + (", which is estimated from the fleet" if prior_scale is None else "")
                          + f": {len(names)} robot(s) are too few to tell. Give at least {need} robots"
                          + (advice(" (or prior_scale={'m': …, 'rad': …} with 2)", "") if prior_scale is None else "")
@@ -294,17 +293,20 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
                                    prefer=prefer, min_rows=min_rows, z_threshold=z_threshold, false_alarm=false_alarm,
                                    plausible=plausible, options=options)
     template = fleet_template(robot, datasets[0].marker_names, params, free)
-    # a gross error (a glitch metres off) would drag its robot's fit and noise: left out, listed
-    fit_sets, gross = zip(*(leave_out_gross(robot, d) for d in datasets))
-    fd = FleetData.build(robot, list(fit_sets))
+    fd = FleetData.build(robot, datasets)
     fd_test = None
     if tests is not None:
         none = torch.zeros(0, dtype=torch.long)
         fd_test = FleetData.build(robot, [t if t is not None else datasets[i].subset(none) for i, t in enumerate(tests)])
     X0 = template.values.expand(len(names), -1).clone()
     bi = [robot.param_names.index(n) for n in BASE_NAMES]
+    gross = [[] for _ in names]
     if register and bool(template.free[bi].any()):
-        X0 = register_fleet(robot, fd, X0)
+        # a gross error (a glitch metres off) would drag its robot's frame, fit and noise: left out, listed
+        X0, mask = register_fleet_robust(robot, fd, X0)
+        if bool(mask.any()):
+            gross = gross_lists(fd, mask, fd.errors(robot, X0), robot.marker_names)
+            fd = replace(fd, seen=fd.seen & ~mask)
     extra = prior_info = None
     if coupled:
         sol = solve_coupled(robot, fd, template, X0, names, prior=prior, prior_scale=prior_scale,
@@ -322,7 +324,7 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         X, free = sol.X, sol.free
         results = FleetResults(robot, names, datasets, tests, fd, fd_test, template, X0, X, free, sol.se, sol.r,
                                sol.reasons, sol.solver, time.perf_counter() - t0)
-    results.suspects = list(gross)  # per robot, its gross errors left out of the fit
+    results.suspects = gross  # per robot, its gross errors left out of the fit
     spread, flags = parameter_spread(names, results, z_threshold, extra=extra, false_alarm=false_alarm)
     return FleetResult(robot=robot, names=names, results=results, values=X, free=free, spread=spread, flags=flags,
                        identify=identify, z_threshold=z_threshold, prior=prior_info, effects=extra,

@@ -121,7 +121,8 @@ class FleetResults(Sequence):
     ``X``, ``free``: ``(R, K)`` final parameters and what was fitted; ``se``: ``(R, ≥K)`` standard
     errors (m or rad); ``residuals``: ``(R, ≥N·M·3)`` final training residuals (m); ``reasons``,
     ``solver``: per robot (lists, or :class:`FleetReasons` / :class:`FleetSolvers`);
-    ``test_errors``: ``(R, N', M)`` held-out errors of the final model (default: ``X`` alone);
+    ``test_errors``: ``(R, N', M)`` held-out errors of the final model, or their vectors ``(R, N', M, 3)``
+    (default: ``X`` alone);
     ``stage``, ``n_extra``: the final stage's name and each robot's parameters beyond the geometry.
     """
 
@@ -135,7 +136,10 @@ class FleetResults(Sequence):
         self.n_test = [len(t) if h else 0 for t, h in zip(tests or [None] * len(names), self.has_test)]
         self.X0, self.X, self.free, self.se = X0, X, free[:, :K], se[:, :K]
         self.residuals, self.reasons, self.solver, self.wall_time_s = residuals, reasons, solver, wall_time_s
-        self._test_errors, self.stage = test_errors, stage
+        # held-out errors of the final model: vectors (R, N', M, 3) keep what the plots need
+        self._test_vectors = test_errors if test_errors is not None and test_errors.ndim == 4 else None
+        self._test_errors = test_errors.norm(dim=-1) if self._test_vectors is not None else test_errors
+        self.stage = stage
         self.n_extra = torch.zeros(len(names), dtype=torch.long, device=X.device) if n_extra is None else n_extra
         self._made: dict[int, CalibrationResult] = {}
         self._all_stats: dict | None = None
@@ -197,7 +201,7 @@ class FleetResults(Sequence):
         out = {"train": [self.fd.details(self.robot, self.X0, self.fd.error_vectors(self.robot, self.X0)),
                          self.fd.details(self.robot, self.X, final)]}
         if self.fd_test is not None:
-            vt = self.fd_test.error_vectors(self.robot, self.X)
+            vt = self._test_vectors if self._test_vectors is not None else self.fd_test.error_vectors(self.robot, self.X)
             out["test"] = [self.fd_test.details(self.robot, self.X0, self.fd_test.error_vectors(self.robot, self.X0)),
                            self.fd_test.details(self.robot, self.X, vt)]
         return out
