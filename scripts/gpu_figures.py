@@ -172,7 +172,7 @@ def fig_fleet(dev: torch.device, small: bool):
     t_big, fr_big = d.once(lambda: calibrate_fleet(gpu, big))
     yield dict(figure=f"fleet_{len(big)}", poses=30, robots=len(big), cpu_1thread_ms_per_robot_at_1000=1e3 * t_cpu / R_cpu,
                device_s=t_big, device_ms_per_robot=1e3 * t_big / len(big), bar_s=2.0, goal_s=1.0, met=t_big <= 2.0,
-               converged_device=sum(bool(r.solver.converged) for r in fr_big.results),
+               converged_device=sum(fr_big.results.converged()),
                note="the data sets are the simulated ones repeated (the same work per robot)")
 
 

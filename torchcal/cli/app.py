@@ -21,6 +21,7 @@ import torch
 from torchcal.advice import cli_wording
 from torchcal.cli.bag import add_bag_parser
 from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of, int_at_least, join_negative_values,
+                                 positive_float,
                                  nonnegative_float, parse_markers, report_failure, robot_and_data, run_record,
                                  setup_logging)
 from torchcal.cli.correct import add_correct_parser
@@ -73,7 +74,8 @@ def _calibrate(a, argv) -> int:
     progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty()
                                                           and not a.quiet)
     res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
-                    progress=progress, polish=a.polish, free=a.free or None)
+                    progress=progress, polish=a.polish, free=a.free or None, plausible=_plausible(a),
+                    prior=None if a.prior == "none" else a.prior)
     logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
     if res.problems():
         return _refuse("calibrate", res.problems())
@@ -88,13 +90,19 @@ def _calibrate(a, argv) -> int:
     return 0
 
 
+def _plausible(a) -> dict:
+    """The largest plausible joint error per unit (m, rad) from --plausible-mm / --plausible-mrad."""
+    return {"m": a.plausible_mm * 1e-3, "rad": a.plausible_mrad * 1e-3}
+
+
 def _loop(a, argv) -> int:
     check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     robot, train, test = robot_and_data(a)
     progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
     res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
-                   noise_mm=a.noise_mm, progress=progress, log=None)
+                   noise_mm=a.noise_mm, orientation_weight=a.orientation_weight, soft=not a.no_soft,
+                   plausible=_plausible(a), progress=progress, log=None)
     for k, v in res.timings.items():
         logger.info(f"stage {k}: {v:.1f} s")
     if res.problems():
@@ -161,6 +169,10 @@ def _data_options(p: argparse.ArgumentParser) -> None:
                         "registration goes to instrument.json)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                    help="progress bar (default: on in a terminal)")
+    p.add_argument("--plausible-mm", type=positive_float, default=10.0,
+                   help="largest plausible shift of a joint origin (mm); a model needing more is refused (default 10)")
+    p.add_argument("--plausible-mrad", type=positive_float, default=10.0,
+                   help="largest plausible turn of a joint origin or zero offset (mrad; default 10)")
     p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
     add_common(p)
 
@@ -177,6 +189,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"])
     c.add_argument("--free", action="append", help="glob pattern of parameters to identify (repeatable)")
     c.add_argument("--polish", action="store_true", help="after a swarm method, polish with LM")
+    c.add_argument("--prior", default="auto", choices=["auto", "cv", "none"],
+                   help="Gaussian prior on the geometric errors, its scale chosen by cross-validation: 'auto' on "
+                        "small data (< 10 values per parameter) or when a joint would move implausibly; 'cv' always; "
+                        "'none' never")
     _data_options(c)
     c.set_defaults(func=_calibrate)
 
@@ -186,6 +202,13 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     lp.add_argument("--folds", type=int_at_least(2), default=5, help="cross-validation folds (≥ 2)")
     lp.add_argument("--noise-mm", type=nonnegative_float, help="instrument noise for the report (mean error, mm)")
     lp.add_argument("--no-elm", action="store_true", help="skip the residual ELM stage")
+    lp.add_argument("--orientation-weight", type=nonnegative_float,
+                    help="m/rad: how a measured orientation error counts against a position error (σ_position / "
+                         "σ_rotation); default estimated from the residuals when the data has <marker>.qw…; 0 ignores "
+                         "orientations")
+    lp.add_argument("--no-soft", action="store_true",
+                    help="choose a family's modes one by one only (default: a family may also be kept whole under a "
+                         "prior whose scale cross-validation chooses)")
     lp.add_argument("--command", help=argparse.SUPPRESS)
     _data_options(lp)
     lp.set_defaults(func=_loop)

@@ -94,6 +94,11 @@ def add_fleet_parser(sub) -> argparse.ArgumentParser:
     f.add_argument("--shards", type=int_at_least(1), help="with --ray: how many tasks the fleet is cut into")
     f.add_argument("--no-figures", action="store_true", help="skip the error histograms per robot")
     f.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    f.add_argument("--plausible-mm", type=positive_float, default=10.0,
+                   help="largest plausible shift of a joint origin (mm; default 10): a robot's parameter its data pin "
+                        "down worse than this is fixed")
+    f.add_argument("--plausible-mrad", type=positive_float, default=10.0,
+                   help="largest plausible turn of a joint origin or zero offset (mrad; default 10)")
     add_common(f)
     f.set_defaults(func=fleet_main)
     return f
@@ -112,7 +117,7 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     test = _load_all(test_files, robot, units) or None
     fr = calibrate_fleet(robot, data, test=test, prior=a.prior, effects=a.effect, payload=a.payload,
                          z_threshold=a.z, false_alarm=a.false_alarm, min_rows=a.min_rows, ray=a.ray,
-                         ray_shards=a.shards)
+                         ray_shards=a.shards, plausible={"m": a.plausible_mm * 1e-3, "rad": a.plausible_mrad * 1e-3})
     inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}
     with staged_dir(a.out, a.force) as d:
         fr.save(d, figures=not a.no_figures)

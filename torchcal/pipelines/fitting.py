@@ -7,6 +7,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.measure.observations import SETUP_PREFIXES
 from torchcal.optim import Result, get_solver
 from torchcal.params import ParamSet, display_unit
@@ -153,7 +154,8 @@ def implausible_reason(values: dict[str, float], units: dict[str, str], plausibl
     return (f"the fit moves or turns joints by more than a plausible error ({lim}): "
             + ", ".join(one(n) for n in list(values)[:6]) + (" …" if len(values) > 6 else "")
             + ". The data cannot support this model: measure more poses spread over the joint ranges, fit fewer "
-              "parameters, or, if errors this large are real, raise the limit (plausible=..., CLI --plausible-mm)")
+              "parameters, or, if errors this large are real, raise the limit ("
+            + advice("plausible={'m': …, 'rad': …}", "--plausible-mm, --plausible-mrad") + ")")
 
 
 def _nominal(start: ParamSet, names) -> ParamSet:

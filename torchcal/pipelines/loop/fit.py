@@ -42,8 +42,9 @@ PRIOR_SCALES_MM = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0)
 class Context:
     """What every fit of a loop run shares: robot, training rows, folds, the Huber threshold
     ``c`` (m), the per-axis noise estimate ``sigma`` (m) the priors are scaled by, the
-    set-up's unknowns (planes, fixed points; None for position data) and the weight ``rot_weight``
-    (m/rad) of measured orientations (None: orientations unused)."""
+    set-up's unknowns (planes, fixed points; None for position data), the weight ``rot_weight``
+    (m/rad) of measured orientations (None: orientations unused) and whether a family may be kept
+    whole under a prior (``soft``)."""
 
     robot: object
     data: Measurements
@@ -52,6 +53,8 @@ class Context:
     sigma: float
     setup: Setup | None = None
     rot_weight: float | None = None
+    soft: bool = True  # a family may be kept whole under a CV-chosen prior (False: modes chosen one by one)
+    plausible: dict | None = None  # the largest plausible joint error per unit (None: fitting.PLAUSIBLE)
 
     @property
     def n_obs(self) -> float:
@@ -67,7 +70,7 @@ class Context:
     def at(self, c: float | None, sigma: float | None = None) -> "Context":
         """The same context with another Huber threshold (and noise estimate)."""
         return Context(self.robot, self.data, self.folds, c, self.sigma if sigma is None else sigma, self.setup,
-                       self.rot_weight)
+                       self.rot_weight, self.soft, self.plausible)
 
     def loss(self) -> Loss:
         return Loss("l2") if self.c is None else Loss("huber", self.c)
@@ -202,7 +205,7 @@ def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements
     noise = fit_noise if prior is None else None
     optional = tuple(f"{e.name}." for e in effects)
     ps, _, _ = fit_identified(make, params, reduce=reduce, markers=ctx.robot.marker_names, options=opts, noise=noise,
-                              zero_dropped=optional)
+                              zero_dropped=optional, plausible=ctx.plausible)
     return ps
 
 

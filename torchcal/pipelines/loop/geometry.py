@@ -13,7 +13,7 @@ when its penalised CV error is lower; otherwise it must pass the rule against th
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
@@ -92,7 +92,7 @@ def estimate_noise(ctx: Context, robot, data: Measurements, setup, rounds: int =
     """The largest identifiable set refitted under Huber until the robust noise estimate
     settles; the first, plain fits on ``clean`` (the rows without gross errors, marked unseen) when
     given. Returns (the context at that threshold, the full-set model, the markers' fit)."""
-    plain = ctx if clean is None else Context(robot, clean, ctx.folds, ctx.c, ctx.sigma, ctx.setup, ctx.rot_weight)
+    plain = ctx if clean is None else replace(ctx, data=clean)
     found = _markers_found(plain, robot, plain.data, setup)
     turns = ctx.rot_weight is not None
     full = lambda: warm_start(geometric_start(robot, data, None, setup, turns), found)  # noqa: E731
@@ -115,7 +115,7 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
         m.label = name
         out.fits[name] = m.params
         entry = {"name": name, "n_params": int(round(m.k)), "cv_rmse_mm": m.cv_rmse_mm(n_obs)}
-        bad = implausible_values(m.params, robot)
+        bad = implausible_values(m.params, robot, ctx.plausible)
         if bad:  # a set that needs a joint moved implausibly far is no model of this robot
             entry.update({"accepted": False, "implausible": bad})
         elif out.best is None:
@@ -134,8 +134,8 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
     # every error, under the prior
     start = warm_start(geometric_start(robot, data, None, setup, ctx.rot_weight is not None), out.best.params)
     m = evaluate_prior(ctx, "prior", start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
-    plausible = [x for x in tried if not implausible_values(x.params, robot)]
-    if plausible and implausible_values(m.params, robot):  # the best scale that keeps every joint plausible
+    plausible = [x for x in tried if not implausible_values(x.params, robot, ctx.plausible)]
+    if plausible and implausible_values(m.params, robot, ctx.plausible):  # the best scale that keeps every joint plausible
         m = min(plausible, key=lambda x: penalised(x.scores, x.k, n_obs))
     for mt in sorted(tried, key=lambda x: x.prior_mm):
         name = f"prior {mt.prior_mm:g} mm/mrad"
@@ -145,8 +145,8 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
                          "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
     m.label = f"prior {m.prior_mm:g} mm/mrad"
     entry = next(g for g in out.sets if g["name"] == m.label)
-    if implausible_values(m.params, robot):
-        entry.update({"accepted": False, "implausible": implausible_values(m.params, robot)})
+    if implausible_values(m.params, robot, ctx.plausible):
+        entry.update({"accepted": False, "implausible": implausible_values(m.params, robot, ctx.plausible)})
         how, ok = "moves a joint implausibly far", False
     elif full_won:
         # the same parameters: the prior is a setting of the model, chosen by the penalised CV error

@@ -58,6 +58,7 @@ class LoopResult:
     setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
     leftover: object = None     # Leftover: the final model against the noise floor, what the residual follows
     removed: list = field(default_factory=list)  # modes accepted once, then explained by later findings
+    plausible: dict | None = None  # the largest plausible joint error per unit the run judged with
     noise_floor_source: str | None = None  # where noise_floor_mm comes from, in words
 
     def __repr__(self) -> str:
@@ -71,9 +72,10 @@ class LoopResult:
         its own training rows, held-out rows that do not belong to this robot, or joints moved or
         turned by more than a plausible error. Empty when none."""
         out = stage_problems(self.stages)
-        bad = implausible_values(self.params, self.robot)
+        bad = implausible_values(self.params, self.robot, self.plausible)
         if bad:
-            out.append(implausible_reason(bad, dict(zip(self.params.names, self.params.units)), PLAUSIBLE))
+            out.append(implausible_reason(bad, dict(zip(self.params.names, self.params.units)),
+                                          self.plausible or PLAUSIBLE))
         return out
 
     def report(self) -> dict:

@@ -35,6 +35,7 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
 from torchcal.measure.registration import gross_errors
 from torchcal.measure.stats import noise_floor
+from torchcal.pipelines.fitting import check_plausible
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mean_mm, duplicate_groups, folds_of,
                                          geometric_start, noise_sigma, observation_model, orientation_count,
@@ -136,8 +137,8 @@ def say_fn(log):
 @threads_by_size("train", "test")
 def run_loop(robot, train: Measurements, test: Measurements | None = None, *, candidates: list[str] | None = None,
              folds: int = 5, seed: int = 0, elm: bool = True, elm_hidden: int | None = None,
-             noise_mm: float | None = None, orientation_weight: float | None = None, progress: bool = False,
-             log=print) -> LoopResult:
+             noise_mm: float | None = None, orientation_weight: float | None = None, soft: bool = True,
+             plausible: dict | None = None, progress: bool = False, log=print) -> LoopResult:
     """Registration → noise estimate → geometry (sets and priors chosen by CV) → diagnosis and
     effects → residual ELM (kept only when it helps in CV) → report.
 
@@ -154,6 +155,11 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         orientation_weight: m/rad: how a measured orientation error counts against a position error
             (``σ_position / σ_rotation`` of the instruments). Default: estimated from the residuals
             when the rows measure orientations (``<marker>.qw…``); 0: orientations ignored.
+        plausible: the largest plausible joint error per unit (default
+            :data:`~torchcal.pipelines.fitting.PLAUSIBLE`, 10 mm and 10 mrad): a geometric set moving
+            a joint further is not chosen, and a final model doing so is refused (:meth:`LoopResult.problems`).
+        soft: a linear family may be kept whole under a Gaussian prior whose scale CV chooses,
+            when that beats choosing its modes one by one (False: modes one by one only).
         noise_mm: instrument noise (mean Euclidean error a perfect model would leave, mm) for the
             report; used when no command was measured twice (whose pure error comes first), else
             the median of a ``marker_std_mm`` covariate when the data has one
@@ -193,7 +199,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
         say(f"set-up unknowns identified with the robot: planes {setup.planes}, fixed points {setup.pivots}"
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
                "robot base"))
-    ctx = Context(robot, train, fl, None, 1.0, setup)
+    ctx = Context(robot, train, fl, None, 1.0, setup, soft=soft, plausible=check_plausible(plausible))
     rot_w = ctx.rot_weight = orientation_weight_of(ctx, robot, train, setup, orientation_weight, say)
     n_obs = ctx.n_obs
     geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup, rot_w is not None)
@@ -419,6 +425,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
                       timings=timings, errors=errors, evidence=evidence, elm_covariates=elm_covariates(train),
                       geometric_fits=geo_fits, noise_sigma_mm=1e3 * sigma, huber_mm=1e3 * ctx.c,
                       suspects=suspects, flags=flags, prior_mm=best.prior_mm, parameters=parameters,
-                      observability=observability, setup=setup, leftover=left, removed=removed)
+                      observability=observability, setup=setup, leftover=left, removed=removed,
+                      plausible=ctx.plausible)
 
 

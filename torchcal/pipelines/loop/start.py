@@ -66,7 +66,7 @@ def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard:
     error chooses (:data:`SOFT_SCALES`), when it beats the hard selection ``hard`` and passes the
     rule against ``baseline``; None otherwise (the ridge is then left off). On noisy data many
     small modes held by a prior can explain what no single mode shows clearly."""
-    if shared:  # a bilinear family (an unknown payload) is chosen mode by mode
+    if shared or not ctx.soft:  # a bilinear family (an unknown payload) is chosen mode by mode
         return None
     n3 = 3 * ctx.n_obs
     opt = lcv.soft(forced, ctx.n_obs, [1.0 / (m * (n3 ** 0.5)) for m in SOFT_SCALES])
