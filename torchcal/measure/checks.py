@@ -167,15 +167,22 @@ def check_motion(robot: Robot, data: Measurements, units=(), where: str | None =
     seen = data.seen.cpu().numpy()
     if seen.sum() < 3:
         return
-    model = robot.positions(data.q.to(robot.dtype), check=False).detach().cpu().numpy()
-    meas = data.positions.detach().cpu().numpy()
-    src = where or (data.source or "the data")
-    for k, m in enumerate(data.marker_names):
+    mk = [robot.marker_names.index(m) for m in data.marker_names]
+    model = robot.positions(data.q.to(robot.dtype), check=False).detach().cpu().numpy()[:, mk]
+    check_motion_arrays(data.marker_names, model, data.positions.detach().cpu().numpy(), seen,
+                        where or (data.source or "the data"), where is not None, units)
+
+
+def check_motion_arrays(markers: list[str], model: np.ndarray, meas: np.ndarray, seen: np.ndarray, src: str,
+                        file: bool = False, units=()) -> None:
+    """:func:`check_motion` on arrays already at hand: ``model`` and ``meas`` ``(N, M, 3)`` (m) of the
+    ``markers``, ``seen (N, M)``; a fleet computes the model of every robot in one batched call."""
+    for k, m in enumerate(markers):
         rows = seen[:, k]
         if rows.sum() < 3:
             continue
-        _stale(src, m, meas[:, k], model[:, robot.marker_names.index(m)], rows, where is not None)
-        want = _spread(model[rows, robot.marker_names.index(m)])
+        _stale(src, m, meas[:, k], model[:, k], rows, file)
+        want = _spread(model[rows, k])
         got = _spread(meas[rows, k])
         if want < _STILL_M:
             continue
@@ -238,10 +245,11 @@ def _warn_repeated(train: Measurements, test: Measurements) -> None:
                       f"not see (another file, or {advice('Measurements.split', '--holdout')})", stacklevel=3)
 
 
-def check_fit_inputs(robot, train, test=None, enough: bool = True) -> None:
+def check_fit_inputs(robot, train, test=None, enough: bool = True, motion: bool = True) -> None:
     """The door of every fit: refuse (or warn) as the module docstring says, before any work.
     ``enough=False`` leaves the minimum of data to the caller (:func:`check_enough`), after the
-    refusals that say more about the data it has."""
+    refusals that say more about the data it has; ``motion=False`` leaves :func:`check_motion` to
+    it (a fleet judges every robot's motion from one batched kinematics call)."""
     check_robot(robot)
     check_data_type(train, "data")
     if test is not None:
@@ -249,7 +257,8 @@ def check_fit_inputs(robot, train, test=None, enough: bool = True) -> None:
     sets = [(d, who) for d, who in ((train, "training"), (test, "held-out")) if d is not None]
     for d, who in sets:
         _tie(robot, d, who)
-        check_motion(robot, d)
+        if motion:
+            check_motion(robot, d)
     warn_limits(robot, sets)
     if enough:
         check_enough(robot, train)

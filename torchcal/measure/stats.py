@@ -115,7 +115,7 @@ def _pure_error_mm(data) -> tuple[float, str] | None:
         ok = seen[:, m]
         g, p = group[ok], pos[ok, m].double()
         counts = torch.bincount(g, minlength=n_groups)
-        mean = torch.zeros(n_groups, 3, dtype=p.dtype).index_add_(0, g, p) / counts.clamp(min=1)[:, None]
+        mean = torch.zeros(n_groups, 3, dtype=p.dtype, device=p.device).index_add_(0, g, p) / counts.clamp(min=1)[:, None]
         ss += float(((p - mean[g]) ** 2).sum())
         dof += 3 * int((counts[counts > 0] - 1).sum())
     if dof < 6:

@@ -10,12 +10,13 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
-from torchcal.measure.checks import check_fit_inputs
+from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 
 __all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
+           "check_fleet_motion",
            "check_rows", "BASE_NAMES"]
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
@@ -234,13 +235,16 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
             if d is not None and (not isinstance(d, Measurements) or list(d.joint_names) != list(robot.joint_names)):
                 raise ValueError(f"robot {n!r}: held-out data must be Measurements with the model's joint columns")
     checked: set[tuple[int, int]] = set()
+    fewest = min(range(len(datasets)), key=lambda i: len(datasets[i]))
     for i, (n, d) in enumerate(zip(names, datasets)):  # the rules every fit has, robot by robot
         t = None if tests is None else tests[i]
         if (id(d), id(t)) in checked:  # the same data given twice is checked once
             continue
         checked.add((id(d), id(t)))
         try:
-            check_fit_inputs(robot, d, t)
+            # the minimum of data (a rank at the robot's poses) is judged for the robot with the fewest
+            # rows here, and for every robot from the batched judgement's ranks (check_rows)
+            check_fit_inputs(robot, d, t, enough=i == fewest, motion=False)
         except (ValueError, TypeError) as e:
             raise type(e)(f"robot {n!r}: {e}") from None
     return names, datasets, tests
@@ -264,6 +268,16 @@ def register_fleet(robot: Robot, fd: FleetData, X: Tensor) -> Tensor:
         raise ValueError(f"base registration failed: {e} (problems are robots in fleet order)") from None
     X[:, bi] = torch.cat([t, so3_log(Rb)], -1).to(X)
     return X
+
+
+def check_fleet_motion(robot: Robot, fd: FleetData, names: list[str], X: Tensor) -> None:
+    """Every robot's points move about as far as its model's (:func:`~torchcal.measure.checks.check_motion`),
+    from one batched kinematics call at ``X (R, K)`` and one copy to the host."""
+    idx = torch.arange(X.shape[0], device=X.device)
+    model = fd.positions(robot, X, idx).detach().cpu().numpy()
+    meas, seen = fd.measured.detach().cpu().numpy(), fd.seen.cpu().numpy()
+    for b, n in enumerate(names):
+        check_motion_arrays(robot.marker_names, model[b], meas[b], seen[b], f"robot {n!r}")
 
 
 def register_fleet_robust(robot: Robot, fd: FleetData, X: Tensor, rounds: int = 5) -> tuple[Tensor, Tensor]:

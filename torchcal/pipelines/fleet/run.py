@@ -34,8 +34,8 @@ from torchcal.kinematics.robot import Robot
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
 from torchcal.pipelines.fleet.coupled import solve_coupled
-from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_rows, fleet_template, gross_lists,
-                                           register_fleet_robust, validate_fleet)
+from torchcal.pipelines.fleet.data import (BASE_NAMES, FleetData, check_fleet_motion, check_rows, fleet_template,
+                                           gross_lists, register_fleet_robust, validate_fleet)
 from torchcal.pipelines.fitting import check_plausible, drop_imprecise
 from torchcal.pipelines.fleet.identify import FleetDecision, check_rank, decide
 from torchcal.pipelines.fleet.result import FleetResult
@@ -299,6 +299,9 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
         none = torch.zeros(0, dtype=torch.long)
         fd_test = FleetData.build(robot, [t if t is not None else datasets[i].subset(none) for i, t in enumerate(tests)])
     X0 = template.values.expand(len(names), -1).clone()
+    check_fleet_motion(robot, fd, names, X0)
+    if fd_test is not None:
+        check_fleet_motion(robot, fd_test, names, X0)
     bi = [robot.param_names.index(n) for n in BASE_NAMES]
     gross = [[] for _ in names]
     if register and bool(template.free[bi].any()):

@@ -250,7 +250,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     sq = torch.zeros_like(scores)
     fits = []
     for f in ctx.folds:
-        mask = torch.ones(len(ctx.data), dtype=torch.bool)
+        mask = torch.ones(len(ctx.data), dtype=torch.bool, device=ctx.data.q.device)
         mask[f] = False
         p = fit_params(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
         e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))

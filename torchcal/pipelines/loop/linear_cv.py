@@ -152,7 +152,7 @@ class LinearCV:
 
         best = None
         for s0 in starts:
-            fit = least_squares(lambda v: solve(torch.as_tensor(v, dtype=Au.dtype))[1].cpu().numpy(),
+            fit = least_squares(lambda v: solve(torch.as_tensor(v, dtype=Au.dtype, device=Au.device))[1].cpu().numpy(),
                                 np.asarray(s0.cpu(), dtype=float), method="lm", x_scale="jac", max_nfev=200)
             if best is None or fit.cost < best.cost:
                 best = fit

@@ -100,7 +100,7 @@ def effective_params(J: Tensor, prior: Tensor | None = None) -> float:
     s = torch.sqrt(torch.clamp(A.diagonal(), min=1e-300))  # unit-free: scale columns alike
     An = A / s[:, None] / s[None, :]
     Pn = torch.diag((prior / s) ** 2)
-    return float(torch.trace(torch.linalg.solve(An + Pn + 1e-12 * torch.eye(len(s), dtype=A.dtype), An)))
+    return float(torch.trace(torch.linalg.solve(An + Pn + 1e-12 * torch.eye(len(s), dtype=A.dtype, device=A.device), An)))
 
 
 def selection_threshold(n_tried: int) -> float:

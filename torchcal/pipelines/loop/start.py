@@ -43,7 +43,7 @@ def _bilinear_starts(lin: Tensor) -> list[Tensor]:
     rows ``[a_k, b_k]`` with ``b_k ≈ c_k s`` and ``a_k ≈ c_k``: the a²-weighted ratio, the
     leading singular direction of ``B`` scaled to ``a``, and zero."""
     a, B = lin[:, 0], lin[:, 1:]
-    out = [torch.zeros(B.shape[1], dtype=lin.dtype)]
+    out = [torch.zeros(B.shape[1], dtype=lin.dtype, device=lin.device)]
     den = float((a * a).sum())
     if den > 0:
         out.append((a[:, None] * B).sum(0) / den)

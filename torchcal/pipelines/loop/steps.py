@@ -141,7 +141,7 @@ def elm_cv(ctx: Context, current: Model, n_hidden: int, seed: int) -> tuple[Tens
     out = torch.zeros(len(data), dtype=robot.dtype, device=robot.device)
     plain = torch.zeros_like(out)
     for f, p in zip(ctx.folds, current.fold_fits):
-        mask = torch.ones(len(data), dtype=torch.bool)
+        mask = torch.ones(len(data), dtype=torch.bool, device=data.q.device)
         mask[f] = False
         tr, va = data.subset(mask), data.subset(f)
         r_tr = clipped(residual_matrix(robot, p, current.effects, tr), ctx.c)
