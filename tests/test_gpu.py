@@ -61,7 +61,8 @@ def test_calibrate_on_cuda_equals_cpu():
     a = calibrate(cpu, data, test=test, method="lm")
     b = calibrate(cpu.to(CUDA), data.to(CUDA), test=test.to(CUDA), method="lm")
     assert a.params.free_names == b.params.free_names and set(a.unidentifiable) == set(b.unidentifiable)
-    torch.testing.assert_close(b.params.values.cpu(), a.params.values, atol=1e-9, rtol=0)
+    # ~30 LM fits (the CV-chosen prior on 120 rows): reductions in another order leave a few nm, nrad
+    torch.testing.assert_close(b.params.values.cpu(), a.params.values, atol=1e-8, rtol=0)
     assert abs(a.stages[-1]["test"]["mean_mm"] - b.stages[-1]["test"]["mean_mm"]) < 1e-9
 
 

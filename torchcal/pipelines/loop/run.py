@@ -332,6 +332,9 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
     evidence = {}
     seen_names: set[str] = set()
     final = {e.name: {lab for lab, _ in e.modes()} for e in current.effects}
+    for e in current.effects:  # an extension carries the modes of what it extends: those stay found
+        for name in e.supersedes:
+            final.setdefault(name, set()).update(final[e.name])
     for name, m, entry in accepted_steps:
         eff = m.effects[-1]
         _, parts = split_params(m.params, robot, m.effects)
