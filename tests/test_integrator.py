@@ -265,7 +265,7 @@ def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     back = Robot.from_urdf(looped / "calibrated.urdf", markers=["marker_flange"])
     assert back.root == Robot.from_urdf(UR5E, markers=["flange"]).root  # the robot's own root
     inst = json.loads((looped / "instrument.json").read_text())
-    assert abs(float(torch.tensor(inst["quaternion_wxyz"]).norm()) - 1) < 1e-12
+    assert abs(float(torch.tensor(inst["quaternion_wxyz"], dtype=torch.float64).norm()) - 1) < 1e-12
     assert 2.0 < float(torch.tensor(inst["translation_m"]).norm()) < 4.0  # the tracker 3 m away
     run = yaml.safe_load((looped / "run.yaml").read_text())
     assert run["data"] == str((files / "train.csv").resolve()) and run["holdout"] == 0.25

@@ -339,10 +339,11 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     # on small data (or when the plain fit moves a joint implausibly far) the loop's CV-chosen prior
     choice, why, held = None, "", {}
     gradient = not swarm and kind == "position" and reduce
-    wanted = prior == "cv" or (prior == "auto" and (is_small(data, len(start.free_names))
+    wanted = prior == "cv" or (prior == "auto" and (is_small(fit_data, len(start.free_names))
                                                    or implausible_values(p, robot, plausible)))
     if gradient and wanted:
-        choice = choose_prior(robot, data, start, p, None if loss_obj is None else loss_obj.scale, seed=seed)
+        choice = choose_prior(robot, fit_data, start, p, None if loss_obj is None else loss_obj.scale, seed=seed,
+                              plausible=plausible)
         why = choice.reason
         if choice.prior_mm is not None:
             p, std_errors = choice.params, {n: choice.std_errors.get(n, float("nan")) for n in choice.params.free_names}

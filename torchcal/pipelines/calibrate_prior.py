@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
+from torchcal.pipelines.fitting import implausible_values
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, effect_problem,
                                          evaluate, evaluate_prior, fit_noise, folds_of)
 from torchcal.pipelines.loop.selection import penalised
@@ -23,7 +24,7 @@ __all__ = ["SMALL_DATA", "PriorChoice", "is_small", "choose_prior"]
 # Measured values per candidate parameter below which a data set is small: the prior is chosen by CV
 SMALL_DATA = 10
 PRIOR_MARGIN = 0.01
-EXACT_M = 1e-9  # a fit leaving less noise than this (m) is exact: simulated data without noise
+EXACT_M = 1e-7  # a fit leaving less noise than this (m) is exact: simulated data without noise
 
 
 @dataclass
@@ -44,10 +45,11 @@ def is_small(data: Measurements, n_candidates: int) -> bool:
 
 
 def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c: float | None, *, seed: int = 0,
-                 folds: int = 5) -> PriorChoice:
+                 folds: int = 5, plausible: dict | None = None) -> PriorChoice:
     """The penalised-CV choice between ``start``'s free parameters without a prior and under each
-    prior scale. ``fitted``: the plain fit, whose robust noise scales the priors; ``c``: the Huber
-    threshold of the fits and scores (m; None: squared errors)."""
+    prior scale, among the models that move no joint beyond ``plausible`` when any does.
+    ``fitted``: the plain fit, whose robust noise scales the priors; ``c``: the Huber threshold of
+    the fits and scores (m; None: squared errors)."""
     fl = folds_of(len(data), min(folds, len(data)), seed, duplicate_groups(data))
     ctx = Context(robot, data, fl, c, 1.0)
     prob = effect_problem(ctx, fitted, [], data, loss=False)
@@ -63,14 +65,26 @@ def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c
               "penalised_mm2": 1e6 * penalised(plain.scores, plain.k, n_obs)}]
     table += [{"prior_mm": m.prior_mm, "k_eff": m.k, "cv_rmse_mm": m.cv_rmse_mm(n_obs),
                "penalised_mm2": 1e6 * penalised(m.scores, m.k, n_obs)} for m in sorted(tried, key=lambda m: m.prior_mm)]
+    ok = [m for m in tried if not implausible_values(m.params, robot, plausible)]
+    if ok and implausible_values(best.params, robot, plausible):  # the best scale that keeps every joint plausible
+        best = min(ok, key=lambda m: penalised(m.scores, m.k, n_obs))
     pen_plain, pen_prior = penalised(plain.scores, plain.k, n_obs), penalised(best.scores, best.k, n_obs)
+    if implausible_values(plain.params, robot, plausible) and not implausible_values(best.params, robot, plausible):
+        pen_plain = float("inf")  # a model of this robot moves no joint implausibly far
     # a prior that changes nothing measurable must not change the model: it must lower the
     # penalised CV error by PRIOR_MARGIN (noise-free data score every scale alike)
     chosen = best if pen_prior < (1 - PRIOR_MARGIN) * pen_plain else plain
-    why = (f"{data.n_values} measured values for {len(start.free_names)} candidate parameters (fewer than "
-           f"{SMALL_DATA} each): the prior was chosen by {len(fl)}-fold cross-validation; ")
-    why += (f"{best.prior_mm:g} mm/mrad (k_eff {best.k:.1f}, CV {best.cv_rmse_mm(n_obs):.4f} mm) beat no prior "
-            f"(k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm)" if chosen is best else
-            f"no prior (k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm) beat every scale (best "
-            f"{best.prior_mm:g} mm/mrad, CV {best.cv_rmse_mm(n_obs):.4f} mm)")
+    small = is_small(data, len(start.free_names))
+    why = (f"{data.n_values} measured values for {len(start.free_names)} candidate parameters"
+           + (f" (fewer than {SMALL_DATA} each)" if small else "") + ": the prior was chosen by "
+           f"{len(fl)}-fold cross-validation; ")
+    if chosen is best and pen_plain == float("inf"):
+        why += (f"without a prior the fit moves a joint beyond its plausible size; {best.prior_mm:g} mm/mrad keeps "
+                f"every joint plausible (k_eff {best.k:.1f}, CV {best.cv_rmse_mm(n_obs):.4f} mm)")
+    elif chosen is best:
+        why += (f"{best.prior_mm:g} mm/mrad (k_eff {best.k:.1f}, CV {best.cv_rmse_mm(n_obs):.4f} mm) beat no prior "
+                f"(k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm)")
+    else:
+        why += (f"no prior (k {plain.k:.0f}, CV {plain.cv_rmse_mm(n_obs):.4f} mm) beat every scale (best "
+                f"{best.prior_mm:g} mm/mrad, CV {best.cv_rmse_mm(n_obs):.4f} mm)")
     return PriorChoice(chosen.prior_mm, chosen.params, dict(chosen.info.get("se", {})), why, table)
