@@ -18,9 +18,9 @@ from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver
 from torchcal.outputs import staged_dir
 from torchcal.params import ParamSet
-from torchcal.pipelines.calibrate_prior import choose_prior, is_small
+from torchcal.pipelines.calibrate_prior import choose_prior
 from torchcal.pipelines.fitting import (PLAUSIBLE, check_plausible, fit_identified, implausible_reason,
-                                        implausible_values, reduce_free)
+                                        implausible_values, is_small, reduce_free)
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.report.calibration import (calibration_markdown, error_details, stage_problems,

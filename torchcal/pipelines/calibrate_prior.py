@@ -14,15 +14,13 @@ from dataclasses import dataclass, field
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import implausible_values
+from torchcal.pipelines.fitting import SMALL_DATA, implausible_values, is_small
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, effect_problem,
                                          evaluate, evaluate_prior, fit_noise, folds_of)
 from torchcal.pipelines.loop.selection import penalised
 
-__all__ = ["SMALL_DATA", "PriorChoice", "is_small", "choose_prior"]
+__all__ = ["PriorChoice", "choose_prior"]
 
-# Measured values per candidate parameter below which a data set is small: the prior is chosen by CV
-SMALL_DATA = 10
 PRIOR_MARGIN = 0.01
 EXACT_M = 1e-7  # a fit leaving less noise than this (m) is exact: simulated data without noise
 
@@ -37,11 +35,6 @@ class PriorChoice:
     std_errors: dict[str, float]
     reason: str
     tried: list[dict] = field(default_factory=list)
-
-
-def is_small(data: Measurements, n_candidates: int) -> bool:
-    """Fewer than :data:`SMALL_DATA` measured values per candidate parameter."""
-    return data.n_values < SMALL_DATA * max(n_candidates, 1)
 
 
 def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c: float | None, *, seed: int = 0,

@@ -16,12 +16,21 @@ from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.problems.uncertainty import residual_noise, unit_variances
 
 __all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
-           "imprecise_reason", "implausible_values", "implausible_reason"]
+           "imprecise_reason", "implausible_values", "implausible_reason", "SMALL_DATA", "is_small"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
 # than this (one standard error) is not identified by them, whatever its numerical rank. A marker
 # a few micrometres off a joint axis makes that joint's offset full-rank and meaningless.
 PLAUSIBLE = {"m": 0.01, "rad": 0.01}
+
+# Measured values per candidate parameter below which a data set is small: there a prior, its scale
+# chosen by cross-validation, competes with fitting or fixing each parameter
+SMALL_DATA = 10
+
+
+def is_small(data, n_candidates: int) -> bool:
+    """Fewer than :data:`SMALL_DATA` measured values per candidate parameter."""
+    return data.n_values < SMALL_DATA * max(n_candidates, 1)
 
 
 def check_plausible(plausible: dict | None) -> dict:

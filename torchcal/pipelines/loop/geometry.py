@@ -8,8 +8,10 @@ would lose to a smaller one for a reason that has nothing to do with the robot.
 
 **Priors.** The full set is also fitted with a Gaussian prior on every geometric error (scale in
 mm and mrad chosen by the penalised CV error, :func:`~torchcal.pipelines.loop.fit.evaluate_prior`).
-When the full set itself was accepted, the prior is a setting of the same model and replaces it
-when its penalised CV error is lower; otherwise it must pass the rule against the best set.
+When the full set itself was accepted, on small data (fewer than ten values per parameter,
+:func:`~torchcal.pipelines.fitting.is_small`) the prior is a setting of the same model and
+replaces it when its penalised CV error is lower; otherwise it must pass the rule against the best
+set.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from dataclasses import dataclass, field, replace
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import implausible_values
+from torchcal.pipelines.fitting import implausible_values, is_small
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_problem, evaluate, evaluate_prior,
                                          fit_params, geometric_start, noise_sigma, orientation_count)
 from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
@@ -130,6 +132,10 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
         say(f"geometric set {name:<24} {m.k:>5.1f} params  CV {entry['cv_rmse_mm']:.4f} mm"
             + ("" if "t" not in entry else f"  t = {entry['t']:.1f}  {'accepted' if entry['accepted'] else 'rejected'}"))
     full_won = out.best.label == GEOMETRIC_SETS[-1][0]
+    if full_won and not is_small(data, len(probe.params.free_names)):
+        # enough rows for every parameter the full set fits: a prior would only trade what the data
+        # see for what an effect not yet modelled leaves in the residual
+        return out
     tried: list[Model] = []
     # every error, under the prior
     start = warm_start(geometric_start(robot, data, None, setup, ctx.rot_weight is not None), out.best.params)
