@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """Fleet calibration speed: one batched solve (:func:`torchcal.pipelines.fleet.run.calibrate_fleet`) against a
-Python loop of single calibrations (``calibrate(robot, data, method="lm")``), in the same run.
+Python loop of single calibrations (``calibrate(robot, data, method="lm", prior=None)``: without a prior,
+the fleet equals it robot by robot), in the same run.
 
 The problem: R simulated KUKA KR5 arc robots (the shipped URDF, an unknown reflector on the
 flange), each with its own geometric errors (0.5 mm / 1 mrad), its own tracker 3 m away at a random
@@ -79,7 +80,7 @@ def compare(robot: Robot, data: list, reps: int) -> dict:
                 t, c, fr = timed(lambda: calibrate_fleet(robot, data))
                 tf.append(t), cf.append(c)
             else:
-                t, c, singles = timed(lambda: [calibrate(robot, d, method="lm") for d in data])
+                t, c, singles = timed(lambda: [calibrate(robot, d, method="lm", prior=None) for d in data])
                 tl.append(t), cl.append(c)
     t_res, _, results = timed(lambda: list(fr.results))
     diff = max(float((a.params.values - b.params.values).abs().max()) for a, b in zip(results, singles))
@@ -195,7 +196,7 @@ def main() -> None:
     print(f"R=1000: fleet {bar['fleet_ms_per_robot']:.2f} ms per robot (bar {BAR_MS} ms)", file=sys.stderr)
     device = a.device or ("cuda" if torch.cuda.is_available() else None)
     out = {"problem": f"KUKA KR5 arc URDF, marker on the flange, {a.poses} poses per robot, 0.5 mm / 1 mrad errors, "
-                      "0.02 mm noise; fleet = calibrate_fleet, loop = calibrate(method='lm') per robot",
+                      "0.02 mm noise; fleet = calibrate_fleet, loop = calibrate(method='lm', prior=None) per robot",
            "ratio": {R: v["ratio"] for R, v in rows.items()}, "results": rows, "bar": bar,
            "target_10x_at_100": rows["100"]["ratio"] >= 10 if "100" in rows else None,
            "threads": a.threads, "torch": torch.__version__, "python": platform.python_version(),
