@@ -38,11 +38,7 @@ TIAGO = ROOT.parent / "shared" / "data" / "tiago_mocap"
 
 
 def true_support_fit(c, robot, train, test, kind):
-    sup = c.error_support
-    free = (["base.*"] + [f"{j}.d*" for j in sup["joint_origins"]] + [f"{j}.offset" for j in sup["zero_offsets"]]
-            + [f"{m}.d{a}" for m in sup["marker_offsets"] for a in "xyz"])
-    if kind == "pose":
-        free += [f"{m}.d{a}" for m in robot.marker_names for a in ("roll", "pitch", "yaw")]
+    free = c.true_parameters(robot.marker_names, turns=kind == "pose")
     return calibrate(robot, train, test=test, free=free, prior=None, plausible=INF, kind=kind)
 
 

@@ -32,11 +32,7 @@ def _case(name, tmp_path, seed=0):
 
 def _true_support_fit(c, robot, train, test, kind):
     """Least squares on exactly the parameters the simulator drew errors for (truth: scoring only)."""
-    sup = c.error_support
-    free = (["base.*"] + [f"{j}.d*" for j in sup["joint_origins"]] + [f"{j}.offset" for j in sup["zero_offsets"]]
-            + [f"{m}.d{a}" for m in sup["marker_offsets"] for a in "xyz"])
-    if kind == "pose":
-        free += [f"{m}.d{a}" for m in robot.marker_names for a in ("roll", "pitch", "yaw")]
+    free = c.true_parameters(robot.marker_names, turns=kind == "pose")
     return calibrate(robot, train, test=test, free=free, prior=None, plausible=INF, kind=kind)
 
 

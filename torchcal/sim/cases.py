@@ -164,6 +164,15 @@ class Case:
         for scoring only, a solver never reads it."""
         return self.real.error_support()
 
+    def true_parameters(self, marker_names: list[str], turns: bool = False) -> list[str]:
+        """Glob patterns of torchcal's parameters for exactly the errors the simulator drew (and the
+        instrument frame; with ``turns`` the markers' rotations too): the parameter set of "the true
+        model", for scoring a calibration against its least-squares fit. Truth: never a solver's input."""
+        sup = self.error_support
+        out = (["base.*"] + [f"{j}.d*" for j in sup["joint_origins"]] + [f"{j}.offset" for j in sup["zero_offsets"]]
+               + [f"{m}.d{a}" for m in sup["marker_offsets"] for a in "xyz"])
+        return out + ([f"{m}.d{a}" for m in marker_names for a in ("roll", "pitch", "yaw")] if turns else [])
+
 
 def _urdf(name: str) -> str:
     made = {"humanoid": humanoid_urdf, "arm9": arm9_urdf, "ur10": ur10_urdf}
