@@ -16,7 +16,7 @@ from torchcal.cli.app import main
 from torchcal.kinematics.robots import shipped, urdf_path
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import load_measurements, save_measurements
-from torchcal.measure.observations import Setup
+from torchcal.measure.setup import Setup
 from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.pipelines.plan.run import plan_poses
 from torchcal.sim.serial import SimConfig, random_configs, simulate_fleet, simulated_robot

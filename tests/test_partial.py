@@ -15,7 +15,8 @@ from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, similarity
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import load_measurements, save_measurements
-from torchcal.measure.observations import Observations, Setup
+from torchcal.measure.observations import Observations
+from torchcal.measure.setup import Setup
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.problems.calibration import EffectCalibrationProblem
 from torchcal.problems.unseen import unseen

@@ -30,7 +30,7 @@ from torchcal.kinematics.dh import dh_joints
 from torchcal.kinematics.export import URDFExport
 from torchcal.kinematics.fk import ForwardKinematics
 from torchcal.kinematics.jacobian import Jacobians
-from torchcal.kinematics.transforms import homogeneous, so3_exp
+from torchcal.kinematics.transforms import align_z, homogeneous
 from torchcal.kinematics.tree import JointSpec, Marker, parse_marker, select_subtree
 from torchcal.kinematics.urdf import load_joints, read_urdf_text
 from torchcal.params import ParamSet
@@ -40,17 +40,6 @@ __all__ = ["Robot"]
 _ORIGIN_SLOTS = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 _DH_SLOTS = ("a", "d", "alpha", "phi")
 _BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
-
-
-def _align_z(axis: Tensor) -> Tensor:
-    """A rotation C with C @ e_z = axis (unit): the identity for z, a half turn about x for -z."""
-    z = torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype, device=axis.device)
-    v = torch.linalg.cross(z, axis)
-    c = float(axis @ z)
-    if float(v.norm()) < 1e-12:
-        return torch.eye(3, dtype=axis.dtype, device=axis.device) if c > 0 else \
-            torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=axis.dtype, device=axis.device))
-    return so3_exp(v / v.norm() * torch.atan2(v.norm(), torch.tensor(c, dtype=axis.dtype)))
 
 
 class Robot(ForwardKinematics, Jacobians, URDFExport):
@@ -248,7 +237,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         # C is found on the host from the file's axes and copied once: on a GPU each Python
         # branch of _align_z, and the check below, would wait for the device
         axes_host = torch.tensor(np.stack([jt.axis for jt in self.joints]), dtype=self.dtype)
-        C_host = torch.stack([_align_z(a) for a in axes_host])
+        C_host = torch.stack([align_z(a) for a in axes_host])
         C = C_host.to(self.device)
         Cf = torch.cat([torch.eye(3, **fk)[None], C])  # per frame: root, then each joint's child
         self._C = C

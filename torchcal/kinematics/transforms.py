@@ -16,7 +16,8 @@ import torch
 from torch import Tensor
 
 __all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix",
-           "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv", "homogeneous", "kabsch"]
+           "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv", "homogeneous", "kabsch",
+           "align_z"]
 
 
 def skew(v: Tensor) -> Tensor:
@@ -212,3 +213,14 @@ def similarity(src: Tensor, dst: Tensor, scale: bool = True) -> tuple[Tensor, fl
     R = U @ D @ Vh
     s = float((S * D.diagonal()).sum() / (A * A).sum()) if scale else 1.0
     return s * src @ R.T + (md - s * (R @ ms)), s
+
+
+def align_z(axis: Tensor) -> Tensor:
+    """A rotation C with C @ e_z = axis (unit): the identity for z, a half turn about x for -z."""
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype, device=axis.device)
+    v = torch.linalg.cross(z, axis)
+    c = float(axis @ z)
+    if float(v.norm()) < 1e-12:
+        return torch.eye(3, dtype=axis.dtype, device=axis.device) if c > 0 else \
+            torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=axis.dtype, device=axis.device))
+    return so3_exp(v / v.norm() * torch.atan2(v.norm(), torch.tensor(c, dtype=axis.dtype, device=axis.device)))

@@ -33,20 +33,14 @@ import torch
 from torchcal.advice import advice
 from torchcal.measure.checks import check_motion, check_robot
 from torchcal.measure.data import Measurements
+from torchcal.measure.units import UNITS, UnitsError, convert_units
 from torchcal.outputs import atomic_write_text
 
 __all__ = ["load_measurements", "save_measurements", "marker_columns_in", "read_csv", "UNITS", "UnitsError"]
 
-UNITS = ("deg", "mm")
-logger = logging.getLogger("torchcal")
-
-
 logger = logging.getLogger("torchcal")
 _ABSURD = 1e6  # |value| beyond any joint (rad, m, deg) or instrument reading (m, mm)
 
-
-class UnitsError(ValueError):
-    """Values that look like degrees or millimetres where torchcal expects radians and metres."""
 
 _POS = (".x", ".y", ".z")
 _QUAT = (".qw", ".qx", ".qy", ".qz")
@@ -265,7 +259,7 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     n_contacts = 0 if planes is None else int((planes >= 0).sum())
     if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
         raise ValueError(f"{path}: no marker was seen in any row")
-    Q, P, D = _units(path, robot, Q, P, D, units)
+    Q, P, D = convert_units(path, robot, Q, P, D, units)
     _warn_duplicates(path, data)
     Qt = None
     if has_quat:
@@ -318,49 +312,6 @@ def _joints_past_markers(path, robot, other: dict, columns: dict) -> None:
     if columns:
         logger.info(f"{path}: column(s) {sorted(columns)} are joints of the URDF that move no declared marker; not "
                     "used")
-
-
-def _units(path, robot, Q: np.ndarray, P: np.ndarray, D: dict, units) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Convert declared units; refuse values that look like degrees or millimetres otherwise, and
-    declared units whose converted values are implausible (degrees declared on radians)."""
-    rev = np.array([u == "rad" for u in robot.joint_units])
-    if "deg" in units:
-        Q = np.where(rev, np.deg2rad(Q), Q)
-        reach = float(np.abs(Q[:, rev]).max()) if rev.any() else 1.0
-        if reach < 0.15:
-            raise UnitsError(f"{path}: with the joint columns read as degrees, no revolute joint moves more than "
-                             f"{np.rad2deg(reach):.3g}° ({reach:.3g} rad) from zero; they look like radians already: "
-                             + advice("leave out units=['deg']", "leave out --units deg"))
-    if "mm" in units:
-        Q = np.where(rev, Q, Q / 1000.0)
-        P = P / 1000.0
-        D = {k: v / 1000.0 for k, v in D.items()}
-    lo, hi = (x.cpu().numpy() for x in robot.joint_limits)
-    for j, n in enumerate(robot.joint_names):
-        v = float(np.abs(Q[:, j]).max())
-        bounded = bool(np.isfinite(lo[j]) and np.isfinite(hi[j]))
-        span = max(abs(lo[j]), abs(hi[j])) if bounded else 0.0
-        # a continuous joint may turn many times: its values alone cannot say degrees (the bounded
-        # joints of the same file do)
-        if rev[j] and bounded and v > max(2.2 * np.pi, 1.5 * span):
-            raise UnitsError(f"{path}: joint column {n!r} reaches |q| = {v:.4g}, beyond its limits "
-                             f"[{lo[j]:.4g}, {hi[j]:.4g}] rad, which looks like degrees; torchcal expects radians: "
-                             "convert (rad = deg × π/180) or declare the unit ("
-                             + advice("load_measurements(..., units=['deg']), or --units deg on the command line",
-                                      "--units deg") + ")")
-        if not rev[j] and v > max(5.0, 3 * span):
-            raise UnitsError(f"{path}: prismatic joint column {n!r} reaches |q| = {v:.4g}, which looks like "
-                             "millimetres; torchcal expects metres: divide by 1000 or declare the unit ("
-                             + advice("units=['mm'], or --units mm on the command line", "--units mm") + ")")
-    for what, vals in (("marker coordinates", P[np.isfinite(P)]),
-                       ("distances", np.concatenate([v[np.isfinite(v)] for v in D.values()] or [np.zeros(0)]))):
-        med = float(np.median(np.abs(vals))) if vals.size else 0.0
-        if med > 20.0:
-            raise UnitsError(f"{path}: {what} have median |value| {med:.4g}, which looks like millimetres; torchcal "
-                             "expects metres: divide by 1000 or declare the unit ("
-                             + advice("load_measurements(..., units=['mm']), or --units mm on the command line",
-                                      "--units mm") + ")")
-    return Q, P, D
 
 
 def _warn_duplicates(path, data: np.ndarray) -> None:

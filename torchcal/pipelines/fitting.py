@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchcal.advice import advice
-from torchcal.measure.observations import SETUP_PREFIXES
+from torchcal.measure.setup import SETUP_PREFIXES
 from torchcal.optim import Result, get_solver
 from torchcal.params import ParamSet, display_unit
 from torchcal.problems.base import Problem

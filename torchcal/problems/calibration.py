@@ -9,14 +9,15 @@ from torch import Tensor
 from torchcal.advice import advice
 from torchcal.kinematics.fk_compact import PositionKernel
 from torchcal.measure.blocks import Loss, PositionResidual
-from torchcal.measure.observations import Observations, Setup
+from torchcal.measure.observations import Observations
+from torchcal.measure.setup import Setup
 from torchcal.params import ParamSet
 from torchcal.problems.base import Problem
 
 __all__ = ["CalibrationProblem", "EffectCalibrationProblem", "GAUGE_WEIGHT"]
 
 # Residual (m) of a 100 % change of the robot's size when plane contacts alone cannot see it
-# (:class:`~torchcal.measure.observations.Setup`): stiff enough that noise moves the size by < 1e-6.
+# (:class:`~torchcal.measure.setup.Setup`): stiff enough that noise moves the size by < 1e-6.
 GAUGE_WEIGHT = 10.0
 
 
@@ -111,7 +112,7 @@ class EffectCalibrationProblem(Problem):
     """Geometry, set-up unknowns and effect models fitted together on what an instrument measured.
 
     ``params`` holds the robot's K geometric entries, then the set-up's S unknowns (plane poses and
-    fixed points, :class:`~torchcal.measure.observations.Setup`; none for position data), then every
+    fixed points, :class:`~torchcal.measure.setup.Setup`; none for position data), then every
     effect's parameters (:func:`torchcal.effects.effect_params`); its free flags choose what
     moves. The model: ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics plus
     ``Σ Δp_effect``, then the instrument frame, then each observation's residual vector

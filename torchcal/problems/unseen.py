@@ -6,7 +6,8 @@ import torch
 from torch import Tensor
 
 from torchcal.measure.data import Measurements
-from torchcal.measure.observations import KIND_NAMES, Observations, Setup, needs_setup
+from torchcal.measure.observations import KIND_NAMES, Observations
+from torchcal.measure.setup import Setup, needs_setup
 from torchcal.params import ParamSet
 from torchcal.problems.identifiability import analyse_jacobian
 

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchcal.measure.blocks import Loss
 from torchcal.measure.data import Measurements
-from torchcal.measure.observations import Setup
+from torchcal.measure.setup import Setup
 from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import fit_identified

@@ -15,6 +15,8 @@ set.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field, replace
 
 from torchcal.measure.data import Measurements
@@ -25,7 +27,8 @@ from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect
 from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
 from torchcal.pipelines.loop.steps import compare_at
 
-__all__ = ["GEOMETRIC_SETS", "GeometryChoice", "warm_start", "estimate_noise", "choose_geometry", "orientation_weight"]
+__all__ = ["GEOMETRIC_SETS", "GeometryChoice", "warm_start", "estimate_noise", "choose_geometry", "orientation_weight",
+           "choose_orientation_weight"]
 
 # Nested geometric parameter sets, smallest first: (name, glob patterns, or None for the robot's
 # default free set: every origin / DH error). Markers' positions are always free.
@@ -168,3 +171,23 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
     if ok:
         out.best = m
     return out
+
+
+def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, given: float | None, say) -> float | None:
+    """The orientation weight (m/rad) the fits use: ``given``, or estimated from the residuals
+    (:func:`~torchcal.pipelines.loop.geometry.orientation_weight`) when the rows measure
+    orientations; None when they do not or ``given`` is 0."""
+    n = orientation_count(train, 1.0)
+    if given is not None and not (math.isfinite(given) and given >= 0):
+        raise ValueError(f"orientation_weight must be a finite number of m/rad, 0 or more, got {given!r}")
+    if n == 0:
+        if given:
+            say("orientation weight given, but the training rows measure no orientation (<marker>.qw/.qx/.qy/.qz)")
+        return None
+    if given == 0:
+        say(f"{n} measured orientations ignored (orientation weight 0)")
+        return None
+    w = given if given is not None else orientation_weight(ctx, robot, train, setup)
+    say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {w:.4g} mm"
+        + (" (given)" if given is not None else " (σ_position / σ_rotation of the residuals)"))
+    return w

@@ -3,12 +3,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from torchcal.deploy.elm import ELM
 from torchcal.deploy.model import CalibratedModel
-from torchcal.measure.observations import Setup
+from torchcal.measure.setup import Setup
 from torchcal.params import ParamSet
-from torchcal.pipelines.loop.selection import OUTLIER_K, T_ACCEPT
-from torchcal.pipelines.loop.stages import elm_covariates
+from torchcal.pipelines.loop.selection import T_ACCEPT
 from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
 from torchcal.report.calibration import stage_problems
 

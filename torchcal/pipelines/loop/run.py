@@ -32,17 +32,18 @@ from torchcal.deploy.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
-from torchcal.measure.observations import KIND_NAMES, Observations, Setup, check_heldout, needs_setup
+from torchcal.measure.observations import KIND_NAMES, Observations
+from torchcal.measure.setup import Setup, check_heldout, needs_setup
 from torchcal.measure.registration import gross_errors
 from torchcal.measure.stats import noise_floor
 from torchcal.pipelines.fitting import check_plausible
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, cv_mean_mm, duplicate_groups, folds_of,
-                                         geometric_start, noise_sigma, observation_model, orientation_count,
-                                         split_params)
+                                         geometric_start, noise_sigma, observation_model, split_params)
 from torchcal.pipelines.loop.leftover import leftover
 from torchcal.pipelines.loop.prune import prune
-from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, choose_geometry, estimate_noise, orientation_weight
+from torchcal.pipelines.loop.covariates import derive_directions, extrapolation
+from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, choose_geometry, choose_orientation_weight, estimate_noise
 from torchcal.pipelines.loop.result import LoopResult
 from torchcal.pipelines.loop.selection import HUBER_K, OUTLIER_K, T_ACCEPT, compare, penalised, rmse_mm
 from torchcal.pipelines.loop.stages import elm_covariates, elm_inputs, residual_matrix, stage_details
@@ -57,73 +58,6 @@ logger = logging.getLogger("torchcal.loop")
 
 MAX_ROUNDS = 20  # diagnosis rounds at most: each accepts one effect (or modes of one family)
 
-
-
-# ----------------------------------------------------------------------------- covariates
-TIME_COLUMNS = ("t_start_robot", "time", "t", "timestamp")
-
-
-def derive_directions(data: Measurements) -> str | None:
-    """Add ``dir.<joint>`` covariates (+1/-1: direction from which each joint reached the
-    posture) from the time order of the rows, when the data has a time column and no direction
-    columns. The first posture in time counts as approached from below. Returns the time column
-    used, or None. A covariate, not a measurement: it is derived for test data the same way."""
-    if any(k.startswith("dir.") for k in data.covariates):
-        return None
-    key = next((k for k in TIME_COLUMNS if k in data.covariates), None)
-    if key is None or len(data) < 2:
-        return None
-    order = torch.argsort(data.covariates[key])
-    q = data.q[order]
-    steps = torch.diff(q, dim=0, prepend=q[:1])
-    d = torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
-    inv = torch.empty_like(order)
-    inv[order] = torch.arange(len(order), device=order.device)
-    for j, n in enumerate(data.joint_names):
-        data.covariates[f"dir.{n}"] = d[inv, j]
-    return key
-
-
-def extrapolation(eff, test: Measurements | None) -> list[dict]:
-    """Covariates an effect reads whose held-out values leave the training range."""
-    out = []
-    if test is None:
-        return out
-    for c, (lo, hi) in eff.covariate_range.items():
-        if c not in test.covariates:
-            continue
-        v = test.covariates[c]
-        tol = 0.01 * (hi - lo)
-        outside = float(((v < lo - tol) | (v > hi + tol)).double().mean())
-        if outside > 0:
-            out.append({"effect": eff.name, "covariate": c, "train_range": [lo, hi],
-                        "test_range": [float(v.min()), float(v.max())], "fraction_outside": outside,
-                        "note": "the held-out rows lie outside the training range of this covariate: the "
-                                "effect would extrapolate there" + (" (time covariates are clamped to the "
-                                                                    "training range in the deployed model)"
-                                                                    if c in TIME_COLUMNS else "")})
-    return out
-
-
-# ----------------------------------------------------------------------------- the loop
-def orientation_weight_of(ctx: Context, robot, train: Measurements, setup, given: float | None, say) -> float | None:
-    """The orientation weight (m/rad) the fits use: ``given``, or estimated from the residuals
-    (:func:`~torchcal.pipelines.loop.geometry.orientation_weight`) when the rows measure
-    orientations; None when they do not or ``given`` is 0."""
-    n = orientation_count(train, 1.0)
-    if given is not None and not (math.isfinite(given) and given >= 0):
-        raise ValueError(f"orientation_weight must be a finite number of m/rad, 0 or more, got {given!r}")
-    if n == 0:
-        if given:
-            say("orientation weight given, but the training rows measure no orientation (<marker>.qw/.qx/.qy/.qz)")
-        return None
-    if given == 0:
-        say(f"{n} measured orientations ignored (orientation weight 0)")
-        return None
-    w = given if given is not None else orientation_weight(ctx, robot, train, setup)
-    say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {w:.4g} mm"
-        + (" (given)" if given is not None else " (σ_position / σ_rotation of the residuals)"))
-    return w
 
 
 def say_fn(log):
@@ -200,7 +134,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
                "robot base"))
     ctx = Context(robot, train, fl, None, 1.0, setup, soft=soft, plausible=check_plausible(plausible))
-    rot_w = ctx.rot_weight = orientation_weight_of(ctx, robot, train, setup, orientation_weight, say)
+    rot_w = ctx.rot_weight = choose_orientation_weight(ctx, robot, train, setup, orientation_weight, say)
     n_obs = ctx.n_obs
     geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup, rot_w is not None)
     stages, errors = [], {}

@@ -6,7 +6,8 @@ import torch
 from torch import Tensor
 
 from torchcal.measure.data import Measurements
-from torchcal.measure.observations import KIND_NAMES, Setup
+from torchcal.measure.observations import KIND_NAMES
+from torchcal.measure.setup import Setup
 from torchcal.measure.stats import angle_stats, error_stats, errors_by_marker
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import Context, observation_model

@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 
 from torchcal.deploy.elm import ELM
 from torchcal.effects import build_effect
-from torchcal.measure.observations import Setup
+from torchcal.measure.setup import Setup
 from torchcal.pipelines.loop.fit import (Context, Model, evaluate, evaluate_prior, noise_sigma,
                                          observation_model, rescore)
 from torchcal.pipelines.loop.selection import HUBER_K, compare, penalised, row_scores

@@ -1,0 +1,57 @@
+"""The loop's covariates: directions of approach derived from the time order of the rows, and the
+covariates whose held-out values leave their training range (the effects reading them would
+extrapolate there)."""
+from __future__ import annotations
+
+import torch
+
+from torchcal.measure.data import Measurements
+
+__all__ = ["TIME_COLUMNS", "derive_directions", "extrapolation"]
+
+TIME_COLUMNS = ("t_start_robot", "time", "t", "timestamp")
+
+
+def derive_directions(data: Measurements) -> str | None:
+    """Add ``dir.<joint>`` covariates (+1/-1: direction from which each joint reached the
+    posture) from the time order of the rows, when the data has a time column and no direction
+    columns. The first posture in time counts as approached from below. Returns the time column
+    used, or None. A covariate, not a measurement: it is derived for test data the same way."""
+    if any(k.startswith("dir.") for k in data.covariates):
+        return None
+    key = next((k for k in TIME_COLUMNS if k in data.covariates), None)
+    if key is None or len(data) < 2:
+        return None
+    order = torch.argsort(data.covariates[key])
+    q = data.q[order]
+    steps = torch.diff(q, dim=0, prepend=q[:1])
+    d = torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
+    inv = torch.empty_like(order)
+    inv[order] = torch.arange(len(order), device=order.device)
+    for j, n in enumerate(data.joint_names):
+        data.covariates[f"dir.{n}"] = d[inv, j]
+    return key
+
+
+def extrapolation(eff, test: Measurements | None) -> list[dict]:
+    """Covariates an effect reads whose held-out values leave the training range."""
+    out = []
+    if test is None:
+        return out
+    for c, (lo, hi) in eff.covariate_range.items():
+        if c not in test.covariates:
+            continue
+        v = test.covariates[c]
+        tol = 0.01 * (hi - lo)
+        outside = float(((v < lo - tol) | (v > hi + tol)).double().mean())
+        if outside > 0:
+            out.append({"effect": eff.name, "covariate": c, "train_range": [lo, hi],
+                        "test_range": [float(v.min()), float(v.max())], "fraction_outside": outside,
+                        "note": "the held-out rows lie outside the training range of this covariate: the "
+                                "effect would extrapolate there" + (" (time covariates are clamped to the "
+                                                                    "training range in the deployed model)"
+                                                                    if c in TIME_COLUMNS else "")})
+    return out
+
+
+# ----------------------------------------------------------------------------- the loop
