@@ -220,11 +220,6 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, *, ca
             gain = float(current.scores.mean() - winner["model"].scores.mean())
             ties = [r for r in passing if float(current.scores.mean() - r["model"].scores.mean()) >= 0.98 * gain]
             winner = min(ties, key=lambda r: (r["model"].k, names.index(r["name"])))
-            # an effect that extends another that passes too waits: the plainer one is named
-            # first, and the extension may add what it leaves in a later round
-            plain = [r for r in passing if r["name"] in EFFECTS[winner["name"]].supersedes]
-            if plain:
-                winner = min(plain, key=lambda r: penalised(r["model"].scores, r["model"].k, n_obs))
         for r in results:
             entry = dict(r["entry"], round=rnd, accepted=bool(winner is r))
             if "model" in r:
