@@ -31,7 +31,8 @@ from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
 from torchcal.kinematics.robot import Robot
 from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
-from torchcal.pipelines.calibrate import SWARM_METHODS, calibrate, write_instrument
+from torchcal.optim import available, is_population
+from torchcal.pipelines.calibrate import calibrate, write_instrument
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
@@ -71,7 +72,7 @@ def _calibrate(a, argv) -> int:
     torch.set_num_threads(a.threads)
     t0 = time.perf_counter()
     robot, train, test = robot_and_data(a)
-    progress = a.progress if a.progress is not None else (a.method in SWARM_METHODS and sys.stderr.isatty()
+    progress = a.progress if a.progress is not None else (is_population(a.method) and sys.stderr.isatty()
                                                           and not a.quiet)
     res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
                     progress=progress, polish=a.polish, free=a.free or None, plausible=_plausible(a),
@@ -183,8 +184,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     c = sub.add_parser("calibrate", help="identify geometric errors from a measurement CSV")
-    c.add_argument("--method", default="lm", choices=["lm", "gn", "lbfgs", "pso", "ldpso-bt", "cpso", "ga", "ma", "mma",
-                                                      "hybrid"])
+    c.add_argument("--method", default="lm", choices=available(),
+                   help="solver (every registered one; the population ones search a box around the start)")
     c.add_argument("--kind", default="position", choices=["position", "pose"])
     c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"])
     c.add_argument("--free", action="append", help="glob pattern of parameters to identify (repeatable)")

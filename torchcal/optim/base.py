@@ -9,7 +9,7 @@ import torch
 from torchcal.optim.result import Result
 from torchcal.problems.base import Problem
 
-__all__ = ["Solver", "register", "get_solver", "available", "minimize"]
+__all__ = ["Solver", "register", "get_solver", "available", "is_population", "minimize"]
 
 _REGISTRY: dict[str, type["Solver"]] = {}
 
@@ -22,6 +22,7 @@ class Solver:
     """
 
     name = "solver"
+    population = False  # searches with a population inside finite bounds (a swarm, a GA)
 
     def __init__(self, *, seed: int | None = 0, progress: bool = False,
                  callback: Callable[[int, float], None] | None = None):
@@ -55,8 +56,15 @@ def register(cls: type[Solver]) -> type[Solver]:
     return cls
 
 
-def available() -> list[str]:
-    return sorted(_REGISTRY)
+def available(population: bool | None = None) -> list[str]:
+    """Registered solver names (aliases too); ``population``: only those that do (True) or do not
+    (False) search with a population."""
+    return sorted(k for k, c in _REGISTRY.items() if population is None or c.population == population)
+
+
+def is_population(method: str) -> bool:
+    """Whether the solver registered as ``method`` searches with a population (it needs a box)."""
+    return bool(getattr(_REGISTRY.get(method.lower()), "population", False))
 
 
 def get_solver(method: str, **options) -> Solver:

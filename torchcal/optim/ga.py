@@ -104,6 +104,7 @@ class GeneticAlgorithm(IterativeSolver):
     """
 
     name = "ga"
+    population = True
     aliases = ("rcga",)
 
     #: Settings from the seed documents (pass as keyword arguments).

@@ -43,6 +43,7 @@ class Hybrid(Solver):
     """
 
     name = "hybrid"
+    population = True  # a swarm first, then LM from its best
     aliases = ("pso+lm",)
 
     def __init__(self, *, swarm: str = "pso", swarm_options: dict[str, Any] | None = None,

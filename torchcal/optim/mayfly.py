@@ -137,6 +137,7 @@ class Mayfly(IterativeSolver):
     """
 
     name = "ma"
+    population = True
     aliases = ("mayfly",)
 
     def __init__(self, *, pop_size: int = 20, max_iter: int = 200, n_off: int | None = None,

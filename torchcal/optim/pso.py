@@ -74,6 +74,7 @@ class PSO(IterativeSolver):
     """
 
     name = "pso"
+    population = True
     batched = True
 
     def __init__(self, *, pop_size: int = 240, max_iter: int = 500,

@@ -15,7 +15,8 @@ from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.registration import leave_out_gross, register_base, register_marker_rotations
 from torchcal.measure.stats import errors_by_marker
-from torchcal.optim import Result, get_solver
+from torchcal.optim import Result, get_solver, is_population
+from torchcal.optim.hybrid import Hybrid
 from torchcal.outputs import staged_dir
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate_prior import choose_prior
@@ -27,9 +28,8 @@ from torchcal.report.calibration import (calibration_markdown, error_details, st
                                          write_calibration_report, write_json)
 from torchcal.threads import threads_by_size
 
-__all__ = ["calibrate", "CalibrationResult", "SWARM_METHODS", "stage_stats"]
+__all__ = ["calibrate", "CalibrationResult", "stage_stats"]
 
-SWARM_METHODS = ("pso", "ldpso-bt", "cpso", "ga", "ma", "mma")
 _SEARCH = {"m": 5e-3, "rad": 0.05}  # default swarm search box around the start (± per unit)
 
 
@@ -286,7 +286,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
     if test is not None:
         stages[0]["test"] = stage_stats(robot, nominal, test)
 
-    swarm = method.lower() in SWARM_METHODS or method.lower() in ("hybrid", "pso+lm")
+    swarm = is_population(method)  # a population searches a box around the start
     loss_obj = None
 
     def make_problem(q: ParamSet, lo=None) -> CalibrationProblem:
@@ -300,7 +300,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
 
     def solve(prob):
         s = get_solver(method, seed=seed, progress=progress, **opts).minimize(prob)
-        if polish and method.lower() in SWARM_METHODS:
+        if polish and swarm and not isinstance(get_solver(method), Hybrid):  # a hybrid polishes itself
             prob.x0 = s.x.clone()
             s2 = get_solver("lm").minimize(prob)
             s2.history, s2.method = s.history + s2.history, f"{s.method}+lm"
