@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
+from torchcal.measure.data import is_quality_column
 
 __all__ = ["JointTerms", "REACH", "driver_columns"]
 
@@ -36,11 +37,11 @@ REACH = 2  # joints along the chain whose angles may enter another joint's error
 
 def driver_columns(covariates: dict) -> list[str]:
     """Numeric covariate columns that may drive an error: all but the directions of approach
-    (their own terms) and spreads of the instrument (``*_std*``: a measure of the measurement,
-    not of the robot's state), and columns that never change."""
+    (their own terms), the columns that describe the measurement
+    (:func:`~torchcal.measure.data.is_quality_column`) and columns that never change."""
     out = []
     for k, v in covariates.items():
-        if k.startswith("dir.") or "_std" in k:
+        if k.startswith("dir.") or is_quality_column(k):
             continue
         v = v[torch.isfinite(v)]
         if v.numel() > 1 and float(v.max() - v.min()) > 0:

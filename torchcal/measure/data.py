@@ -7,7 +7,13 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-__all__ = ["Measurements"]
+__all__ = ["Measurements", "is_quality_column"]
+
+
+def is_quality_column(name: str) -> bool:
+    """A covariate that describes the measurement, not the robot's state (``marker_std_mm``, any
+    ``*_std*`` spread, ``marker_samples``): no model reads it as a driver."""
+    return "_std" in name or name == "marker_samples"
 
 
 @dataclass

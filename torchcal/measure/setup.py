@@ -9,7 +9,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcal.measure.data import Measurements
+from torchcal.measure.data import Measurements, is_quality_column
 from torchcal.params import ParamSet
 
 __all__ = ["Setup", "SETUP_PREFIXES", "needs_setup", "setup_refs", "check_heldout", "marker_index"]
@@ -35,7 +35,7 @@ def check_heldout(train: Measurements, test: Measurements) -> None:
     do: its pose would be unknown, since the set-up is identified from the training rows only. And
     held-out rows without a covariate column of the training rows: a model that reads it could not
     be measured on them."""
-    lack = [c for c in train.covariates if c not in test.covariates]
+    lack = [c for c in train.covariates if c not in test.covariates and not is_quality_column(c)]
     if lack:
         raise ValueError(f"the held-out rows ({test.source or 'test'}) have no column for covariate(s) {lack[:5]}, "
                          f"which the training rows ({train.source or 'data'}) have; effects and the residual ELM may "
