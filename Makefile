@@ -21,8 +21,9 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	$(BIN)/python scripts/demo.py --out out/demo
 
+# two processes, one test file each at a time (module fixtures stay in one process): CI has two cores
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 bench: setup
 	$(BIN)/python scripts/bench_fk.py
