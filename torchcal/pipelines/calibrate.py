@@ -347,7 +347,6 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None, me
         why = choice.reason
         if choice.prior_mm is not None:
             p, std_errors = choice.params, {n: choice.std_errors.get(n, float("nan")) for n in choice.params.free_names}
-            # what the data alone cannot tell apart is held by the prior: tied, with the value the prior gives it
             # what the data alone cannot tell apart, the prior holds: tied, fitted to the prior's share
             cand = start.clone()
             cand.values = p.values.clone()

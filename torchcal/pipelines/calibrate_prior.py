@@ -16,7 +16,8 @@ from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import SMALL_DATA, implausible_values, is_small
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, effect_problem,
-                                         evaluate, evaluate_prior, fit_noise, folds_of)
+                                         evaluate, evaluate_prior, fit_noise, folds_of,
+                                         plausible_scale)
 from torchcal.pipelines.loop.selection import penalised
 
 __all__ = ["PriorChoice", "choose_prior"]
@@ -44,7 +45,7 @@ def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c
     ``fitted``: the plain fit, whose robust noise scales the priors; ``c``: the Huber threshold of
     the fits and scores (m; None: squared errors)."""
     fl = folds_of(len(data), min(folds, len(data)), seed, duplicate_groups(data))
-    ctx = Context(robot, data, fl, c, 1.0)
+    ctx = Context(robot, data, fl, c, 1.0, plausible=plausible)
     prob = effect_problem(ctx, fitted, [], data, loss=False)
     ctx = ctx.at(c, fit_noise(prob, prob.x0))
     if ctx.sigma < EXACT_M:
@@ -58,9 +59,7 @@ def choose_prior(robot, data: Measurements, start: ParamSet, fitted: ParamSet, c
               "penalised_mm2": 1e6 * penalised(plain.scores, plain.k, n_obs)}]
     table += [{"prior_mm": m.prior_mm, "k_eff": m.k, "cv_rmse_mm": m.cv_rmse_mm(n_obs),
                "penalised_mm2": 1e6 * penalised(m.scores, m.k, n_obs)} for m in sorted(tried, key=lambda m: m.prior_mm)]
-    ok = [m for m in tried if not implausible_values(m.params, robot, plausible)]
-    if ok and implausible_values(best.params, robot, plausible):  # the best scale that keeps every joint plausible
-        best = min(ok, key=lambda m: penalised(m.scores, m.k, n_obs))
+    best = plausible_scale(ctx, best, tried)
     pen_plain, pen_prior = penalised(plain.scores, plain.k, n_obs), penalised(best.scores, best.k, n_obs)
     if implausible_values(plain.params, robot, plausible) and not implausible_values(best.params, robot, plausible):
         pen_plain = float("inf")  # a model of this robot moves no joint implausibly far

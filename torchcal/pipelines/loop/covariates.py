@@ -53,5 +53,3 @@ def extrapolation(eff, test: Measurements | None) -> list[dict]:
                                                                     if c in TIME_COLUMNS else "")})
     return out
 
-
-# ----------------------------------------------------------------------------- the loop

@@ -25,13 +25,13 @@ from torchcal.measure.data import Measurements
 from torchcal.measure.setup import Setup
 from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import fit_identified
+from torchcal.pipelines.fitting import fit_identified, implausible_values
 from torchcal.pipelines.loop.selection import effective_params, penalised, rmse_mm, robust_sigma, row_scores
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights",
-           "evaluate", "evaluate_prior", "fit_params", "fit_noise", "cv_mean_mm", "folds_of", "duplicate_groups", "split_params",
-           "assemble", "PRIOR_SCALES_MM"]
+           "evaluate", "evaluate_prior", "plausible_scale", "fit_params", "fit_noise", "cv_mean_mm", "folds_of",
+           "duplicate_groups", "split_params", "assemble", "PRIOR_SCALES_MM"]
 
 # Prior σ of every geometric error when the data cannot carry the full set: mm for lengths, mrad
 # for angles (equal at a 1 m lever), strongest first.
@@ -190,11 +190,11 @@ def effect_problem(ctx: Context, params: ParamSet, effects: list, data: Measurem
                                     setup=ctx.setup, rot_weight=ctx.rot_weight)
 
 
-def fit_noise(prob: EffectCalibrationProblem, x: Tensor) -> float:
+def fit_noise(prob: EffectCalibrationProblem, x: Tensor, k: float | None = None) -> float:
     """The per-axis noise (m) a fit at ``x`` shows: robust (blind to outliers) over the measured
-    components of its residuals, for its number of free values."""
+    components of its residuals, for ``k`` fitted parameters (default: its number of free values)."""
     r = prob.residual_vectors(prob.full(x[None]))[0]
-    return robust_sigma(r[prob.obs.mask], x.numel())
+    return robust_sigma(r[prob.obs.mask], x.numel() if k is None else int(round(k)))
 
 
 def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
@@ -299,12 +299,21 @@ def evaluate_prior(ctx: Context, label: str, start: ParamSet, effects: list, pri
     return best
 
 
+def plausible_scale(ctx: Context, best: Model, tried: list[Model]) -> Model:
+    """``best`` (the prior scale CV chose), or, when it moves a joint beyond ``ctx.plausible``, the
+    scale among ``tried`` with the lowest penalised CV error that moves none (``best`` when none
+    does): a model of this robot moves no joint implausibly far."""
+    ok = [m for m in tried if not implausible_values(m.params, ctx.robot, ctx.plausible)]
+    if ok and implausible_values(best.params, ctx.robot, ctx.plausible):
+        return min(ok, key=lambda m: penalised(m.scores, m.k, ctx.n_obs))
+    return best
+
+
 def noise_sigma_of(ctx: Context, params: ParamSet, effects: list, k: float) -> float:
     """Robust per-axis noise estimate (m) from a fit's training residuals (``k`` parameters), over
     the measured components only."""
     prob = effect_problem(ctx, params, effects, ctx.data, loss=False)
-    e = prob.residual_vectors(params.values[None])[0]
-    return robust_sigma(e[prob.obs.mask], int(round(k)))
+    return fit_noise(prob, prob.x0, k)
 
 
 def noise_sigma(ctx: Context, m: Model) -> float:

@@ -23,7 +23,8 @@ from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import implausible_values, is_small
 from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_problem, evaluate, evaluate_prior,
-                                         fit_params, geometric_start, noise_sigma, orientation_count)
+                                         fit_params, geometric_start, noise_sigma, orientation_count,
+                                         plausible_scale)
 from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
 from torchcal.pipelines.loop.steps import compare_at
 
@@ -143,9 +144,7 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
     # every error, under the prior
     start = warm_start(geometric_start(robot, data, None, setup, ctx.rot_weight is not None), out.best.params)
     m = evaluate_prior(ctx, "prior", start, [], PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], tried=tried)
-    plausible = [x for x in tried if not implausible_values(x.params, robot, ctx.plausible)]
-    if plausible and implausible_values(m.params, robot, ctx.plausible):  # the best scale that keeps every joint plausible
-        m = min(plausible, key=lambda x: penalised(x.scores, x.k, n_obs))
+    m = plausible_scale(ctx, m, tried)
     for mt in sorted(tried, key=lambda x: x.prior_mm):
         name = f"prior {mt.prior_mm:g} mm/mrad"
         out.fits[name] = mt.params
@@ -154,8 +153,9 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
                          "penalised_mm2": 1e6 * penalised(mt.scores, mt.k, n_obs), "chosen_scale": mt is m})
     m.label = f"prior {m.prior_mm:g} mm/mrad"
     entry = next(g for g in out.sets if g["name"] == m.label)
-    if implausible_values(m.params, robot, ctx.plausible):
-        entry.update({"accepted": False, "implausible": implausible_values(m.params, robot, ctx.plausible)})
+    bad = implausible_values(m.params, robot, ctx.plausible)
+    if bad:
+        entry.update({"accepted": False, "implausible": bad})
         how, ok = "moves a joint implausibly far", False
     elif full_won:
         # the same parameters: the prior is a setting of the model, chosen by the penalised CV error
