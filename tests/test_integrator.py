@@ -193,8 +193,10 @@ def test_a_model_worse_than_nominal_is_not_saved(files, tmp_path, monkeypatch, c
     real = cli_mod.calibrate
 
     def sabotaged(*a, **k):
+        from dataclasses import replace
         res = real(*a, **k)
-        res.stages[-1]["train"]["mean_mm"] = res.stages[0]["train"]["mean_mm"] * 2
+        fin = res.stages[-1]  # the stage records are frozen: the sabotage builds a worse one
+        res.stages[-1] = replace(fin, train=replace(fin.train, mean=res.stages[0].train.mean * 2))
         return res
     monkeypatch.setattr(cli_mod, "calibrate", sabotaged)
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(tmp_path / "o")]) == 2

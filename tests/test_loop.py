@@ -127,7 +127,7 @@ def test_loop_report_shape(case):
     if res.elm is not None:
         expected.append("+residual_elm")
     assert stage_names == expected
-    assert rep["stages"] == res.stages and rep["effects"] == res.accepted
+    assert rep["stages"] == [s.to_json() for s in res.stages] and rep["effects"] == [a.to_json() for a in res.accepted]
     assert rep["n_train"] == N_TRAIN and rep["n_test"] == N_TEST
     for s in res.stages:
         assert isinstance(s["n_params"], int)

@@ -15,7 +15,8 @@ from torchcal.kinematics.tree import Marker
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import load_measurements
 from torchcal.params import ParamSet
-from torchcal.pipelines.calibrate import CalibrationResult, calibrate
+from torchcal.pipelines.calibrate import calibrate
+from torchcal.pipelines.calibration_result import CalibrationResult
 from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.pipelines.loop.run import run_loop

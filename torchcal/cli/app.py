@@ -31,8 +31,10 @@ from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
 from torchcal.kinematics.robot import Robot
 from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
+from torchcal.measure.records import Stage
 from torchcal.optim import available, is_population
-from torchcal.pipelines.calibrate import calibrate, write_instrument
+from torchcal.pipelines.calibrate import calibrate
+from torchcal.pipelines.calibration_result import write_instrument
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.report.loop import write_loop_report
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
@@ -44,16 +46,14 @@ __all__ = ["main", "build_parser"]
 logger = logging.getLogger("torchcal")
 
 
-def _print_stages(stages: list[dict], has_test: bool) -> None:
+def _print_stages(stages: list[Stage], has_test: bool) -> None:
     """The per-stage error table both commands print (mm)."""
-    w = max(12, max(len(s["name"]) for s in stages) + 2)
+    w = max(12, max(len(s.name) for s in stages) + 2)
     cols = ["train mean", "train max"] + (["test mean", "test max"] if has_test else [])
     print(f"\n{'stage':<{w}}{'params':>7}" + "".join(f"{c:>12}" for c in cols))
     for s in stages:
-        vals = [s["train"]["mean_mm"], s["train"]["max_mm"]]
-        if has_test:
-            vals += [s["test"]["mean_mm"], s["test"]["max_mm"]]
-        print(f"{s['name']:<{w}}{s['n_params']:>7}" + "".join(f"{v:>12.4f}" for v in vals) + "   [mm]")
+        vals = [s.train.mean, s.train.max] + ([s.test.mean, s.test.max] if has_test else [])
+        print(f"{s.name:<{w}}{s.n_params:>7}" + "".join(f"{v:>12.4f}" for v in vals) + "   [mm]")
 
 
 def _inputs(a) -> dict:

@@ -3,43 +3,44 @@ median and 95th percentile (linear interpolation, numpy's default), overall and 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import torch
 from torch import Tensor
 
+from torchcal.measure.records import ErrorStats
+
 __all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched", "noise_floor"]
 
 
-def error_stats(err_m: Tensor) -> dict:
-    """Statistics of Euclidean errors given in metres, reported in millimetres."""
+def error_stats(err_m: Tensor, unit: str = "mm") -> ErrorStats:
+    """Statistics of Euclidean errors given in metres (or radians), reported in millimetres (or,
+    with ``unit="mrad"``, milliradians)."""
     e = err_m.detach().double().flatten() * 1e3
     if e.numel() == 0:
-        return {"n": 0}
-    return {"n": int(e.numel()), "mean_mm": float(e.mean()), "std_mm": float(e.std()) if e.numel() > 1 else 0.0,
-            "max_mm": float(e.max()), "rmse_mm": float(torch.sqrt((e * e).mean())),
-            "median_mm": float(e.median()), "p95_mm": float(torch.quantile(e, 0.95))}
+        return ErrorStats(n=0, unit=unit)
+    return ErrorStats(n=int(e.numel()), mean=float(e.mean()), std=float(e.std()) if e.numel() > 1 else 0.0,
+                      max=float(e.max()), rmse=float(torch.sqrt((e * e).mean())), median=float(e.median()),
+                      p95=float(torch.quantile(e, 0.95)), unit=unit)
 
 
-def angle_stats(err_rad: Tensor) -> dict:
-    """Statistics of orientation errors given in radians, reported in milliradians (the keys of
-    :func:`error_stats`, ``_mrad`` for ``_mm``)."""
-    return {k.replace("_mm", "_mrad"): v for k, v in error_stats(err_rad).items()}
+def angle_stats(err_rad: Tensor) -> ErrorStats:
+    """Statistics of orientation errors given in radians, reported in milliradians."""
+    return error_stats(err_rad, unit="mrad")
 
 
-def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> dict:
+def errors_by_marker(e: Tensor, marker: Tensor, marker_names: list[str]) -> ErrorStats:
     """:func:`error_stats` of errors ``e (n_obs,)`` (m), overall and per marker
     (``marker (n_obs,)`` indexes ``marker_names``)."""
-    out = error_stats(e)
     per = {}
     for k, m in enumerate(marker_names):
         sel = marker == k
         if bool(sel.any()):
             per[m] = error_stats(e[sel])
-    out["per_marker"] = per
-    return out
+    return replace(error_stats(e), per_marker=per)
 
 
-def _masked_stats(e: Tensor, mask: Tensor) -> list[dict]:
+def _masked_stats(e: Tensor, mask: Tensor) -> list[ErrorStats]:
     """:func:`error_stats` of each row of ``e (B, n)`` (mm) over its ``mask``: one pass per statistic
     for all rows, the same definitions (unbiased std, lower median)."""
     n = mask.sum(-1)
@@ -58,20 +59,19 @@ def _masked_stats(e: Tensor, mask: Tensor) -> list[dict]:
     a_lo, a_hi = srt.gather(-1, lo[:, None])[:, 0], srt.gather(-1, hi[:, None])[:, 0]
     p95 = a_lo + (pos - lo.to(e.dtype)) * torch.where(hi > lo, a_hi - a_lo, torch.zeros_like(a_lo))
     cols = [c.tolist() for c in (n, mean, std, mx, rmse, med, p95)]
-    return [{"n": int(k), "mean_mm": a, "std_mm": b, "max_mm": c, "rmse_mm": r, "median_mm": m, "p95_mm": p}
-            if k else {"n": 0} for k, a, b, c, r, m, p in zip(*cols)]
+    return [ErrorStats(n=int(k), mean=a, std=b, max=c, rmse=r, median=m, p95=p) if k else ErrorStats(n=0)
+            for k, a, b, c, r, m, p in zip(*cols)]
 
 
-def errors_by_marker_batched(e: Tensor, seen: Tensor, marker_names: list[str]) -> list[dict]:
+def errors_by_marker_batched(e: Tensor, seen: Tensor, marker_names: list[str]) -> list[ErrorStats]:
     """:func:`errors_by_marker` of many data sets at once: errors ``e (B, N, M)`` (m) of ``M``
-    markers at ``N`` rows, ``seen (B, N, M)`` the real observations. One dict per data set."""
+    markers at ``N`` rows, ``seen (B, N, M)`` the real observations. One record per data set."""
     B, N, M = e.shape
     mm = e.detach().double() * 1e3
     out = _masked_stats(mm.reshape(B, N * M), seen.reshape(B, N * M))
     per = [_masked_stats(mm[:, :, k], seen[:, :, k]) for k in range(M)]
-    for b in range(B):
-        out[b]["per_marker"] = {m: per[k][b] for k, m in enumerate(marker_names) if per[k][b]["n"]}
-    return out
+    return [replace(out[b], per_marker={m: per[k][b] for k, m in enumerate(marker_names) if per[k][b].n})
+            for b in range(B)]
 
 
 # mean Euclidean norm of 3-D isotropic Gaussian noise, per unit of its per-axis σ: 2·sqrt(2/π)

@@ -6,7 +6,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 from torch import Tensor
 
 from torchcal.report.figures import error_figure
@@ -15,34 +14,13 @@ from torchcal.report.plotting import pyplot
 from torchcal.report.sections import stage_table
 from torchcal.report.units import shown
 
-__all__ = ["write_json", "histogram_figure", "error_figure", "error_details", "stage_problems",
-           "FOREIGN_RATIO", "calibration_markdown", "write_calibration_report"]
-
-# held-out rows this many times worse than the training rows do not come from the same robot
-FOREIGN_RATIO = 20.0
-
-
-def stage_problems(stages: list[dict]) -> list[str]:
-    """Reasons not to trust a calibration, in words, from its stage statistics (first: nominal,
-    last: final): the final model worse than the nominal one on its own training rows, or
-    held-out rows that fit far worse than the training rows. Empty when none."""
-    out = []
-    nom, fin = stages[0], stages[-1]
-    if fin["train"]["mean_mm"] > nom["train"]["mean_mm"]:
-        out.append(f"the calibrated model ({fin['train']['mean_mm']:.4f} mm) is worse than the nominal one "
-                   f"({nom['train']['mean_mm']:.4f} mm) on its own training rows: the fit failed (check the joint "
-                   "order and units of the data, the declared markers, and the method's settings)")
-    # medians: one glitch among the held-out rows is a gross error, not another robot
-    test = fin.get("test") or {}
-    tr, te = fin["train"].get("median_mm", fin["train"]["mean_mm"]), test.get("median_mm", test.get("mean_mm"))
-    if te is not None and te > FOREIGN_RATIO * max(tr, 1e-9):
-        out.append(f"the held-out rows do not belong to this robot's model: their median error ({te:.4g} mm) is "
-                   f"{te / max(tr, 1e-9):.0f}× the training rows' ({tr:.4g} mm); are they from another robot, another "
-                   "set-up (the instrument moved), or another marker?")
-    return out
+__all__ = ["write_json", "histogram_figure", "error_figure", "calibration_json", "calibration_markdown",
+           "write_calibration_report"]
 
 
 def _clean(o):
+    if hasattr(o, "to_json"):  # a typed record becomes JSON here, at the edge
+        return _clean(o.to_json())
     if isinstance(o, float) and not math.isfinite(o):
         return None
     if isinstance(o, dict):
@@ -87,31 +65,23 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     plt.close(fig)
 
 
-def error_details(robot, params: Tensor, data, errors_xyz: Tensor | None = None, obs=None) -> dict:
-    """Per observation of ``data``: the error vector ``xyz (n, 3)`` (model − measured, m,
-    instrument frame; computed from ``params (K,)`` unless given; NaN in axes not measured), its
-    norm ``e (n,)``, the marker's distance from the robot base ``dist (n,)`` (m), and where it
-    came from: ``row (n,)`` (0-based row of ``data``), ``marker (n,)`` (index into
-    ``robot.marker_names``), ``dims (n,)`` (how many components it measured).
-
-    With ``obs`` (:class:`~torchcal.measure.observations.Observations`, ``errors_xyz`` its residual
-    vectors) every observation counts in ``e`` and ``dist`` (a plane contact's error is its signed
-    distance), and ``xyz`` holds the position observations only."""
-    mk = [robot.marker_names.index(m) for m in data.marker_names]
-    base_free = robot.positions(data.q, params, check=False, base=False)[:, mk]
-    robot_marker = torch.tensor(mk, device=base_free.device)
-    if obs is not None:
-        pos = obs.kind == 0
-        xyz = errors_xyz[pos].masked_fill(~obs.mask[pos], float("nan"))
-        return {"e": errors_xyz.norm(dim=-1), "xyz": xyz, "dist": base_free[obs.rows, obs.data_marker].norm(dim=-1),
-                "row": obs.rows, "marker": robot_marker[obs.data_marker], "dims": obs.dims}
-    seen = data.observed
-    if errors_xyz is None:
-        p = robot.positions(data.q, params, check=False)[:, mk][seen]
-        errors_xyz = p - data.positions[seen]
-    rows, cols = torch.nonzero(seen, as_tuple=True)
-    return {"e": torch.nan_to_num(errors_xyz).norm(dim=-1), "xyz": errors_xyz, "dist": base_free[seen].norm(dim=-1),
-            "row": rows, "marker": robot_marker[cols], "dims": torch.isfinite(errors_xyz).sum(-1)}
+def calibration_json(res) -> dict:
+    """``report.json`` of a :class:`~torchcal.pipelines.calibration_result.CalibrationResult`
+    (its shape shared with ``torchcal loop``)."""
+    ident = res.params.free_names
+    s = res.solver
+    return {
+        "robot": res.robot.name, "method": res.method, "loss": res.loss, "n_train": res.n_train, "n_test": res.n_test,
+        "stages": [st.to_json() for st in res.stages],
+        "unidentifiable": sorted(res.unidentifiable), "unidentifiable_reasons": res.unidentifiable,
+        "parameters": {n: {"value": v, "std_error": res.std_errors.get(n), "unit": u}
+                       for n, v, u in zip(res.params.names, res.params.values.tolist(), res.params.units) if n in ident},
+        "solver": {"method": s.method, "fun": s.fun, "n_iter": s.n_iter, "n_evals": s.n_evals,
+                   "wall_time_s": s.wall_time_s, "converged": s.converged, "message": s.message},
+        "wall_time_s": res.wall_time_s, "problems": res.problems(), "suspects": res.suspects,
+        "prior_mm": res.prior_mm, "prior_reason": res.prior_reason, "prior_tried": res.prior_tried,
+        "status": {n: st for n, (st, _) in res.statuses().items()},
+    }
 
 
 def calibration_markdown(res) -> str:
@@ -124,7 +94,7 @@ def calibration_markdown(res) -> str:
              "## Position error per stage (mm)", ""]
     lines += stage_table(res.stages)
     for split, name in (("test", "errors_test.png"), ("train", "errors.png")):
-        if any(e.get(f"{split}_details") is not None for e in res.errors.values()):
+        if any(getattr(e, f"{split}_details") is not None for e in res.errors.values()):
             lines += ["", f"![errors, {split}: histogram, per axis before and after, cumulative with p95, against "
                           f"reach]({name})"]
     if getattr(res, "prior_reason", ""):
@@ -164,8 +134,8 @@ def write_calibration_report(res, out_dir) -> None:
     ``out_dir``."""
     out = Path(out_dir)
     for split in ("train", "test"):
-        st = [(name, e[f"{split}_details"]) for name, e in res.errors.items()
-              if e.get(split) is not None and e[split].numel() and e.get(f"{split}_details") is not None]
+        st = [(name, getattr(e, f"{split}_details")) for name, e in res.errors.items()
+              if getattr(e, f"{split}_details") is not None and getattr(e, f"{split}_details").n]
         if st:
             error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
                          title=f"{res.robot.name}: position error", split=split)

@@ -46,7 +46,7 @@ def _bins(e_all: np.ndarray):
 def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position error", split: str = "train",
                  noise_floor_mm: float | None = None):
     """Four panels a person checks a calibration with, for several stages (``(label, details)``,
-    details from :func:`~torchcal.report.calibration.error_details`): the error histogram; the
+    details from :func:`~torchcal.measure.details.error_details`): the error histogram; the
     per-axis errors of every stage, before beside after; the cumulative distribution with each
     stage's 95th percentile and the noise floor; the error against the marker's distance from the
     robot base. Returns the figure (None when there is nothing to draw)."""

@@ -7,8 +7,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from torchcal.pipelines.loop.result import LoopResult
-from torchcal.pipelines.loop.selection import OUTLIER_K
 from torchcal.report.calibration import write_json
 from torchcal.report.figures import error_figure, evidence_figure, leftover_figure
 from torchcal.report.findings import effect_findings
@@ -17,17 +15,17 @@ from torchcal.report.sections import (candidates_section, flags_section, leftove
                                       parameter_section, stage_table, suspects_table)
 from torchcal.report.units import SIGNIFICANT_Z, shown, with_error, z_score
 
-__all__ = ["write_loop_report", "heldout_suspects", "loop_findings"]
+__all__ = ["write_loop_report", "loop_json", "loop_findings"]
 
 
-def _histograms(res: LoopResult, path: Path, split: str) -> bool:
+def _histograms(res, path: Path, split: str) -> bool:
     """Errors before / geometric / full model in one figure: histograms, per axis, cumulative
     distribution with the 95th percentile and the noise floor, error against reach."""
     names = list(res.errors)
     pick = list(dict.fromkeys(n for n in (names[0], "geometric", names[-1]) if n in res.errors))
     label = {names[0]: "before (base registration only)", "geometric": "geometric calibration"}
-    stages = [(label.get(n, "full model: " + n.lstrip("+")), res.errors[n][f"{split}_details"]) for n in pick
-              if res.errors[n].get(split) is not None and res.errors[n][split].numel()]
+    stages = [(label.get(n, "full model: " + n.lstrip("+")), getattr(res.errors[n], f"{split}_details")) for n in pick
+              if getattr(res.errors[n], f"{split}_details") is not None and getattr(res.errors[n], f"{split}_details").n]
     if not stages:
         return False
     error_figure(stages, path, title=f"{res.robot.name}: error before / geometric / full model", split=split,
@@ -35,23 +33,22 @@ def _histograms(res: LoopResult, path: Path, split: str) -> bool:
     return True
 
 
-def heldout_suspects(res: LoopResult) -> list[dict]:
-    """Held-out observations farther from the final model than the training rows' suspect bound
-    (``OUTLIER_K · √dims · σ̂``): row (0-based, held-out file order), marker, error (mm), largest
-    first. Empty without held-out rows or a noise estimate."""
-    if not res.errors or res.noise_sigma_mm is None:
-        return []
-    d = res.errors[res.stages[-1]["name"]].get("test_details") or {}
-    if "row" not in d or not d["e"].numel():
-        return []
-    bound = OUTLIER_K * d["dims"].double().sqrt() * res.noise_sigma_mm * 1e-3
-    bad = (d["e"] > bound).nonzero().flatten().tolist()
-    out = [{"row": int(d["row"][i]), "marker": res.robot.marker_names[int(d["marker"][i])],
-            "error_mm": float(d["e"][i]) * 1e3} for i in bad]
-    return sorted(out, key=lambda s: -s["error_mm"])
+def loop_json(res) -> dict:
+    """``report.json`` of a :class:`~torchcal.pipelines.loop.result.LoopResult`."""
+    setup = None if res.setup is None else res.setup.describe(
+        res.params.values[res.robot.n_params:res.robot.n_params + res.setup.n_params])
+    return {"robot": res.robot.name, "n_train": res.n_train, "n_test": res.n_test,
+            "noise_floor_mm": res.noise_floor_mm, "noise_floor_source": res.noise_floor_source,
+            "noise_sigma_mm": res.noise_sigma_mm, "huber_threshold_mm": res.huber_mm,
+            "stages": [s.to_json() for s in res.stages], "effects": [a.to_json() for a in res.accepted],
+            "candidates": [c.to_json() for c in res.candidates], "geometric_set": res.geometric,
+            "prior_mm": res.prior_mm, "suspect_rows": res.suspects, "flags": res.flags, "parameters": res.parameters,
+            "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
+            "residual_elm": res.elm is not None, "timings_s": res.timings,
+            "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed}
 
 
-def loop_findings(res: LoopResult) -> list[dict]:
+def loop_findings(res) -> list[dict]:
     """Per accepted stage, what may be stated (:func:`~torchcal.report.findings.effect_findings`)."""
     by_name = {e.name: e for e in res.effects}
     out = []
@@ -68,7 +65,7 @@ def _safe(n: str) -> str:
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in n)
 
 
-def _effect_section(res: LoopResult, findings: list[dict], ev_figs: dict) -> list[str]:
+def _effect_section(res, findings: list[dict], ev_figs: dict) -> list[str]:
     L = ["## What was found", ""]
     if not res.accepted:
         return L + ["No effect passed the rule: the geometric model explains the data to within what the "
@@ -107,14 +104,14 @@ def _effect_section(res: LoopResult, findings: list[dict], ev_figs: dict) -> lis
     return L
 
 
-def write_loop_report(res: LoopResult, out_dir, command: str | None = None) -> Path:
+def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     """Write ``report.json``, ``report.md``, ``report.html``, ``errors_test.png`` /
     ``errors_train.png`` and one ``evidence_<stage>.png`` per accepted effect into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rep = res.report()
     findings = loop_findings(res)
-    held = heldout_suspects(res)
+    held = res.heldout_suspects()
     rep.update({"findings": findings, "suspect_rows_test": held, "significance_z": SIGNIFICANT_Z})
     by_stage = {f["stage"]: f for f in findings}
     for a in rep["effects"]:  # "found" keeps its place but says only what is significant

@@ -6,51 +6,51 @@ from torchcal.report.units import covariate_value, is_time, shown
 
 __all__ = ["stage_table", "suspects_table", "parameter_section", "flags_section", "candidates_section"]
 
-_STATS = (("mean", "mean_mm"), ("RMSE", "rmse_mm"), ("p95", "p95_mm"), ("max", "max_mm"))
+_STATS = (("mean", "mean"), ("RMSE", "rmse"), ("p95", "p95"), ("max", "max"))
 
 
-def _cell(d: dict | None, k: str) -> str:
-    return "–" if not d or d.get(k) is None else f"{d[k]:.4f}"
+def _cell(st, k: str) -> str:
+    """One statistic ``k`` of an :class:`~torchcal.measure.records.ErrorStats` (or None) in a table cell."""
+    return "–" if st is None or not st.n else f"{st.value(k):.4f}"
 
 
 def _num(v, fmt: str = ".4f") -> str:
     return "–" if v is None else format(v, fmt)
 
 
-def stage_table(stages: list[dict]) -> list[str]:
-    """Error per stage: mean, RMSE, 95th percentile and max (mm) on the training and held-out
-    rows; per kind of observation when the rows measured more than positions."""
+def stage_table(stages: list) -> list[str]:
+    """Error per stage (:class:`~torchcal.measure.records.Stage`): mean, RMSE, 95th percentile and
+    max (mm) on the training and held-out rows; per kind of observation when the rows measured
+    more than positions."""
     head = [f"{split} {s}" for split in ("train", "test") for s, _ in _STATS]
     L = ["| stage | parameters | " + " | ".join(head) + " |", "|---" * (2 + len(head)) + "|"]
     for s in stages:
-        tr, te = s.get("train"), s.get("test")
-        cells = [_cell(d, k) for d in (tr, te) for _, k in _STATS]
-        L.append(f"| {s['name']} | {s['n_params']} | " + " | ".join(cells) + " |")
-    kinds = (stages[-1].get("train") or {}).get("per_kind")
+        cells = [_cell(d, k) for d in (s.train, s.test) for _, k in _STATS]
+        L.append(f"| {s.name} | {s.n_params} | " + " | ".join(cells) + " |")
+    kinds = stages[-1].train.per_kind if stages[-1].train is not None else None
     if kinds:
-        te = (stages[-1].get("test") or {}).get("per_kind", {})
+        te = (stages[-1].test.per_kind if stages[-1].test is not None else None) or {}
         L += ["", "An observation's error is the Euclidean norm of what it measured: a partial position's measured "
               "axes, a plane contact's distance from its plane, a distance's difference from the measured one. "
               "Final stage, per kind of observation (mm):", "",
               "| measured | n train | train mean | train RMSE | train p95 | test mean | test RMSE | test p95 |",
               "|---|---|---|---|---|---|---|---|"]
-        L += [f"| {k} | {v['n']} | {_cell(v, 'mean_mm')} | {_cell(v, 'rmse_mm')} | {_cell(v, 'p95_mm')} | "
-              f"{_cell(te.get(k), 'mean_mm')} | {_cell(te.get(k), 'rmse_mm')} | {_cell(te.get(k), 'p95_mm')} |"
+        L += [f"| {k} | {v.n} | {_cell(v, 'mean')} | {_cell(v, 'rmse')} | {_cell(v, 'p95')} | "
+              f"{_cell(te.get(k), 'mean')} | {_cell(te.get(k), 'rmse')} | {_cell(te.get(k), 'p95')} |"
               for k, v in kinds.items()]
     return L
 
 
-def orientation_table(stages: list[dict]) -> list[str]:
+def orientation_table(stages: list) -> list[str]:
     """Angle error per stage (mrad) of the measured orientations, when the rows measured any."""
-    turned = [s for s in stages if (s.get("train") or {}).get("orientation")]
+    turned = [s for s in stages if s.train is not None and s.train.orientation is not None]
     if not turned:
         return []
     L = ["", "Measured orientations, angle error per stage (mrad):", "",
          "| stage | train mean | train RMSE | train max | test mean | test RMSE | test max |", "|---|---|---|---|---|---|---|"]
     for s in turned:
-        tr, te = s["train"]["orientation"], (s.get("test") or {}).get("orientation")
-        L.append(f"| {s['name']} | " + " | ".join(_cell(d, k) for d in (tr, te)
-                                                    for k in ("mean_mrad", "rmse_mrad", "max_mrad")) + " |")
+        tr, te = s.train.orientation, None if s.test is None else s.test.orientation
+        L.append(f"| {s.name} | " + " | ".join(_cell(d, k) for d in (tr, te) for k in ("mean", "rmse", "max")) + " |")
     return L
 
 
@@ -133,23 +133,23 @@ def flags_section(flags: list[dict]) -> list[str]:
     return L + [""]
 
 
-def candidates_section(candidates: list[dict]) -> list[str]:
-    """Every candidate examined, with the numbers that decided."""
+def candidates_section(candidates: list) -> list[str]:
+    """Every candidate examined (:class:`~torchcal.pipelines.loop.records.Candidate`), with the
+    numbers that decided."""
     L = ["## Every candidate examined", "",
          "CV columns decided; the held-out gain (mean, mm) was measured afterwards and steered nothing. A family "
          "(per joint, link or direction) lists the modes its selection kept.", "",
          "| round | candidate | parameters | CV RMSE (mm) | CV gain (mm) | t | held-out gain (mm) | accepted | modes / reason |",
          "|---|---|---|---|---|---|---|---|---|"]
     for c in candidates:
-        if c.get("applicable") is False:
-            L.append(f"| – | {c['name']} | – | – | – | – | – | no | not applicable: {c.get('reason', '')} |")
-            continue
-        if "t" not in c:
-            L.append(f"| {c.get('round', '–')} | {c['name']} | – | – | – | – | – | no | {c.get('reason', '')} |")
-            continue
-        modes = ", ".join(c.get("added_modes") or c.get("modes") or [])
-        L.append(f"| {c.get('round', '–')} | {c['name']} | {c.get('n_params', '–')} | {_num(c.get('cv_rmse_mm'))} | "
-                 f"{_num(c.get('cv_gain_mm'), '+.4f')} | {_num(c.get('t'), '.1f')} | "
-                 f"{_num(c.get('test_gain_mm'), '+.4f')} | {'yes' if c.get('accepted') else 'no'} | {modes} |")
+        rnd = "–" if c.round is None else c.round
+        if not c.applicable:
+            L.append(f"| – | {c.name} | – | – | – | – | – | no | not applicable: {c.reason} |")
+        elif c.t is None:
+            L.append(f"| {rnd} | {c.name} | – | – | – | – | – | no | {c.reason} |")
+        else:
+            L.append(f"| {rnd} | {c.name} | {c.n_params} | {_num(c.cv_rmse_mm)} | {_num(c.cv_gain_mm, '+.4f')} | "
+                     f"{_num(c.t, '.1f')} | {_num(c.test_gain_mm, '+.4f')} | {'yes' if c.accepted else 'no'} | "
+                     f"{', '.join(c.added_modes or c.modes)} |")
     return L
 

@@ -11,6 +11,7 @@ from torch import Tensor
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
 from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
+from torchcal.measure.records import ErrorDetails
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
@@ -115,8 +116,8 @@ class FleetData:
         """``(R, N, M)`` Euclidean errors (m) of every robot with its own parameters ``X (R, K)``."""
         return self.error_vectors(robot, X).norm(dim=-1)
 
-    def details(self, robot: Robot, X: Tensor, V: Tensor) -> list[dict]:
-        """Per robot, what :func:`~torchcal.report.calibration.error_details` gives one data set:
+    def details(self, robot: Robot, X: Tensor, V: Tensor) -> list[ErrorDetails]:
+        """Per robot, what :func:`~torchcal.measure.details.error_details` gives one data set:
         ``e (n,)``, ``xyz (n, 3)`` and the marker's distance from the robot base ``dist (n,)`` (m)
         of its observations, from the error vectors ``V (R, N, M, 3)`` of parameters ``X (R, K)``.
         The base frame only turns and shifts, so that distance is ``|model − base translation|``
@@ -124,7 +125,7 @@ class FleetData:
         t = X[:, [robot.param_names.index(n) for n in BASE_NAMES[:3]]]
         dist = (self.measured + V - t[:, None, None]).norm(dim=-1)
         e = V.norm(dim=-1)
-        return [{"e": e[b][s], "xyz": V[b][s], "dist": dist[b][s]} for b, s in enumerate(self.seen)]
+        return [ErrorDetails(e=e[b][s], xyz=V[b][s], dist=dist[b][s]) for b, s in enumerate(self.seen)]
 
 
 def _rows(robots: list[int], lens: list[int], N: int) -> np.ndarray:

@@ -8,7 +8,7 @@ from pathlib import Path
 from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
-from torchcal.pipelines.calibrate import CalibrationResult
+from torchcal.pipelines.calibration_result import CalibrationResult
 from torchcal.report.fleet import FALSE_ALARM, fleet_markdown, fleet_report, parameter_spread, save_fleet
 
 __all__ = ["FleetResult"]

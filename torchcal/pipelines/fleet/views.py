@@ -17,10 +17,11 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from torchcal.measure.records import Stage, StageErrors
 from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import BatchedLMResult
 from torchcal.optim.result import Result
-from torchcal.pipelines.calibrate import CalibrationResult
+from torchcal.pipelines.calibration_result import CalibrationResult
 from torchcal.pipelines.fitting import imprecise_reason
 from torchcal.pipelines.fleet.identify import FleetDecision, explain
 
@@ -194,7 +195,7 @@ class FleetResults(Sequence):
     @cached_property
     def details(self) -> dict[str, list]:
         """Per split and stage (nominal, final), each robot's plotted error details (what
-        :func:`~torchcal.report.calibration.error_details` gives one data set), from the error vectors
+        :func:`~torchcal.measure.details.error_details` gives one data set), from the error vectors
         of all robots in one pass."""
         R_, N, M = self.fd.seen.shape
         final = self.residuals.reshape(R_, -1)[:, :N * M * 3].reshape(R_, N, M, 3)
@@ -221,17 +222,8 @@ class FleetResults(Sequence):
         return {"free": self.free.tolist(), "se": self.se.tolist(), "n_extra": self.n_extra.tolist(),
                 "cand": self.template.free.tolist()}
 
-    @cached_property
-    def _host_errors(self) -> dict:
-        """The errors and observation masks on the host: each robot's observed errors are then cut
-        out without a wait for the device per robot (a result's ``errors`` are for plots and reports)."""
-        out = {k: None if v is None else v.cpu() for k, v in self.errors.items()}
-        out["seen"] = self.fd.seen.cpu()
-        out["seen_test"] = None if self.fd_test is None else self.fd_test.seen.cpu()
-        return out
-
     def _build(self, b: int, stats: dict) -> CalibrationResult:
-        e, s, h = self._host_errors, b - stats["offset"], self._host
+        s, h = b - stats["offset"], self._host
         p = self.template.clone()
         p.values, p.free = self.X[b].clone(), self.free[b].clone()
         start = self.template.clone()
@@ -242,16 +234,9 @@ class FleetResults(Sequence):
         reasons = self.reasons[b]
         has_test = self.has_test[b]
         stages, errors = [], {}
-        last = (self.stage, "E", "Et", sum(free) + h["n_extra"][b])
-        for i, (name, tr, te, k) in enumerate((("nominal", "E0", "Et0", 0), last)):
-            st = {"name": name, "n_params": k, "train": stats["train"][i][s]}
-            errors[name] = {"train": e[tr][b][e["seen"][b]], "test": torch.zeros(0),
-                            "train_details": self.details["train"][i][b]}
-            if has_test:
-                st["test"] = stats["test"][i][s]
-                errors[name]["test"] = e[te][b][e["seen_test"][b]]
-                errors[name]["test_details"] = self.details["test"][i][b]
-            stages.append(st)
+        for i, (name, k) in enumerate((("nominal", 0), (self.stage, sum(free) + h["n_extra"][b]))):
+            stages.append(Stage(name, k, stats["train"][i][s], stats["test"][i][s] if has_test else None))
+            errors[name] = StageErrors(self.details["train"][i][b], self.details["test"][i][b] if has_test else None)
         return CalibrationResult(robot=self.robot, params=p, std_errors=std,
                                  unidentifiable={n: reasons.get(n, "not identifiable") for n in dropped},
                                  stages=stages, solver=self.solver[b], method="lm", n_train=self.n_train[b],

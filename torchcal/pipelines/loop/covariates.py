@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import torch
 
+from torchcal.effects.base import TIME_COVARIATES
 from torchcal.measure.data import Measurements
 
-__all__ = ["TIME_COLUMNS", "derive_directions", "extrapolation"]
-
-TIME_COLUMNS = ("t_start_robot", "time", "t", "timestamp")
+__all__ = ["derive_directions", "extrapolation"]
 
 
 def derive_directions(data: Measurements) -> str | None:
@@ -19,7 +18,7 @@ def derive_directions(data: Measurements) -> str | None:
     used, or None. A covariate, not a measurement: it is derived for test data the same way."""
     if any(k.startswith("dir.") for k in data.covariates):
         return None
-    key = next((k for k in TIME_COLUMNS if k in data.covariates), None)
+    key = next((k for k in TIME_COVARIATES if k in data.covariates), None)
     if key is None or len(data) < 2:
         return None
     order = torch.argsort(data.covariates[key])
@@ -50,6 +49,6 @@ def extrapolation(eff, test: Measurements | None) -> list[dict]:
                         "note": "the held-out rows lie outside the training range of this covariate: the "
                                 "effect would extrapolate there" + (" (time covariates are clamped to the "
                                                                     "training range in the deployed model)"
-                                                                    if c in TIME_COLUMNS else "")})
+                                                                    if c in TIME_COVARIATES else "")})
     return out
 

@@ -4,11 +4,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from torchcal.deploy.model import CalibratedModel
+from torchcal.measure.records import Stage, StageErrors
 from torchcal.measure.setup import Setup
+from torchcal.measure.trust import stage_problems
 from torchcal.params import ParamSet
-from torchcal.pipelines.loop.selection import T_ACCEPT
+from torchcal.pipelines.loop.records import Candidate, Finding
+from torchcal.pipelines.loop.selection import OUTLIER_K, T_ACCEPT
+from torchcal.report.loop import loop_json
 from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
-from torchcal.report.calibration import stage_problems
 
 __all__ = ["LoopResult"]
 
@@ -34,15 +37,15 @@ class LoopResult:
     params: ParamSet
     effects: list
     elm: object | None
-    stages: list[dict]
-    accepted: list[dict]
-    candidates: list[dict]
+    stages: list[Stage]
+    accepted: list[Finding]
+    candidates: list[Candidate]
     geometric: dict
     n_train: int
     n_test: int
     noise_floor_mm: float | None
     timings: dict = field(default_factory=dict)
-    errors: dict = field(default_factory=dict)   # stage -> {"train": Tensor, "test": Tensor} (m)
+    errors: dict[str, StageErrors] = field(default_factory=dict)  # stage name -> its errors (m)
     evidence: dict = field(default_factory=dict)  # effect -> arrays for plots
     elm_covariates: list = field(default_factory=list)
     geometric_fits: dict = field(default_factory=dict)  # set name -> ParamSet fitted on all training rows
@@ -61,9 +64,9 @@ class LoopResult:
 
     def __repr__(self) -> str:
         last = self.stages[-1]
-        te = f", held-out mean {last['test']['mean_mm']:.4f} mm" if last.get("test") else ""
-        return (f"LoopResult({self.robot.name}: {' → '.join(s['name'] for s in self.stages)}; training mean "
-                f"{last['train']['mean_mm']:.4f} mm{te}; {len(self.suspects)} suspect observation(s))")
+        te = f", held-out mean {last.test.mean:.4f} mm" if last.test is not None else ""
+        return (f"LoopResult({self.robot.name}: {' → '.join(s.name for s in self.stages)}; training mean "
+                f"{last.train.mean:.4f} mm{te}; {len(self.suspects)} suspect observation(s))")
 
     def problems(self) -> list[str]:
         """Reasons not to trust this model, in words: a final model worse than the nominal one on
@@ -76,22 +79,31 @@ class LoopResult:
                                           self.plausible or PLAUSIBLE))
         return out
 
+    def heldout_suspects(self) -> list[dict]:
+        """Held-out observations farther from the final model than the training rows' suspect bound
+        (``OUTLIER_K · √dims · σ̂``): row (0-based, held-out file order), marker, error (mm), largest
+        first. Empty without held-out rows or a noise estimate."""
+        if not self.errors or self.noise_sigma_mm is None:
+            return []
+        d = self.errors[self.stages[-1].name].test_details
+        if d is None or d.row is None or not d.e.numel():
+            return []
+        bound = OUTLIER_K * d.dims.double().sqrt() * self.noise_sigma_mm * 1e-3
+        bad = (d.e > bound).nonzero().flatten().tolist()
+        out = [{"row": int(d.row[i]), "marker": self.robot.marker_names[int(d.marker[i])],
+                "error_mm": float(d.e[i]) * 1e3} for i in bad]
+        return sorted(out, key=lambda s: -s["error_mm"])
+
+    @property
+    def rule(self) -> str:
+        """The acceptance rule every decision of the run followed, in words."""
+        return (f"accept when the paired t statistic of the cross-validated per-row Huber-score improvement "
+                f"exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective parameters); a family's modes "
+                f"are added one by one under the same rule with the threshold raised for the number of modes tried")
+
     def report(self) -> dict:
-        return {"robot": self.robot.name, "n_train": self.n_train, "n_test": self.n_test,
-                "noise_floor_mm": self.noise_floor_mm, "noise_floor_source": self.noise_floor_source,
-                "noise_sigma_mm": self.noise_sigma_mm,
-                "huber_threshold_mm": self.huber_mm, "stages": self.stages, "effects": self.accepted,
-                "candidates": self.candidates, "geometric_set": self.geometric, "prior_mm": self.prior_mm,
-                "suspect_rows": self.suspects, "flags": self.flags, "parameters": self.parameters,
-                "observability": self.observability, "problems": self.problems(),
-                "setup": None if self.setup is None else self.setup.describe(
-                    self.params.values[self.robot.n_params:self.robot.n_params + self.setup.n_params]),
-                "rule": f"accept when the paired t statistic of the cross-validated per-row Huber-score "
-                        f"improvement exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective "
-                        f"parameters); a family's modes are added one by one under the same rule with the "
-                        f"threshold raised for the number of modes tried",
-                "residual_elm": self.elm is not None, "timings_s": self.timings,
-                "leftover": None if self.leftover is None else self.leftover.report(), "removed_modes": self.removed}
+        """The JSON-serialisable report (:func:`~torchcal.report.loop.loop_json`)."""
+        return loop_json(self)
 
     def model(self, *, force: bool = False):
         """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when

@@ -10,6 +10,7 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
                                          prior_weights, split_params)
 from torchcal.pipelines.loop.linear_cv import LinearCV
+from torchcal.pipelines.loop.records import EffectStart
 from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
@@ -93,14 +94,10 @@ def _step_words(h: dict, labels: list[str]) -> dict:
             "t": {name(g): t for g, t in h["tried"].items()}}
 
 
-def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=frozenset()) -> dict:
-    """Where a candidate effect starts: modes chosen (for a family) and start values from the
-    linear step around ``current`` without the ``superseded`` effects.
-
-    Returns a dict: ``effect`` (restricted to the chosen modes), ``params`` (start values, free
-    flags of the current model plus the effect's), ``effects`` (the trial's effect list),
-    ``selection`` (per step: each mode's t and the threshold) and ``reason`` (why nothing is
-    proposed; then ``effect`` is None). Modes in ``tabu`` (labels) are not offered."""
+def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=frozenset()) -> EffectStart:
+    """Where a candidate effect starts (:class:`~torchcal.pipelines.loop.records.EffectStart`):
+    modes chosen (for a family) and start values from the linear step around ``current`` without
+    the ``superseded`` effects. Modes in ``tabu`` (labels) are not offered."""
     robot = ctx.robot
     geo, parts = split_params(current.params, robot, current.effects)
     keep = [(e, p) for e, p in zip(current.effects, parts) if e not in superseded]
@@ -117,7 +114,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     labels = [lab for lab, _ in eff.modes()]
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
-    out = {"selection": [], "prior_mm": current.prior_mm}
+    out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
         forced = [labels.index(lab) for lab in forced_labels if lab in labels]
@@ -153,21 +150,21 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         w_ = prior_weights(robot, base, best["prior_mm"], ctx.sigma, base_effects)
         lcv.set_prior(None if w_ is None else w_[base.free_index])
         chosen, hist = best["chosen"], best["hist"]
-        out["prior_mm"] = best["prior_mm"]
-        out["selection"] = [_step_words(h, labels) for h in hist]
+        out.prior_mm = best["prior_mm"]
+        out.selection = [_step_words(h, labels) for h in hist]
         soft = _soft_option(lcv, forced, ctx, baseline, best, shared)
         if soft is not None:
             chosen = soft["chosen"]
-            out["soft"] = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
+            out.soft = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
         elif not best["new"]:
-            out.update(effect=None, reason="no mode passed the selection")
+            out.reason = "no mode passed the selection"
             return out
         if soft is None:
-            out["aliases"] = {labels[g]: [labels[h] for h in hs] for g, hs in lcv.aliases(chosen).items()
-                              if g in best["new"]}
+            out.aliases = {labels[g]: [labels[h] for h in hs] for g, hs in lcv.aliases(chosen).items()
+                           if g in best["new"]}
         ok, why = eff.proposes([labels[g] for g in chosen])
         if not ok:
-            out.update(effect=None, reason=why)
+            out.reason = why
             return out
         chosen = sorted(chosen)  # the restricted effect keeps the catalogue's order
         eff = eff.with_modes([labels[g] for g in chosen])
@@ -189,6 +186,6 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
     start.free[: ctx.n_geo] = current.info["candidates"]
     params = ParamSet.concat(start, effect_params([eff]))
-    out.update(effect=eff, params=params, effects=base_effects + [eff], reason="",
-               info={"candidates": current.info["candidates"]})
+    out.effect, out.params, out.effects = eff, params, base_effects + [eff]
+    out.info = {"candidates": current.info["candidates"]}
     return out

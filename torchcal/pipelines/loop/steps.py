@@ -13,6 +13,7 @@ from torchcal.effects import build_effect
 from torchcal.measure.setup import Setup
 from torchcal.pipelines.loop.fit import (Context, Model, evaluate, evaluate_prior, noise_sigma,
                                          observation_model, rescore)
+from torchcal.pipelines.loop.records import Candidate, Trial
 from torchcal.pipelines.loop.selection import HUBER_K, compare, penalised, row_scores
 from torchcal.pipelines.loop.stages import elm_inputs, residual_matrix, stage_stats
 from torchcal.pipelines.loop.start import effect_start
@@ -48,39 +49,36 @@ def progress_bar(progress: bool):
     return tqdm(desc="diagnosis", unit="candidate")
 
 
-def try_candidate(ctx: Context, current: Model, name: str, robot, train, test, n_obs: int, say, rnd: int,
-                  tabu=frozenset()) -> dict:
+def try_candidate(ctx: Context, current: Model, name: str, robot, train, n_obs: int, say, rnd: int,
+                  tabu=frozenset()) -> Trial:
     """One candidate effect against ``current``: its start (modes chosen), fit, CV and the rule;
     under a geometric prior, the prior is re-chosen among its neighbours with the effect."""
     covering = [e.name for e in current.effects if name in getattr(e, "supersedes", ()) and e.name != name]
     if covering:
-        return {"name": name, "covered": True,
-                "entry": {"name": name, "reason": f"its modes are part of the accepted {covering[0]}"}}
+        why = f"its modes are part of the accepted {covering[0]}"
+        return Trial(name, Candidate(name, "covered", reason=why, round=rnd), covered=True)
     eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params])
     # a family replaces what it extends: an effect it supersedes, or itself accepted with fewer modes
     superseded = [e for e in current.effects if e.name in eff.supersedes or (eff.selectable and e.name == name)]
     start = effect_start(ctx, current, eff, superseded, tabu)
-    if start["effect"] is None:
-        say(f"round {rnd}: {name:<20} {start['reason']}")
-        return {"name": name, "entry": {"name": name, "reason": start["reason"], "selection": start["selection"]}}
-    if start["prior_mm"] is None:
-        best = evaluate(ctx, f"+{name}", start["params"], start["effects"], None, info=start["info"])
+    if start.effect is None:
+        say(f"round {rnd}: {name:<20} {start.reason}")
+        return Trial(name, Candidate(name, "not proposed", reason=start.reason, selection=start.selection, round=rnd))
+    if start.prior_mm is None:
+        best = evaluate(ctx, f"+{name}", start.params, start.effects, None, info=start.info)
     else:  # with the effect in, the geometry may want another prior: its CV chooses again
-        best = evaluate_prior(ctx, f"+{name}", start["params"], start["effects"], start["prior_mm"], info=start["info"])
+        best = evaluate_prior(ctx, f"+{name}", start.params, start.effects, start.prior_mm, info=start.info)
     t, pen_ok, ok = compare(current.scores, best.scores, current.k, best.k, n_obs)
     gain = current.cv_rmse_mm(n_obs) - best.cv_rmse_mm(n_obs)
     modes = [lab for lab, _ in best.effects[-1].modes()] if best.effects[-1].selectable else []
     before = {lab for e in superseded for lab, _ in e.modes()}
-    added = [lab for lab in modes if lab not in before]
     say(f"round {rnd}: {name:<20} {best.k:>5.1f} params  CV {best.cv_rmse_mm(n_obs):.4f} mm  gain {gain:+.4f} mm"
         f"  t = {t:.1f}" + (f"  modes: {', '.join(modes)}" if modes else ""))
-    entry = {"name": name, "n_params": int(round(best.k)), "cv_rmse_mm": best.cv_rmse_mm(n_obs),
-             "cv_gain_mm": gain, "t": t, "penalised_ok": pen_ok, "modes": modes, "added_modes": added,
-             "extends": [e.name for e in superseded], "selection": start["selection"],
-             "aliases": start.get("aliases", {}), "soft": start.get("soft")}
-    if best.prior_mm is not None:
-        entry["prior_mm"] = best.prior_mm
-    return {"name": name, "ok": ok, "model": best, "entry": entry}
+    line = Candidate(name, "fitted", round=rnd, n_params=int(round(best.k)), cv_rmse_mm=best.cv_rmse_mm(n_obs),
+                     cv_gain_mm=gain, t=t, penalised_ok=pen_ok, modes=modes,
+                     added_modes=[lab for lab in modes if lab not in before], extends=[e.name for e in superseded],
+                     selection=start.selection, aliases=start.aliases, soft=start.soft, prior_mm=best.prior_mm)
+    return Trial(name, line, model=best, ok=ok)
 
 
 def compare_at(ctx: Context, best: Model, m: Model, n_obs: int) -> tuple[float, bool, bool]:
@@ -121,7 +119,7 @@ def test_gain(robot, current: Model, cand: Model, test, setup: Setup | None = No
         return None
     a, _ = stage_stats(robot, current.params, current.effects, test, setup=setup, rot_weight=rot_weight)
     b, _ = stage_stats(robot, cand.params, cand.effects, test, setup=setup, rot_weight=rot_weight)
-    return a["mean_mm"] - b["mean_mm"]
+    return a.mean - b.mean
 
 
 def clipped(r: Tensor, c: float | None) -> Tensor:
