@@ -146,6 +146,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self.joint_names = sorted((jt.name for jt in self.joints if jt.movable and jt.mimic is None),
                                   key=lambda n: self._file_order.get(n, 0))
         self.dof = len(self.joint_names)
+        self._specs = {jt.name: jt for jt in self.joints}
         if self.dof == 0:
             where = ", ".join(f"{m.name} on {m.link!r}" for m in self.markers)
             raise ValueError(f"no movable joint lies between the root link {self.root!r} and the markers ({where}): "
