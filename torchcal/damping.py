@@ -8,8 +8,10 @@ rules here: the gain ratio, Nielsen's damping update (Madsen, Nielsen & Tingleff
 non-linear least squares problems*, 2004, Alg. 3.16), the initial damping, the floor of Marquardt's
 scaling, MINPACK's scale-free gradient test and the ftol/xtol stopping tests.
 
-Every function takes Python floats (one problem) or tensors (one entry per problem) alike, and
-computes the same expression either way, so a batched loop follows the single solver to the bit.
+The rules that the single solver applies to Python floats (one problem) take tensors (one entry
+per problem) as well and compute the same expression either way, so a batched loop follows the
+single solver to the bit. IK uses the initial damping only: it takes any step that lowers its
+error and moves the damping by fixed factors (see :mod:`torchcal.kinematics.ik`).
 
 Why here, at the top of the package beside :mod:`torchcal.params`: the helpers serve kinematics
 (IK) and optim alike, and kinematics comes before optim in the data path (kinematics -> measure ->
