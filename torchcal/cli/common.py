@@ -20,7 +20,8 @@ import yaml
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker, parse_marker
 from torchcal.kinematics.urdf import urdf_links
-from torchcal.measure.io import UNITS, load_measurements, marker_columns_in, read_csv
+from torchcal.measure.columns import marker_columns_in
+from torchcal.measure.io import UNITS, load_measurements, read_csv
 from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",

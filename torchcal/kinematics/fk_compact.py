@@ -103,7 +103,31 @@ class PositionKernel:
             sl = lay.slices[name]
             return slots0[sl], E[:, sl].contiguous(), bool(E[:, sl].any())
 
-        # --- joint values: exp(i q) per pose; free offsets of revolute DH joints go into φ
+        Eo_j, dh_rev = self._joint_values(q, group)
+        dh_c = self._dh_origins(group, Eo_j, dh_rev)
+        urdf_c = self._urdf_origins(group)
+        self._dh_c, self._urdf_c = dh_c, urdf_c
+        self._AT_c = None
+        if self._dh is None and self._urdf is None:
+            self._AT_c = self._origins_T(dh_c, urdf_c).unbind(1)
+        self._marker_points(group)
+        self._base_c = self._base = None
+        if base:
+            b0, Eb, b_var = group("base")
+            if b_var:
+                self._base = (b0, Eb)
+            elif bool(b0.any()):
+                self._base_c = _hom_T(so3_exp(b0[3:]), b0[:3])
+        self._chains(rows, cols)
+        self._cap = 0
+        self._views: dict[int, tuple] = {}
+
+    # ------------------------------------------------------------------ what a call needs, built once
+    def _joint_values(self, q: Tensor, group) -> tuple[Tensor, Tensor]:
+        """``exp(i q)`` per pose and joint, the prismatic travel, and the map of free offsets that
+        stay per pose; free offsets of revolute DH joints go into φ instead. Returns the map of
+        free values to joint values ``(k, J)`` and which DH joints are revolute."""
+        r, lay = self.robot, self.layout
         o0, Eo, _ = group("offset")
         Eo_j = Eo @ lay.Mmap.T  # (k, J) free value -> joint angle / travel
         qj0 = (q + o0) @ lay.Mmap.T + lay.moff  # (N, J) with the fixed offsets
@@ -115,29 +139,40 @@ class PositionKernel:
         self._Eq = torch.polar(torch.ones_like(qj0), qj0)  # (N, J)
         self._rot = list(self._Eq.T.contiguous())  # per joint (N,) complex
         self._any_pri = 2 in lay.kinds
+        return Eo_j, dh_rev
 
-        # --- DH origins from a (10, Jd) block of values per parameter vector (see _N_COS)
+    def _dh_origins(self, group, Eo_j: Tensor, dh_rev: Tensor) -> Tensor | None:
+        """DH origins from a ``(10, Jd)`` block of values per parameter vector (see ``_N_COS``): kept
+        as ``self._dh`` when a free value moves them, else returned as constants ``(1, Jd, 4, 4)``."""
+        r, lay = self.robot, self.layout
+        dt = dict(dtype=r.dtype, device=r.device)
         self._dh = None
-        dh_c = urdf_c = None
-        if lay.dh_idx:
-            Jd = len(lay.dh_idx)
-            d0, Ed, _ = group("dh")
-            v0 = (lay.dh_nom.reshape(-1) + d0).reshape(Jd, 4)  # a, d, α, φ
-            Ed = Ed.reshape(self.k, Jd, 4)
-            Ephi = Ed[..., 3] + Eo_j[:, lay.dh_idx] * dh_rev
-            al, ph, zero = v0[:, 2], v0[:, 3], torch.zeros(Jd, **dt)
-            w0 = torch.stack([al + _SHIFT[0], al + _SHIFT[1], al + _SHIFT[2], zero, ph + _SHIFT[0],
-                              ph + _SHIFT[1], ph + _SHIFT[2], v0[:, 0], v0[:, 1], zero]).reshape(-1)
-            Z = torch.zeros_like(Ephi)
-            Ew = torch.stack([Ed[..., 2]] * 3 + [Z] + [Ephi] * 3 + [Ed[..., 0], Ed[..., 1], Z], 1).reshape(self.k, -1)
-            pairs = _dh_pairs([r.joints[j].dh.convention for j in lay.dh_idx], r.device)
-            if bool(Ew.any()):
-                self._dh = (w0, Ew.contiguous(), pairs)
-            else:
-                dh_c = self._dh_T(w0[None].clone(), pairs).transpose(1, 2).unflatten(-1, (4, 4))
+        if not lay.dh_idx:
+            return None
+        Jd = len(lay.dh_idx)
+        d0, Ed, _ = group("dh")
+        v0 = (lay.dh_nom.reshape(-1) + d0).reshape(Jd, 4)  # a, d, α, φ
+        Ed = Ed.reshape(self.k, Jd, 4)
+        Ephi = Ed[..., 3] + Eo_j[:, lay.dh_idx] * dh_rev
+        al, ph, zero = v0[:, 2], v0[:, 3], torch.zeros(Jd, **dt)
+        w0 = torch.stack([al + _SHIFT[0], al + _SHIFT[1], al + _SHIFT[2], zero, ph + _SHIFT[0],
+                          ph + _SHIFT[1], ph + _SHIFT[2], v0[:, 0], v0[:, 1], zero]).reshape(-1)
+        Z = torch.zeros_like(Ephi)
+        Ew = torch.stack([Ed[..., 2]] * 3 + [Z] + [Ephi] * 3 + [Ed[..., 0], Ed[..., 1], Z], 1).reshape(self.k, -1)
+        pairs = _dh_pairs([r.joints[j].dh.convention for j in lay.dh_idx], r.device)
+        if bool(Ew.any()):
+            self._dh = (w0, Ew.contiguous(), pairs)
+            return None
+        return self._dh_T(w0[None].clone(), pairs).transpose(1, 2).unflatten(-1, (4, 4))
+
+    def _urdf_origins(self, group) -> Tensor | None:
+        """URDF origins: kept as ``self._urdf`` when a free value moves them, else returned as
+        constants. Also the alignment matrices the origins are wrapped in when axes are not z."""
+        lay = self.layout
+        dt = dict(dtype=self.robot.dtype, device=self.robot.device)
         # the DH origins go straight into a work buffer unless other joints must be merged in
         self._dh_direct = self._dh is not None and not lay.urdf_idx
-        self._urdf = None
+        self._urdf = urdf_c = None
         if lay.urdf_idx:
             u0, Eu, u_var = group("urdf")
             if u_var:
@@ -150,14 +185,15 @@ class PositionKernel:
             self._left_C[:, :3, :3] = lay.C.transpose(-1, -2)
             self._right_C = torch.eye(4, **dt).repeat(self.J, 1, 1)
             self._right_C[:, :3, :3] = lay.CpT.transpose(-1, -2)
-        self._dh_c, self._urdf_c = dh_c, urdf_c
-        self._AT_c = None
-        if self._dh is None and self._urdf is None:
-            self._AT_c = self._origins_T(dh_c, urdf_c).unbind(1)
+        return urdf_c
 
-        # --- markers: only the point matters for positions, and it is linear in its offsets
+    def _marker_points(self, group) -> None:
+        """Homogeneous marker points on their links ``(M, 4)``: only the point matters for
+        positions, and it is linear in its offsets."""
+        lay = self.layout
+        dt = dict(dtype=self.robot.dtype, device=self.robot.device)
         m0, Em, mk_var = group("marker")
-        M = len(r.markers)
+        M = len(self.robot.markers)
         CmT = lay.CmT if not lay.aligned else torch.eye(3, **dt).expand(M, 3, 3)
         mt0 = lay.mk_t + (lay.mk_R @ m0.reshape(M, 6)[:, :3, None])[..., 0]
         self._mk0 = torch.cat([(CmT @ mt0[..., None])[..., 0], torch.ones(M, 1, **dt)], -1)  # (M, 4)
@@ -166,18 +202,13 @@ class PositionKernel:
             Em3 = torch.einsum("kmj,mij->kmi", Em.reshape(self.k, M, 6)[..., :3], CmT @ lay.mk_R)
             self._mk = (self._mk0.reshape(-1), torch.cat([Em3, torch.zeros(self.k, M, 1, **dt)], -1).reshape(self.k, -1))
 
-        # --- base frame, applied after the chain
-        self._base_c = self._base = None
-        if base:
-            b0, Eb, b_var = group("base")
-            if b_var:
-                self._base = (b0, Eb)
-            elif bool(b0.any()):
-                self._base_c = _hom_T(so3_exp(b0[3:]), b0[:3])
-
-        # --- per-marker chains: joints from the marker's link up to the root
+    def _chains(self, rows: Tensor | None, cols: Tensor | None) -> None:
+        """Per marker, the joints from its link up to the root; and which (pose, marker) pairs a
+        call returns."""
+        r = self.robot
+        M = len(r.markers)
         self._paths = []
-        for f in lay.mk_frame:
+        for f in self.layout.mk_frame:
             path = []
             while f != 0:
                 path.append(f - 1)
@@ -191,8 +222,6 @@ class PositionKernel:
             self.n_obs = int(rows.numel())
             if not (M == 1 and torch.equal(rows, torch.arange(self.N, device=r.device))):
                 self._gather = (rows, cols)
-        self._cap = 0
-        self._views: dict[int, tuple] = {}
 
     # ------------------------------------------------------------------ origins
     @staticmethod

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import torch
 from torch import Tensor
 
-from torchcal.kinematics.transforms import rot_y, rot_z, skew, so3_left_jacobian
+from torchcal.kinematics.transforms import rot_y, rot_z, so3_left_jacobian
 
 __all__ = ["Jacobians"]
 
@@ -115,26 +115,44 @@ class Jacobians:
         rot = torch.tensor(is_rot, device=self.device)
         ix = lambda v: torch.tensor(v, dtype=torch.long, device=self.device)  # noqa: E731
         return SimpleNamespace(parent_urdf=ix([self.parent_frame[j] for j in self._urdf_idx]),
-                               parent=ix(self.parent_frame), dh=ix(self._dh_idx), mk_frame=ix(self._mk_frame),rot_f=rot.to(self.dtype), ri=torch.nonzero(rot).flatten(),
+                               parent=ix(self.parent_frame), dh=ix(self._dh_idx), mk_frame=ix(self._mk_frame),
+                               rot_f=rot.to(self.dtype), ri=torch.nonzero(rot).flatten(),
                                pidx=torch.tensor(pidx, dtype=torch.long, device=self.device), off=off,
                                mask=torch.cat(masks, 0).to(self.dtype).T)
 
     def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
+        """Derivatives of the marker poses by every slot: ``(P, N, M, r, S)`` (``r`` 3 rows for
+        ``kind="position"``, 6 for ``"pose"``), and the marker positions ``(P, N, M, 3)`` (m,
+        instrument frame)."""
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
         mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
+        axes, pts = self._slot_axes(slots, Rs, ts, JR, Jt, mt)
+        Jv, mw, m_inst = self._slot_columns(slots, axes, pts, kind)  # (P, r, N, M, V)
+        # split back into slot groups; offsets per movable joint -> per actuated joint
+        Jn = len(self.joints)
+        nu, nd = 6 * len(self._urdf_idx), 4 * len(self._dh_idx)
+        J_orig = Jv[..., : nu + nd]
+        J_mov = Jv[..., nu + nd: nu + nd + Jn] @ self._Mmap  # (P, r, N, M, dof)
+        J_mk = Jv[..., nu + nd + Jn:]
+        base = self._base_columns(slots, mw, Jv, kind)
+        Jac = torch.cat([base, J_orig, J_mov, J_mk], -1)  # (P, r, N, M, S)
+        return Jac.permute(0, 2, 3, 1, 4), m_inst.permute(0, 2, 3, 1)  # (P, N, M, r, S), (P, N, M, 3)
+
+    def _slot_axes(self, slots: Tensor, Rs: list, ts: list, JR: list, Jt: list, mt: Tensor
+                   ) -> tuple[list[Tensor], list[Tensor]]:
+        """The axis (rotations) or direction (translations) of every non-base slot, in the robot-base
+        frame, as ``(P, 3, N, n)`` blocks (URDF origins, DH rows, zero offsets per movable joint,
+        markers); and the points the rotational ones turn about, as ``(P, N, n, 3)`` blocks (joint
+        origins, DH parent origins, markers)."""
         P, N = mt.shape[0], mt.shape[1]
         dt = dict(dtype=self.dtype, device=self.device)
         eye = torch.eye(3, **dt)
-        Jn = len(self.joints)
         # internal (axis-aligned) frames; root = identity. The URDF frame is RFi·Cᵀ: the Cᵀ is folded
         # into the small per-parameter-vector direction matrices, not into every pose's frames
         RFi = torch.stack([eye.expand(P, N, 3, 3) if R is None else R.expand(P, N, 3, 3) for R in Rs], 2)
         RJ = torch.stack([x.expand(P, N, 3, 3) for x in JR], 2)  # internal (aligned) joint frames
         CJ = None if self._aligned else self._CfT[1:]
-        tJ = torch.stack([x.expand(P, N, 3) for x in Jt], 2)
-        # every rotational column turns about an axis through one of these points: the joint
-        # origins (J), the parent origins (J, DH only) and the markers (M)
-        pts = [tJ]
+        pts = [torch.stack([x.expand(P, N, 3) for x in Jt], 2)]
         axes = []
         if self._urdf_idx:
             pU = self._jac_layout.parent_urdf
@@ -148,9 +166,8 @@ class Jacobians:
         if self._dh_idx:
             D, parent = self._jac_layout.dh, self._jac_layout.parent
             RP = RFi[:, :, parent] if self._aligned else RFi[:, :, parent] @ self._CpT
-            tP = torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
-                              for f in self.parent_frame], 2)
-            pts.append(tP)
+            pts.append(torch.stack([torch.zeros(P, N, 3, **dt) if ts[f] is None else ts[f].expand(P, N, 3)
+                                    for f in self.parent_frame], 2))
             RJ_urdf = RJ if CJ is None else RJ @ CJ
             Rp, Rj = RP[:, :, D], RJ_urdf[:, :, D]
             cls = self._dh_classic[:, None]
@@ -160,28 +177,34 @@ class Jacobians:
             a_d = torch.where(cls, z_p, z_j)
             ax = torch.stack([x_p, a_d, x_p, z_j], -2)
             axes.append(ax.reshape(P, N, -1, 3).permute(0, 3, 1, 2))
-        # zero offsets: one virtual joint per movable joint, mapped to actuated columns below
+        # zero offsets: one virtual joint per movable joint, mapped to actuated columns later
         mov_dir = self._axis[..., None] if CJ is None else CJ @ self._axis[..., None]  # (J, 3, 1)
         mov_ax = (RJ @ mov_dir)[..., 0]  # (P, N, J, 3)
         axes.append(mov_ax.permute(0, 3, 1, 2))
         # marker offsets: like a fixed joint on the marker's link
-        M = len(self.markers)
         e = slots[:, self._slices["marker"]].reshape(P, -1, 6)
         dirs = self._rpy_directions(e, self._mk_R)
         if not self._aligned:
             dirs = self._CmT @ dirs
         axes.append(self._turn(RFi[:, :, self._jac_layout.mk_frame], dirs))
         pts.append(mt)
+        return axes, pts
+
+    def _slot_columns(self, slots: Tensor, axes: list[Tensor], pts: list[Tensor], kind: str
+                      ) -> tuple[Tensor, Tensor, Tensor]:
+        """The non-base columns ``(P, r, N, M, V)`` in the instrument frame: a translation moves a
+        marker along its direction, a rotation by ``axis × (marker − point)`` (and turns it about
+        ``axis``, the last three rows of ``"pose"``), for the markers the slot's joint carries. Also
+        the markers ``Rb·mt`` and their instrument-frame positions, ``(P, 3, N, M)``."""
         lay = self._jac_layout
         mask, ri, off = lay.mask, lay.ri, lay.off
-
+        P, N, M = pts[-1].shape[0], pts[-1].shape[1], len(self.markers)
         # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
         # every elementwise pass runs over long rows (with the 3 components innermost, as the
         # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
         # batched 3 x 3 product per parameter vector.
         V = sum(x.shape[-1] for x in axes)
         Rb, tb = self._base(slots)
-
         # the axes in the instrument frame, (P, 3, N, V)
         a = (Rb @ torch.cat(axes, -1).reshape(P, 3, N * V)).reshape(P, 3, N, V)
         Vp = off + M
@@ -196,17 +219,15 @@ class Jacobians:
         lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
         lin.index_copy_(-1, ri, torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1))
         lin *= mask
-        rows = [lin]
-        if kind == "pose":
-            rows.append(a[:, :, :, None, :] * (mask * lay.rot_f))
-        Jv = torch.cat(rows, 1) if len(rows) > 1 else lin  # (P, r, N, M, V)
-        r_rows = Jv.shape[1]
-        # split back into slot groups; offsets per movable joint -> per actuated joint
-        nu, nd = 6 * len(self._urdf_idx), 4 * len(self._dh_idx)
-        J_orig = Jv[..., : nu + nd]
-        J_mov = Jv[..., nu + nd: nu + nd + Jn] @ self._Mmap  # (P, r, N, M, dof)
-        J_mk = Jv[..., nu + nd + Jn:]
-        # base columns: translations along the instrument axes, rotations about J_l e_k
+        if kind != "pose":
+            return lin, mw, m_inst
+        return torch.cat([lin, a[:, :, :, None, :] * (mask * lay.rot_f)], 1), mw, m_inst
+
+    def _base_columns(self, slots: Tensor, mw: Tensor, Jv: Tensor, kind: str) -> Tensor:
+        """The base's columns ``(P, r, N, M, 6)``: translations along the instrument axes, rotations
+        about ``J_l e_k`` (``J_l`` the left Jacobian of the base rotation vector) at the markers
+        ``mw (P, 3, N, M)``."""
+        P, r_rows, N, M = Jv.shape[:4]
         Jl = so3_left_jacobian(slots[:, self._slices["base"]][:, 3:])  # (P, 3, 3), column k: J_l e_k
         base = Jv.new_zeros(P, r_rows, N, M, 6)
         base[:, 0, ..., 0] = 1.0
@@ -219,6 +240,4 @@ class Jacobians:
         base[:, 2, ..., 3:] = kx * wy - ky * wx
         if kind == "pose":
             base[:, 3:, ..., 3:] = Jl[:, :, None, None, :]
-        Jac = torch.cat([base, J_orig, J_mov, J_mk], -1)  # (P, r, N, M, S)
-        return Jac.permute(0, 2, 3, 1, 4), m_inst.permute(0, 2, 3, 1)  # (P, N, M, r, S), (P, N, M, 3)
-
+        return base

@@ -30,16 +30,13 @@ from torchcal.kinematics.dh import dh_joints
 from torchcal.kinematics.export import URDFExport
 from torchcal.kinematics.fk import ForwardKinematics
 from torchcal.kinematics.jacobian import Jacobians
+from torchcal.kinematics.slots import slot_layout
 from torchcal.kinematics.transforms import align_z, homogeneous
 from torchcal.kinematics.tree import JointSpec, Marker, parse_marker, select_subtree
 from torchcal.kinematics.urdf import load_joints, read_urdf_text
 from torchcal.params import ParamSet
 
 __all__ = ["Robot"]
-
-_ORIGIN_SLOTS = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
-_DH_SLOTS = ("a", "d", "alpha", "phi")
-_BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 
 
 class Robot(ForwardKinematics, Jacobians, URDFExport):
@@ -115,18 +112,39 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         return cls(name, joints, list(markers), dtype=dtype, device=device)
 
     def _build(self) -> None:
-        fk = dict(dtype=self.dtype, device=self.device)
-        J = len(self.joints)
-        link_frame = {self.root: 0}
-        for j, jt in enumerate(self.joints):
-            link_frame[jt.child] = j + 1
-        self.link_frame = link_frame
-        self.parent_frame = [link_frame[jt.parent] for jt in self.joints]
-        self.serial = all(p == j for j, p in enumerate(self.parent_frame))
+        """Everything the kinematics reads, from the joints and markers: the frame tree, the joint
+        motion, the parameter slots, the nominal geometry in axis-aligned frames, the markers and
+        the limits (again on :meth:`to`, for another device or dtype)."""
+        self._frame_tree()
+        self._motion()
+        self._parameter_slots()
+        self._nominal_geometry()
+        self._aligned_frames()
+        self._marker_geometry()
         by_name = {jt.name: jt for jt in self.joints}
+        fk = dict(dtype=self.dtype, device=self.device)
+        lim_lo = [by_name[n].lower for n in self.joint_names]
+        lim_hi = [by_name[n].upper for n in self.joint_names]
+        self.joint_limits = (torch.tensor([-np.inf if v is None else v for v in lim_lo], **fk),
+                             torch.tensor([np.inf if v is None else v for v in lim_hi], **fk))
+        self._units = [("m" if by_name[n].type == "prismatic" else "rad") for n in self.joint_names]
+        # filled now rather than lazily: a cache first filled inside a torch.func transform would
+        # carry that transform's level and break later calls
+        self._nominal_cache = None
+        self._nominal_cache = self._origins(None)
+        self._nominal_cache4 = homogeneous(*self._nominal_cache)
+        self._jac_layout = self._jacobian_layout()
+
+    def _frame_tree(self) -> None:
+        """Frames (0: the root link, j + 1: joint j's child link), each joint's parent frame, and the
+        actuated joints (movable, not mimic, in file order): the columns of ``q``."""
+        self.link_frame = {self.root: 0}
+        for j, jt in enumerate(self.joints):
+            self.link_frame[jt.child] = j + 1
+        self.parent_frame = [self.link_frame[jt.parent] for jt in self.joints]
+        self.serial = all(p == j for j, p in enumerate(self.parent_frame))
         self.joint_names = sorted((jt.name for jt in self.joints if jt.movable and jt.mimic is None),
                                   key=lambda n: self._file_order.get(n, 0))
-        act = {n: i for i, n in enumerate(self.joint_names)}
         self.dof = len(self.joint_names)
         self._specs = {jt.name: jt for jt in self.joints}
         if self.dof == 0:
@@ -135,7 +153,11 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
                              "nothing would move them. Declare each marker on the link that carries it (the flange or "
                              "tool link)")
 
-        # motion: q_j = mult * (q[src] + offset[src]) + moff
+    def _motion(self) -> None:
+        """How the commands move the joints: ``q_j = mult * (q[src] + offset[src]) + moff``, and the
+        map ``Mmap (J, dof)`` of movable joints to actuated columns (for offsets and dq)."""
+        fk = dict(dtype=self.dtype, device=self.device)
+        act = {n: i for i, n in enumerate(self.joint_names)}
         src, mult, moff = [], [], []
         for jt in self.joints:
             if not jt.movable:
@@ -151,75 +173,35 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self._src = torch.tensor(src, device=self.device)
         self._mult = torch.tensor(mult, **fk)
         self._moff = torch.tensor(moff, **fk)
+        self._has_moff = any(v != 0 for v in moff)
         self._is_rev = torch.tensor([jt.type in ("revolute", "continuous") for jt in self.joints], device=self.device)
         self._any_pri = any(jt.type == "prismatic" for jt in self.joints)
         self._axis = torch.tensor(np.stack([jt.axis for jt in self.joints]), **fk)
-        # map movable joints to actuated columns: (J, dof), used for offsets and dq
-        Mmap = torch.zeros(J, self.dof, **fk)
+        Mmap = torch.zeros(len(self.joints), self.dof, **fk)
         for j, jt in enumerate(self.joints):
             if jt.movable:
                 Mmap[j, src[j]] = mult[j]
         self._Mmap = Mmap
 
-        # --- slots: every scalar that a parameter may move, and the parameters themselves
-        entries: list[tuple[str, str, bool]] = []  # (name, unit, free by default)
-        slot_param: list[str | None] = []
-        for n in _BASE_NAMES:
-            slot_param.append(n)
-            entries.append((n, "m" if n[-1] in "xyz" and "r" not in n[5:] else "rad", True))
-        self._urdf_idx = [j for j, jt in enumerate(self.joints) if jt.dh is None]
-        self._dh_idx = [j for j, jt in enumerate(self.joints) if jt.dh is not None]
-        for j in self._urdf_idx:
-            jt = self.joints[j]
-            for s in _ORIGIN_SLOTS:
-                n = f"{jt.name}.{s}"
-                slot_param.append(n)
-                entries.append((n, "m" if s in ("dx", "dy", "dz") else "rad", True))
-        dh_entries = {}
-        for j in self._dh_idx:
-            jt = self.joints[j]
-            for s in _DH_SLOTS:
-                n = jt.dh.names.get(s)
-                slot_param.append(n)
-                if n is not None:
-                    dh_entries[n] = (n, "m" if s in ("a", "d") else "rad", True)
-        for n in self.joint_names:
-            jt = by_name[n]
-            on = jt.offset_name or f"{n}.offset"
-            slot_param.append(on)
-            entry = (on, "m" if jt.type == "prismatic" else "rad", True)
-            if jt.dh is not None:
-                dh_entries.setdefault(on, entry)
-            else:
-                entries.append(entry)
-        for mk in self.markers:
-            for s in _ORIGIN_SLOTS:
-                n = f"{mk.name}.{s}"
-                slot_param.append(n)
-                entries.append((n, "m" if s in ("dx", "dy", "dz") else "rad", s in ("dx", "dy", "dz")))
-        if dh_entries:  # DH errors read best grouped by row: a, d, alpha, theta
-            order = {"da": 0, "dd": 1, "dalpha": 2, "dtheta": 3}
-            row = {n: i for i, n in enumerate(jt.name for jt in self.joints)}
-
-            def key(e):
-                joint, slot = e[0].rsplit(".", 1)
-                return row.get(joint, len(row)), order.get(slot, 9)
-
-            entries = entries[:6] + sorted(dh_entries.values(), key=key) + entries[6:]
-        self.param_names = [e[0] for e in entries]
-        self.param_units = [e[1] for e in entries]
-        self._default_free = [e[2] for e in entries]
+    def _parameter_slots(self) -> None:
+        """The error parameters and the slots they move (:func:`~torchcal.kinematics.slots.slot_layout`),
+        and where each block of slots lies."""
+        lay = slot_layout(self.joints, self.joint_names, self.markers)
+        self.param_names, self.param_units, self._default_free = lay.param_names, lay.param_units, lay.default_free
+        self._urdf_idx, self._dh_idx = lay.urdf_idx, lay.dh_idx
         pindex = {n: i for i, n in enumerate(self.param_names)}
         K = len(self.param_names)
-        self._slot_gather = torch.tensor([K if n is None else pindex[n] for n in slot_param], device=self.device)
-        self._slot_param = slot_param
+        self._slot_gather = torch.tensor([K if n is None else pindex[n] for n in lay.slot_param], device=self.device)
         nb, nu, nd, no = 6, 6 * len(self._urdf_idx), 4 * len(self._dh_idx), self.dof
         self._slices = dict(base=slice(0, nb), urdf=slice(nb, nb + nu), dh=slice(nb + nu, nb + nu + nd),
                             offset=slice(nb + nu + nd, nb + nu + nd + no),
                             marker=slice(nb + nu + nd + no, nb + nu + nd + no + 6 * len(self.markers)))
-        self.n_slots = len(slot_param)
+        self.n_slots = len(lay.slot_param)
 
-        # --- nominal geometry
+    def _nominal_geometry(self) -> None:
+        """Nominal joint origins (URDF ones as ``U_R``/``U_t``, DH rows as ``dh_nom``) and the
+        permutation from URDF-then-DH order back to chain order (None when it is the identity)."""
+        fk = dict(dtype=self.dtype, device=self.device)
         T = torch.tensor(np.stack([jt.origin for jt in self.joints]), **fk)
         self._O_R_nom, self._O_t_nom = T[:, :3, :3].contiguous(), T[:, :3, 3].contiguous()
         U = self._urdf_idx
@@ -230,17 +212,22 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self._dh_classic = torch.tensor([self.joints[j].dh.convention == "classic" for j in self._dh_idx],
                                         device=self.device)
         perm = self._urdf_idx + self._dh_idx
-        self._perm = None if perm == list(range(J)) else torch.tensor(np.argsort(perm), device=self.device)
-        # Internally every joint turns about (or slides along) z: C_j maps z onto the joint axis,
-        # the chain works in frames W_j C_j, and C's are folded into origins and markers. A
-        # revolute step is then a cheap mix of two columns instead of a 3x3 product.
+        self._perm = None if perm == list(range(len(self.joints))) else torch.tensor(np.argsort(perm),
+                                                                                     device=self.device)
+
+    def _aligned_frames(self) -> None:
+        """Internally every joint turns about (or slides along) z: ``C_j`` maps z onto the joint axis,
+        the chain works in frames ``W_j C_j``, and the C's are folded into origins and markers. A
+        revolute step is then a cheap mix of two columns instead of a 3x3 product; ``M4_*`` are the
+        per-joint pieces of that step as 4 x 4 matrices."""
+        fk = dict(dtype=self.dtype, device=self.device)
+        J = len(self.joints)
         # C is found on the host from the file's axes and copied once: on a GPU each Python
         # branch of _align_z, and the check below, would wait for the device
         axes_host = torch.tensor(np.stack([jt.axis for jt in self.joints]), dtype=self.dtype)
         C_host = torch.stack([align_z(a) for a in axes_host])
-        C = C_host.to(self.device)
-        Cf = torch.cat([torch.eye(3, **fk)[None], C])  # per frame: root, then each joint's child
-        self._C = C
+        self._C = C_host.to(self.device)
+        Cf = torch.cat([torch.eye(3, **fk)[None], self._C])  # per frame: root, then each joint's child
         self._CfT = Cf.transpose(-1, -2)
         self._CpT = self._CfT[self.parent_frame]
         self._aligned = bool(torch.equal(C_host, torch.eye(3, dtype=C_host.dtype).expand_as(C_host)))
@@ -256,29 +243,20 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         s4[rev, 1, 0], s4[rev, 0, 1] = 1, -1
         p4[kinds == 2, 2, 3] = 1
         self._M4_one, self._M4_c, self._M4_s, self._M4_p = one, c4, s4, p4
-        self._has_moff = any(v != 0 for v in moff)
-        Tm = torch.tensor(np.stack([mk.matrix() for mk in self.markers]), **fk)
+
+    def _marker_geometry(self) -> None:
+        """Nominal marker poses on their links, their frames, and which joints move which marker
+        (``anc (J, M)``: joint j moves marker m iff its child frame is an ancestor-or-self of m's link)."""
+        Tm = torch.tensor(np.stack([mk.matrix() for mk in self.markers]), dtype=self.dtype, device=self.device)
         self._mk_R, self._mk_t = Tm[:, :3, :3].contiguous(), Tm[:, :3, 3].contiguous()
-        self._mk_frame = [link_frame[mk.link] for mk in self.markers]
+        self._mk_frame = [self.link_frame[mk.link] for mk in self.markers]
         self._CmT = self._CfT[self._mk_frame]
-        # ancestry: joint j moves marker m iff joint j's child frame is an ancestor-or-self of m's link
-        anc = torch.zeros(J, len(self.markers), dtype=torch.bool, device=self.device)
+        anc = torch.zeros(len(self.joints), len(self.markers), dtype=torch.bool, device=self.device)
         for m, f in enumerate(self._mk_frame):
             while f != 0:
                 anc[f - 1, m] = True
                 f = self.parent_frame[f - 1]
         self._anc = anc
-        lim_lo = [by_name[n].lower for n in self.joint_names]
-        lim_hi = [by_name[n].upper for n in self.joint_names]
-        self.joint_limits = (torch.tensor([-np.inf if v is None else v for v in lim_lo], **fk),
-                             torch.tensor([np.inf if v is None else v for v in lim_hi], **fk))
-        self._units = [("m" if by_name[n].type == "prismatic" else "rad") for n in self.joint_names]
-        # filled now rather than lazily: a cache first filled inside a torch.func transform would
-        # carry that transform's level and break later calls
-        self._nominal_cache = None
-        self._nominal_cache = self._origins(None)
-        self._nominal_cache4 = homogeneous(*self._nominal_cache)
-        self._jac_layout = self._jacobian_layout()
 
     # ------------------------------------------------------------------ basic facts
     @property

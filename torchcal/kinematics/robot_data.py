@@ -70,6 +70,12 @@ from math import pi, radians
 __all__ = ["ROBOTS", "get_robot", "robot_names"]
 
 
+def _joint(name, kind, a, d, alpha, theta, lower, upper, velocity, effort):
+    """One row of a robot's DH table as a joint dict (the keys above, in that order)."""
+    return {"name": name, "type": kind, "a": a, "d": d, "alpha": alpha, "theta": theta, "lower": lower,
+            "upper": upper, "velocity": velocity, "effort": effort}
+
+
 # =====================================================================================
 # KUKA KR 5 arc
 # -------------------------------------------------------------------------------------
@@ -124,24 +130,12 @@ _KR5_ARC = {
     "base_frame": "KUKA $ROBROOT at the robot foot, z up, x forward",
     "joint_sign": [-1, 1, 1, -1, 1, -1],  # q_dh = joint_sign * (KUKA axis value A1..A6)
     "joints": [
-        {"name": "joint_a1", "type": "revolute", "a": 0.180, "d": 0.400, "alpha": -pi / 2,
-         "theta": 0.0, "lower": radians(-155), "upper": radians(155),
-         "velocity": radians(154), "effort": None},
-        {"name": "joint_a2", "type": "revolute", "a": 0.600, "d": 0.0, "alpha": 0.0,
-         "theta": 0.0, "lower": radians(-180), "upper": radians(65),
-         "velocity": radians(154), "effort": None},
-        {"name": "joint_a3", "type": "revolute", "a": 0.120, "d": 0.0, "alpha": -pi / 2,
-         "theta": -pi / 2, "lower": radians(-15), "upper": radians(158),
-         "velocity": radians(228), "effort": None},
-        {"name": "joint_a4", "type": "revolute", "a": 0.0, "d": 0.620, "alpha": pi / 2,
-         "theta": 0.0, "lower": radians(-350), "upper": radians(350),
-         "velocity": radians(343), "effort": None},
-        {"name": "joint_a5", "type": "revolute", "a": 0.0, "d": 0.0, "alpha": -pi / 2,
-         "theta": 0.0, "lower": radians(-130), "upper": radians(130),
-         "velocity": radians(384), "effort": None},
-        {"name": "joint_a6", "type": "revolute", "a": 0.0, "d": 0.115, "alpha": 0.0,
-         "theta": 0.0, "lower": radians(-350), "upper": radians(350),
-         "velocity": radians(721), "effort": None},
+        _joint("joint_a1", "revolute", 0.180, 0.400, -pi / 2, 0.0, radians(-155), radians(155), radians(154), None),
+        _joint("joint_a2", "revolute", 0.600, 0.0, 0.0, 0.0, radians(-180), radians(65), radians(154), None),
+        _joint("joint_a3", "revolute", 0.120, 0.0, -pi / 2, -pi / 2, radians(-15), radians(158), radians(228), None),
+        _joint("joint_a4", "revolute", 0.0, 0.620, pi / 2, 0.0, radians(-350), radians(350), radians(343), None),
+        _joint("joint_a5", "revolute", 0.0, 0.0, -pi / 2, 0.0, radians(-130), radians(130), radians(384), None),
+        _joint("joint_a6", "revolute", 0.0, 0.115, 0.0, 0.0, radians(-350), radians(350), radians(721), None),
     ],
     "tool": None,
     "inertials": None,
@@ -207,30 +201,18 @@ _SCARA = {
     # q_dh = joint_sign * q_urdf ([S2] quill axis is +z, range -0.21..0)
     "joint_sign": [1, 1, -1, 1],
     "joints": [
-        {"name": "joint_1", "type": "revolute", "a": 0.325, "d": 0.387, "alpha": 0.0,
-         "theta": 0.0, "lower": radians(-105), "upper": radians(105),
-         "velocity": radians(386), "effort": None},
-        {"name": "joint_2", "type": "revolute", "a": 0.275, "d": 0.0, "alpha": pi,
-         "theta": 0.0, "lower": radians(-150), "upper": radians(150),
-         "velocity": radians(720), "effort": None},
-        {"name": "joint_3", "type": "prismatic", "a": 0.0, "d": 0.0, "alpha": 0.0,
-         "theta": 0.0, "lower": 0.0, "upper": 0.210,
-         "velocity": 1.1, "effort": None},
-        {"name": "joint_4", "type": "revolute", "a": 0.0, "d": 0.0, "alpha": 0.0,
-         "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": radians(1200), "effort": None},
+        _joint("joint_1", "revolute", 0.325, 0.387, 0.0, 0.0, radians(-105), radians(105), radians(386), None),
+        _joint("joint_2", "revolute", 0.275, 0.0, pi, 0.0, radians(-150), radians(150), radians(720), None),
+        _joint("joint_3", "prismatic", 0.0, 0.0, 0.0, 0.0, 0.0, 0.210, 1.1, None),
+        _joint("joint_4", "revolute", 0.0, 0.0, 0.0, 0.0, -2 * pi, 2 * pi, radians(1200), None),
     ],
     "tool": None,
     # ILLUSTRATIVE, NOT PUBLISHED -- consistent with _SCARA_PLANAR (quill lumped into link 2)
     "inertials": [
-        {"mass": 7.0, "com": [0.17 - 0.325, 0.0, 0.0],
-         "inertia": [0.007, 0.0, 0.0, 0.07, 0.0, 0.07]},
-        {"mass": 4.5, "com": [0.15 - 0.275, 0.0, 0.0],
-         "inertia": [0.004, 0.0, 0.0, 0.04, 0.0, 0.04]},
-        {"mass": 0.0, "com": [0.0, 0.0, 0.0],
-         "inertia": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
-        {"mass": 0.0, "com": [0.0, 0.0, 0.0],
-         "inertia": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
+        {"mass": 7.0, "com": [0.17 - 0.325, 0.0, 0.0], "inertia": [0.007, 0.0, 0.0, 0.07, 0.0, 0.07]},
+        {"mass": 4.5, "com": [0.15 - 0.275, 0.0, 0.0], "inertia": [0.004, 0.0, 0.0, 0.04, 0.0, 0.04]},
+        {"mass": 0.0, "com": [0.0, 0.0, 0.0], "inertia": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
+        {"mass": 0.0, "com": [0.0, 0.0, 0.0], "inertia": [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]},
     ],
     "planar_dynamics": _SCARA_PLANAR,
     "zero_pose": [0.600, 0.0, 0.387],
@@ -293,24 +275,12 @@ _UR5E = {
     "base_frame": "UR 'Base' frame at the base mounting surface (ROS base_link_inertia)",
     "joint_sign": [1, 1, 1, 1, 1, 1],  # DH variables = UR controller joint values
     "joints": [
-        {"name": "shoulder_pan_joint", "type": "revolute", "a": 0.0, "d": 0.1625,
-         "alpha": pi / 2, "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": pi, "effort": 150.0},
-        {"name": "shoulder_lift_joint", "type": "revolute", "a": -0.425, "d": 0.0,
-         "alpha": 0.0, "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": pi, "effort": 150.0},
-        {"name": "elbow_joint", "type": "revolute", "a": -0.3922, "d": 0.0,
-         "alpha": 0.0, "theta": 0.0, "lower": -pi, "upper": pi,
-         "velocity": pi, "effort": 150.0},
-        {"name": "wrist_1_joint", "type": "revolute", "a": 0.0, "d": 0.1333,
-         "alpha": pi / 2, "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": pi, "effort": 28.0},
-        {"name": "wrist_2_joint", "type": "revolute", "a": 0.0, "d": 0.0997,
-         "alpha": -pi / 2, "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": pi, "effort": 28.0},
-        {"name": "wrist_3_joint", "type": "revolute", "a": 0.0, "d": 0.0996,
-         "alpha": 0.0, "theta": 0.0, "lower": -2 * pi, "upper": 2 * pi,
-         "velocity": pi, "effort": 28.0},
+        _joint("shoulder_pan_joint", "revolute", 0.0, 0.1625, pi / 2, 0.0, -2 * pi, 2 * pi, pi, 150.0),
+        _joint("shoulder_lift_joint", "revolute", -0.425, 0.0, 0.0, 0.0, -2 * pi, 2 * pi, pi, 150.0),
+        _joint("elbow_joint", "revolute", -0.3922, 0.0, 0.0, 0.0, -pi, pi, pi, 150.0),
+        _joint("wrist_1_joint", "revolute", 0.0, 0.1333, pi / 2, 0.0, -2 * pi, 2 * pi, pi, 28.0),
+        _joint("wrist_2_joint", "revolute", 0.0, 0.0997, -pi / 2, 0.0, -2 * pi, 2 * pi, pi, 28.0),
+        _joint("wrist_3_joint", "revolute", 0.0, 0.0996, 0.0, 0.0, -2 * pi, 2 * pi, pi, 28.0),
     ],
     "tool": None,
     "inertials": [
@@ -385,44 +355,23 @@ _IIWA14 = {
     "base_frame": "robot mounting flange (bottom of link 0), z up",
     "joint_sign": [1, 1, 1, 1, 1, 1, 1],  # DH variables = URDF / KUKA Sunrise joint values
     "joints": [
-        {"name": "iiwa_joint_1", "type": "revolute", "a": 0.0, "d": 0.36, "alpha": -pi / 2,
-         "theta": 0.0, "lower": radians(-170), "upper": radians(170),
-         "velocity": radians(85), "effort": 320.0},
-        {"name": "iiwa_joint_2", "type": "revolute", "a": 0.0, "d": 0.0, "alpha": pi / 2,
-         "theta": 0.0, "lower": radians(-120), "upper": radians(120),
-         "velocity": radians(85), "effort": 320.0},
-        {"name": "iiwa_joint_3", "type": "revolute", "a": 0.0, "d": 0.42, "alpha": pi / 2,
-         "theta": 0.0, "lower": radians(-170), "upper": radians(170),
-         "velocity": radians(100), "effort": 176.0},
-        {"name": "iiwa_joint_4", "type": "revolute", "a": 0.0, "d": 0.0, "alpha": -pi / 2,
-         "theta": 0.0, "lower": radians(-120), "upper": radians(120),
-         "velocity": radians(75), "effort": 176.0},
-        {"name": "iiwa_joint_5", "type": "revolute", "a": 0.0, "d": 0.40, "alpha": -pi / 2,
-         "theta": 0.0, "lower": radians(-170), "upper": radians(170),
-         "velocity": radians(130), "effort": 110.0},
-        {"name": "iiwa_joint_6", "type": "revolute", "a": 0.0, "d": 0.0, "alpha": pi / 2,
-         "theta": 0.0, "lower": radians(-120), "upper": radians(120),
-         "velocity": radians(135), "effort": 40.0},
-        {"name": "iiwa_joint_7", "type": "revolute", "a": 0.0, "d": 0.126, "alpha": 0.0,
-         "theta": 0.0, "lower": radians(-175), "upper": radians(175),
-         "velocity": radians(135), "effort": 40.0},
+        _joint("iiwa_joint_1", "revolute", 0.0, 0.36, -pi / 2, 0.0, radians(-170), radians(170), radians(85), 320.0),
+        _joint("iiwa_joint_2", "revolute", 0.0, 0.0, pi / 2, 0.0, radians(-120), radians(120), radians(85), 320.0),
+        _joint("iiwa_joint_3", "revolute", 0.0, 0.42, pi / 2, 0.0, radians(-170), radians(170), radians(100), 176.0),
+        _joint("iiwa_joint_4", "revolute", 0.0, 0.0, -pi / 2, 0.0, radians(-120), radians(120), radians(75), 176.0),
+        _joint("iiwa_joint_5", "revolute", 0.0, 0.40, -pi / 2, 0.0, radians(-170), radians(170), radians(130), 110.0),
+        _joint("iiwa_joint_6", "revolute", 0.0, 0.0, pi / 2, 0.0, radians(-120), radians(120), radians(135), 40.0),
+        _joint("iiwa_joint_7", "revolute", 0.0, 0.126, 0.0, 0.0, radians(-175), radians(175), radians(135), 40.0),
     ],
     "tool": None,
     "inertials": [
-        {"mass": 5.76, "com": [0.0, 0.0825, -0.03],
-         "inertia": [0.033, 0.0, 0.0, 0.0123, 0.0, 0.0333]},
-        {"mass": 6.35, "com": [-0.0003, 0.042, 0.059],
-         "inertia": [0.0305, 0.0, 0.0, 0.011, 0.0, 0.0304]},
-        {"mass": 3.5, "com": [0.0, -0.0855, -0.03],
-         "inertia": [0.025, 0.0, 0.0, 0.0076, 0.0, 0.0238]},
-        {"mass": 3.5, "com": [0.0, -0.034, 0.067],
-         "inertia": [0.017, 0.0, 0.0, 0.006, 0.0, 0.0164]},
-        {"mass": 3.5, "com": [-0.0001, 0.1395, -0.021],
-         "inertia": [0.01, 0.0, 0.0, 0.00449, 0.0, 0.0087]},
-        {"mass": 1.8, "com": [0.0, 0.0004, 0.0006],
-         "inertia": [0.0049, 0.0, 0.0, 0.0036, 0.0, 0.0047]},
-        {"mass": 1.2, "com": [0.0, 0.0, -0.025],
-         "inertia": [0.001, 0.0, 0.0, 0.001, 0.0, 0.001]},
+        {"mass": 5.76, "com": [0.0, 0.0825, -0.03], "inertia": [0.033, 0.0, 0.0, 0.0123, 0.0, 0.0333]},
+        {"mass": 6.35, "com": [-0.0003, 0.042, 0.059], "inertia": [0.0305, 0.0, 0.0, 0.011, 0.0, 0.0304]},
+        {"mass": 3.5, "com": [0.0, -0.0855, -0.03], "inertia": [0.025, 0.0, 0.0, 0.0076, 0.0, 0.0238]},
+        {"mass": 3.5, "com": [0.0, -0.034, 0.067], "inertia": [0.017, 0.0, 0.0, 0.006, 0.0, 0.0164]},
+        {"mass": 3.5, "com": [-0.0001, 0.1395, -0.021], "inertia": [0.01, 0.0, 0.0, 0.00449, 0.0, 0.0087]},
+        {"mass": 1.8, "com": [0.0, 0.0004, 0.0006], "inertia": [0.0049, 0.0, 0.0, 0.0036, 0.0, 0.0047]},
+        {"mass": 1.2, "com": [0.0, 0.0, -0.025], "inertia": [0.001, 0.0, 0.0, 0.001, 0.0, 0.001]},
     ],
     "zero_pose": [0.0, 0.0, 1.306],
     "approximate": (
@@ -432,12 +381,7 @@ _IIWA14 = {
 }
 
 
-ROBOTS = {
-    "kuka_kr5_arc": _KR5_ARC,
-    "scara": _SCARA,
-    "ur5e": _UR5E,
-    "kuka_iiwa14": _IIWA14,
-}
+ROBOTS = {"kuka_kr5_arc": _KR5_ARC, "scara": _SCARA, "ur5e": _UR5E, "kuka_iiwa14": _IIWA14}
 
 
 def robot_names():

@@ -19,7 +19,6 @@ Measurements that are not positions:
 from __future__ import annotations
 
 import csv
-import difflib
 import io
 import logging
 import math
@@ -32,40 +31,15 @@ import torch
 
 from torchcal.advice import advice
 from torchcal.measure.checks import check_motion, check_robot
+from torchcal.measure.columns import PLANE, POS, QUAT, DIST, Columns, sort_columns
 from torchcal.measure.data import Measurements
 from torchcal.measure.units import UNITS, UnitsError, convert_units
 from torchcal.outputs import atomic_write_text
 
-__all__ = ["load_measurements", "save_measurements", "marker_columns_in", "read_csv", "UNITS", "UnitsError"]
+__all__ = ["load_measurements", "save_measurements", "read_csv", "UNITS", "UnitsError"]
 
 logger = logging.getLogger("torchcal")
 _ABSURD = 1e6  # |value| beyond any joint (rad, m, deg) or instrument reading (m, mm)
-
-
-_POS = (".x", ".y", ".z")
-_QUAT = (".qw", ".qx", ".qy", ".qz")
-_PLANE = ".plane"
-_DIST = ".dist."
-
-
-def marker_columns_in(header: list[str]) -> list[str]:
-    """Marker names that have measurement columns in a CSV header (position, plane contact, or a
-    distance measured from them), in order of appearance."""
-    out = []
-    for c in header:
-        name = None
-        for s in _POS + (_PLANE,):
-            if c.endswith(s):
-                name = c[: -len(s)]
-        if _DIST in c:
-            name = c.split(_DIST)[0]
-        if name and name not in out:
-            out.append(name)
-    return out
-
-
-def _distance_columns(header: list[str]) -> dict[str, tuple[str, str]]:
-    return {c: tuple(c.split(_DIST, 1)) for c in header if _DIST in c}
 
 
 def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list[str]]]:
@@ -108,22 +82,6 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     return header, rows[1:]
 
 
-def _without_undeclared(path, header: list[str], rows: list[list[str]], markers: list[str]):
-    """The header and rows without the columns of markers the robot does not declare (a file often
-    holds more markers than a calibration uses: the declared ones choose), the names left out,
-    for the caller to name. Their columns: ``.x/.y/.z``, orientation, plane contacts,
-    distances measured from them and to them."""
-    undeclared = [m for m in marker_columns_in(header) if m not in markers]
-    if not undeclared:
-        return header, rows, []
-    gone = set(undeclared)
-    drop = [i for i, c in enumerate(header)
-            if (_DIST in c and (c.split(_DIST, 1)[0] in gone or c.split(_DIST, 1)[1] in gone))
-            or any(c == m + s for m in gone for s in _POS + _QUAT + (_PLANE,))]
-    keep = [i for i in range(len(header)) if i not in set(drop)]
-    return [header[i] for i in keep], [[r[i] for i in keep] for r in rows], undeclared
-
-
 def _number(cell: str, line: int, col: str, path) -> float:
     s = cell.strip()
     if s == "" or s.lower() == "nan":
@@ -160,129 +118,118 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     header, rows = read_csv(path)
     if not rows:
         raise ValueError(f"{path}: the file has a header but no rows")
-    joints = list(robot.joint_names)
-    cols = set(header)
-    missing = [j for j in joints if j not in cols]
-    if missing:
-        hints = []
-        for j in missing:
-            close = difflib.get_close_matches(j, header, n=1)
-            if close:
-                hints.append(f"{j!r} (is {close[0]!r} meant?)")
-            else:
-                hints.append(repr(j))
-        raise ValueError(f"{path}: no column for joint(s) {', '.join(hints)}. The robot's joints are {joints}; "
-                         "name the joint columns exactly as in the URDF")
-    robot_markers = list(robot.marker_names)
-    header, rows, undeclared = _without_undeclared(path, header, rows, robot_markers)
-    markers_in_file = marker_columns_in(header)
-    dist_cols = _distance_columns(header)
-    for c, (a_, b_) in dist_cols.items():
-        if not b_ or a_ == b_:
-            raise ValueError(f"{path}: distance column {c!r} must be named '<marker>.dist.<other marker or fixed "
-                             "point>'")
-    measured = [m for m in robot_markers if m in markers_in_file or any(b_ == m for _, b_ in dist_cols.values())]
-    absent = [m for m in robot_markers if m not in measured]
-    if absent and (measured or undeclared):
-        raise ValueError(f"{path}: marker(s) {absent} are declared but the file has no columns for them (it has "
-                         f"columns for {markers_in_file + undeclared}); declare only the markers that were measured, "
-                         f"named as in the file (e.g. --marker {(markers_in_file + undeclared)[0]}@LINK[=x,y,z])")
-    if not measured:
-        raise ValueError(f"{path}: no marker columns; expected '<marker>.x', '<marker>.y', '<marker>.z' (or "
-                         f"'<marker>.plane', '<marker>.dist.<point>') for one of {robot_markers}")
-    if undeclared:
-        logger.warning(f"{path}: left out the columns of marker(s) {undeclared}, which the robot does not declare "
-                       f"(it uses {measured}); declare a marker to use it (--marker NAME@LINK[=x,y,z], or "
-                       "Robot.from_urdf(urdf, markers=[...]))")
-    for m in measured:
-        have = [m + s for s in _POS if m + s in cols]
-        if have and len(have) < 3:
-            raise ValueError(f"{path}: marker {m!r} has position columns {have} but not "
-                             f"{[m + s for s in _POS if m + s not in cols]}; give all three columns (leave the cells "
-                             "of an axis that was not measured empty)")
-    has_quat = [m for m in measured if any(m + s in cols for s in _QUAT)]
-    for m in has_quat:
-        absent = [m + s for s in _QUAT if m + s not in cols]
-        if absent:
-            raise ValueError(f"{path}: marker {m!r} has some orientation columns but not {absent}")
-    plane_cols = {m: m + _PLANE for m in measured if m + _PLANE in cols}
-    used = (set(joints) | {m + s for m in measured for s in _POS} | {m + s for m in has_quat for s in _QUAT}
-            | set(plane_cols.values()) | set(dist_cols))
-    other = robot.other_joints()  # a column named like a joint of the URDF is a joint, never a covariate
-    covariates = [c for c in header if c not in used and c not in other]
-    idx = {c: i for i, c in enumerate(header)}
-    numeric = [c for c in header if c not in plane_cols.values()]
-    N = len(rows)
-    data = np.full((N, len(header)), np.nan)
-    for i, r in enumerate(rows):
-        for c in numeric:
-            j = idx[c]
-            data[i, j] = _number(r[j], i + 2, c, path)
-    _absurd(path, data, header, set(covariates))
-    Q = data[:, [idx[j] for j in joints]]
-    _joints_past_markers(path, robot, other, {c: data[:, idx[c]] for c in header if c in other})
+    c = sort_columns(path, header, rows, robot)
+    data = _cells(path, c)
+    Q = _joint_values(path, robot, c, data)
+    P = _marker_positions(path, c, data)
+    planes, plane_names = _plane_contacts(path, c, P)
+    D = _distances(path, c, data)
+    n_contacts = 0 if planes is None else int((planes >= 0).sum())
+    if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
+        raise ValueError(f"{path}: no marker was seen in any row")
+    Q, P, D = convert_units(path, robot, Q, P, D, units)
+    _warn_duplicates(path, data)
+    Qt = _orientations(path, c, data)
+    dt = dtype or robot.dtype
+    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", units_judged=True).to(robot.device)
+    as_t = lambda v: torch.as_tensor(v, dtype=dt, device=robot.device)  # noqa: E731
+    out = Measurements(q, as_t(P), c.measured, c.joints, None if Qt is None else as_t(Qt),
+                       {k: as_t(c.col(data, k)) for k in c.covariates}, str(path),
+                       None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
+                       {k: as_t(v) for k, v in D.items()}, robot.name)
+    check_motion(robot, out, units, where=str(path))
+    return out
+
+
+def _cells(path, c: Columns) -> np.ndarray:
+    """``(N, columns)`` the numeric cells (NaN where empty and in the plane columns), checked for
+    values no unit makes plausible."""
+    numeric = [col for col in c.header if col not in c.plane_cols.values()]
+    data = np.full((len(c.rows), len(c.header)), np.nan)
+    for i, r in enumerate(c.rows):
+        for col in numeric:
+            j = c.idx[col]
+            data[i, j] = _number(r[j], i + 2, col, path)
+    _absurd(path, data, c.header, set(c.covariates))
+    return data
+
+
+def _joint_values(path, robot, c: Columns, data: np.ndarray) -> np.ndarray:
+    """``(N, dof)`` joint values, every one given; URDF joints past the markers must not move."""
+    Q = data[:, [c.idx[j] for j in c.joints]]
+    _joints_past_markers(path, robot, c.other, {col: c.col(data, col) for col in c.header if col in c.other})
     bad = np.argwhere(~np.isfinite(Q))
     if len(bad):
         i, j = bad[0]
-        raise ValueError(f"{path}, line {i + 2}: joint {joints[j]!r} is empty or not finite; every row needs all "
+        raise ValueError(f"{path}, line {i + 2}: joint {c.joints[j]!r} is empty or not finite; every row needs all "
                          "joint values (drop the row if the robot state was not recorded)")
-    P = np.stack([data[:, [idx[m + s] for s in _POS]] if m + _POS[0] in cols else np.full((N, 3), np.nan)
-                  for m in measured], 1)
+    return Q
+
+
+def _marker_positions(path, c: Columns, data: np.ndarray) -> np.ndarray:
+    """``(N, M, 3)`` marker positions, NaN where not measured; none infinite."""
+    N = data.shape[0]
+    P = np.stack([data[:, [c.idx[m + s] for s in POS]] if m + POS[0] in c.idx else np.full((N, 3), np.nan)
+                  for m in c.measured], 1)
     if np.isinf(P).any():
         i, m = np.argwhere(np.isinf(P).any(-1))[0]
-        raise ValueError(f"{path}, line {i + 2}: marker {measured[m]!r} has an infinite coordinate")
-    planes, plane_names = None, []
-    if plane_cols:
-        planes = np.full((N, len(measured)), -1, dtype=np.int64)
-        for k, m in enumerate(measured):
-            if m not in plane_cols:
+        raise ValueError(f"{path}, line {i + 2}: marker {c.measured[m]!r} has an infinite coordinate")
+    return P
+
+
+def _plane_contacts(path, c: Columns, P: np.ndarray) -> tuple[np.ndarray | None, list[str]]:
+    """``(N, M)`` the plane each marker touched (an index into the names, -1: none), and the plane
+    names in order of appearance; ``None`` without plane columns. A contact row has no position."""
+    if not c.plane_cols:
+        return None, []
+    planes, plane_names = np.full((len(c.rows), len(c.measured)), -1, dtype=np.int64), []
+    for k, m in enumerate(c.measured):
+        if m not in c.plane_cols:
+            continue
+        j = c.idx[c.plane_cols[m]]
+        for i, r in enumerate(c.rows):
+            lab = r[j].strip()
+            if not lab:
                 continue
-            j = idx[plane_cols[m]]
-            for i, r in enumerate(rows):
-                lab = r[j].strip()
-                if not lab:
-                    continue
-                if np.isfinite(P[i, k]).any():
-                    raise ValueError(f"{path}, line {i + 2}: marker {m!r} has a plane contact ({lab!r}) and position "
-                                     "cells; a contact measures only the distance along the plane's normal: leave "
-                                     "x/y/z empty in contact rows")
-                if lab not in plane_names:
-                    plane_names.append(lab)
-                planes[i, k] = plane_names.index(lab)
-    D = {(a_, b_): data[:, idx[c]] for c, (a_, b_) in dist_cols.items()}
+            if np.isfinite(P[i, k]).any():
+                raise ValueError(f"{path}, line {i + 2}: marker {m!r} has a plane contact ({lab!r}) and position "
+                                 "cells; a contact measures only the distance along the plane's normal: leave "
+                                 "x/y/z empty in contact rows")
+            if lab not in plane_names:
+                plane_names.append(lab)
+            planes[i, k] = plane_names.index(lab)
+    return planes, plane_names
+
+
+def _distances(path, c: Columns, data: np.ndarray) -> dict[tuple[str, str], np.ndarray]:
+    """``(from, to) -> (N,)`` measured distances (m), NaN where not measured; each a length."""
+    D = {(a_, b_): c.col(data, col) for col, (a_, b_) in c.dist_cols.items()}
     for (a_, b_), v in D.items():
         if np.isinf(v).any() or (v[np.isfinite(v)] < 0).any():
             i = int(np.argmax(np.isinf(v) | (np.nan_to_num(v) < 0)))
             raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length; a distance is "
                              "a finite number of metres, zero or more: correct the cell, or leave it empty where "
                              "nothing was measured")
-    n_contacts = 0 if planes is None else int((planes >= 0).sum())
-    if not np.isfinite(P).any() and not n_contacts and not any(np.isfinite(v).any() for v in D.values()):
-        raise ValueError(f"{path}: no marker was seen in any row")
-    Q, P, D = convert_units(path, robot, Q, P, D, units)
-    _warn_duplicates(path, data)
-    Qt = None
-    if has_quat:
-        Qt = np.full((N, len(measured), 4), np.nan)
-        for k, m in enumerate(measured):
-            if m in has_quat:
-                qq = data[:, [idx[m + s] for s in _QUAT]]
-                norm = np.linalg.norm(qq, axis=1)
-                ok = np.isfinite(norm)
-                if ok.any() and np.abs(norm[ok] - 1).max() > 1e-3:
-                    i = int(np.argmax(np.where(ok, np.abs(norm - 1), 0)))
-                    raise ValueError(f"{path}, line {i + 2}: quaternion of {m!r} has norm {norm[i]:.4f}; "
-                                     "give unit quaternions (qw, qx, qy, qz)")
-                Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
-    dt = dtype or robot.dtype
-    q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", units_judged=True).to(robot.device)
-    cov = {c: torch.as_tensor(data[:, idx[c]], dtype=dt, device=robot.device) for c in covariates}
-    out = Measurements(q, torch.as_tensor(P, dtype=dt, device=robot.device), measured, joints,
-                       None if Qt is None else torch.as_tensor(Qt, dtype=dt, device=robot.device), cov, str(path),
-                       None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
-                       {k: torch.as_tensor(v, dtype=dt, device=robot.device) for k, v in D.items()}, robot.name)
-    check_motion(robot, out, units, where=str(path))
-    return out
+    return D
+
+
+def _orientations(path, c: Columns, data: np.ndarray) -> np.ndarray | None:
+    """``(N, M, 4)`` unit quaternions ``(qw, qx, qy, qz)`` (NaN where not measured), ``None``
+    without orientation columns; a quaternion must have norm 1 (to 1e-3) and is normalised."""
+    if not c.has_quat:
+        return None
+    Qt = np.full((data.shape[0], len(c.measured), 4), np.nan)
+    for k, m in enumerate(c.measured):
+        if m in c.has_quat:
+            qq = data[:, [c.idx[m + s] for s in QUAT]]
+            norm = np.linalg.norm(qq, axis=1)
+            ok = np.isfinite(norm)
+            if ok.any() and np.abs(norm[ok] - 1).max() > 1e-3:
+                i = int(np.argmax(np.where(ok, np.abs(norm - 1), 0)))
+                raise ValueError(f"{path}, line {i + 2}: quaternion of {m!r} has norm {norm[i]:.4f}; "
+                                 "give unit quaternions (qw, qx, qy, qz)")
+            Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
+    return Qt
 
 
 def _absurd(path, data: np.ndarray, header: list[str], covariates: set[str]) -> None:
@@ -330,19 +277,19 @@ def save_measurements(path: str | os.PathLike, data: Measurements, digits: int =
     labels: dict[int, list[str]] = {}
     for k, m in enumerate(data.marker_names):
         if bool((~torch.isnan(data.positions[:, k])).any()) or data.planes is None:
-            for a, s in enumerate(_POS):
+            for a, s in enumerate(POS):
                 header.append(m + s)
                 cols.append(data.positions[:, k, a])
         if data.quaternions is not None:
-            for a, s in enumerate(_QUAT):
+            for a, s in enumerate(QUAT):
                 header.append(m + s)
                 cols.append(data.quaternions[:, k, a])
         if data.planes is not None and bool((data.planes[:, k] >= 0).any()):
             labels[len(header)] = ["" if int(i) < 0 else data.plane_names[int(i)] for i in data.planes[:, k].tolist()]
-            header.append(m + _PLANE)
+            header.append(m + PLANE)
             cols.append(torch.full((len(data),), float("nan")))
     for (a, b), v in data.distances.items():
-        header.append(f"{a}{_DIST}{b}")
+        header.append(f"{a}{DIST}{b}")
         cols.append(v)
     for c, v in data.covariates.items():
         header.append(c)

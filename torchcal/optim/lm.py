@@ -15,10 +15,11 @@ from types import SimpleNamespace
 import torch
 from torch import Tensor
 
-from torchcal.optim.base import Solver, register
+from torchcal.damping import (gain_ratio, gradient_cosine, initial_damping, nielsen_update, damp_harder,
+                              predicted_decrease, scaling_floor, small_decrease, small_step)
+from torchcal.optim.base import register
 from torchcal.optim.engine import LocalSolver
-from torchcal.optim.result import Result
-from torchcal.problems.base import LeastSquaresProblem, Problem
+from torchcal.problems.base import Problem
 
 __all__ = ["LevenbergMarquardt", "GPU_MIN_JACOBIAN", "note_device_size"]
 
@@ -236,17 +237,16 @@ class LevenbergMarquardt(LocalSolver):
         A, gr, Ae, ge, rhs = self._linearise(st, x, r, J)
         S0 = torch.dot(r, r)
         S, gnorm, xnorm, Amax = torch.stack([
-            S0, _gcos(ge, A, S0), torch.linalg.vector_norm(x), A.diagonal().max()]).tolist()
+            S0, gradient_cosine(ge, A.diagonal(), S0), torch.linalg.vector_norm(x), A.diagonal().max()]).tolist()
         if st.marquardt:
             # floor the scaling: a near-zero column would otherwise get no damping and its
             # parameter would run off in a direction the data cannot see
-            dA = A.diagonal()
-            st.Dvec = dA.clamp(min=1e-6 * Amax) if Amax > 0 else torch.ones_like(dA)
+            st.Dvec = scaling_floor(A.diagonal(), A.diagonal().max())
             st.Dm = torch.diag_embed(st.Dvec)
             st.mu = self.mu0 if self.mu0 is not None else self.tau
         else:
             st.Dm = torch.eye(k, dtype=_F64, device=x.device)
-            st.mu = self.mu0 if self.mu0 is not None else self.tau * (Amax if Amax > 0 else 1.0)
+            st.mu = self.mu0 if self.mu0 is not None else initial_damping(self.tau, Amax)
         st.nu = 2.0
         st.x, st.r, st.J, st.S, st.gnorm, st.xnorm = x, r, J, S, gnorm, xnorm
         st.A, st.g, st.Ae, st.ge, st.rhs = A, gr, Ae, ge, rhs
@@ -288,8 +288,7 @@ class LevenbergMarquardt(LocalSolver):
         L, info = torch.linalg.cholesky_ex(add(st.Ae, st.Dm, alpha=mu))
         if info.item() != 0:
             # mu tiny against a singular JᵀJ lost positive definiteness: damp harder
-            mu *= nu
-            nu *= 2.0
+            mu, nu = damp_harder(mu, nu)
             st.n_rejected += 1
         else:
             h = torch.cholesky_solve(st.rhs, L).view(-1)
@@ -306,11 +305,11 @@ class LevenbergMarquardt(LocalSolver):
                 parts.append(dot(Jh, Jh))
             S_new, hh, hg, xnorm_new, *JhJh = torch.stack(parts).tolist()
             # S(0) - S_model(h): from J h, or as (A + mu I) h = -g gives mu h·h - h·g
-            pred = -2.0 * hg - JhJh[0] if model else mu * hh - hg
+            pred = predicted_decrease(hg, JhJh[0]) if model else mu * hh - hg
             act = S - S_new
-            rho = act / pred if (pred > 0 and math.isfinite(S_new)) else -1.0
-            small_f = abs(act) <= self.ftol * S and pred <= self.ftol * S and rho <= 2.0
-            small_x = math.sqrt(hh) <= self.xtol * (st.xnorm + self.xtol)
+            rho = gain_ratio(act, pred, S_new)
+            small_f = small_decrease(act, pred, S, rho, self.ftol)
+            small_x = small_step(math.sqrt(hh), st.xnorm, self.xtol)
             if rho > 0:
                 st.x, st.r, st.S = x_new, r_new, S_new
                 st.J = st.ev.jacobian(x_new, r_new)
@@ -318,15 +317,12 @@ class LevenbergMarquardt(LocalSolver):
                 if st.marquardt:
                     st.Dvec = torch.maximum(st.Dvec, st.A.diagonal())
                     st.Dm = torch.diag_embed(st.Dvec)
-                st.gnorm = _gcos(st.ge, st.A, SS).item()
+                st.gnorm = gradient_cosine(st.ge, st.A.diagonal(), SS).item()
                 st.xnorm = xnorm_new
-                mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
                 st.best = self._fit_at(st, x_new, S_new)
             else:
-                mu *= nu
-                nu *= 2.0
                 st.n_rejected += 1
+            mu, nu = nielsen_update(mu, nu, rho)
             if rho > 0 and st.gnorm < self.gtol:
                 stop = (True, "projected gradient below gtol")
             elif small_f:
@@ -345,8 +341,3 @@ class LevenbergMarquardt(LocalSolver):
         return st.x, st.best, {"jacobian": st.J, "residuals": st.r, "cost": 0.5 * st.S,
                                "mu_history": st.mu_history, "n_jac": st.ev.n_jac, "n_rejected": st.n_rejected}
 
-
-def _gcos(ge: Tensor, A: Tensor, S: Tensor) -> Tensor:
-    """Scale-free gradient test (MINPACK's): the largest cosine between r and a column of J."""
-    den = torch.sqrt(A.diagonal().clamp(min=1e-300) * S.clamp(min=1e-300))
-    return torch.where(S > 0, (ge.abs() / den).max(), torch.zeros_like(S))

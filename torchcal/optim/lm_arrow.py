@@ -6,7 +6,12 @@ normal equations then have an arrow shape: block-diagonal in the ``z_r``, a dens
 ``s``. Each step eliminates the blocks (one batched Cholesky), solves the Schur complement for
 ``s`` and back-substitutes, as bundle adjustment does. Damping is global (one gain ratio for the
 whole objective), with Marquardt scaling and Nielsen's update as in
-:class:`~torchcal.optim.LevenbergMarquardt`.
+:class:`~torchcal.optim.LevenbergMarquardt`, from the same step rules (:mod:`torchcal.damping`).
+
+The loop is its own rather than an engine solver (:mod:`torchcal.optim.engine`): the engine's
+solvers take a :class:`~torchcal.problems.base.Problem` with a flat parameter vector and one
+Jacobian ``(m, k)``, while here the iterate is a pair ``(Z (R, kz), s (ks,))`` and the Jacobian
+comes in blocks that are never assembled (an ``(R m, R kz + ks)`` matrix would be mostly zeros).
 """
 from __future__ import annotations
 
@@ -16,6 +21,9 @@ from typing import Callable
 
 import torch
 from torch import Tensor
+
+from torchcal.damping import (damp_harder, gain_ratio, gradient_cosine, nielsen_update, predicted_decrease,
+                              scaling_floor, small_decrease, small_step)
 
 __all__ = ["lm_arrow", "ArrowResult", "arrow_solve"]
 
@@ -70,6 +78,40 @@ def arrow_solve(Hzz: Tensor, Hzs: Tensor, Hss: Tensor, gz: Tensor, gs: Tensor, z
     return dz, ds, L
 
 
+class _Blocks:
+    """The callback seen through the columns some block fits: ``Z (R, c)`` in, fixed columns of
+    the Jacobians zeroed out."""
+
+    def __init__(self, fun, Z0: Tensor, cols: Tensor, zfree: Tensor, sfree: Tensor):
+        self.fun, self.Zfull, self.cols = fun, Z0.clone(), cols
+        self.zf, self.sf = zfree.to(Z0.dtype), sfree.to(Z0.dtype)
+
+    def full(self, Z: Tensor) -> Tensor:
+        X = self.Zfull.clone()
+        X[:, self.cols] = Z
+        return X
+
+    def __call__(self, Z: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        r, Jz, Js = self.fun(self.full(Z), s)
+        return r, Jz[:, :, self.cols] * self.zf[:, None, :], Js * self.sf
+
+
+def _normal_equations(r: Tensor, Jz: Tensor, Js: Tensor) -> tuple[Tensor, ...]:
+    """The arrow's blocks ``Hzz (R, kz, kz)``, ``Hzs (R, kz, ks)``, ``Hss (ks, ks)`` of ``JᵀJ`` and
+    the gradients ``gz (R, kz)``, ``gs (ks,)`` of ``Jᵀr``."""
+    JzT = Jz.transpose(-1, -2)
+    return (torch.bmm(JzT, Jz), torch.bmm(JzT, Js), torch.einsum("rmi,rmj->ij", Js, Js),
+            torch.bmm(JzT, r[..., None])[..., 0], torch.einsum("rmi,rm->i", Js, r))
+
+
+def _gradient_test(H: tuple, S: float, zf: Tensor, sf: Tensor) -> float:
+    """MINPACK's scale-free gradient test over the free entries of both kinds."""
+    Hzz, _, Hss, gz, gs = H
+    d = torch.cat([(Hzz.diagonal(dim1=-2, dim2=-1) * zf).flatten(), Hss.diagonal() * sf])
+    g = torch.cat([(gz * zf).flatten(), gs * sf])
+    return float(gradient_cosine(g, d, torch.tensor(S, dtype=d.dtype, device=d.device)))
+
+
 def lm_arrow(fun: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]], Z0: Tensor, s0: Tensor, zfree: Tensor,
              sfree: Tensor, *, max_iter: int = 200, tau: float = 1e-6, gtol: float = 1e-10, xtol: float = 1e-10,
              ftol: float = 1e-12) -> ArrowResult:
@@ -84,77 +126,53 @@ def lm_arrow(fun: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]], Z0:
     """
     t0 = time.perf_counter()
     cols = torch.nonzero(zfree.any(0)).flatten()  # work on the columns some block fits
-    kz = Z0.shape[1]
-    Zfull = Z0.clone()
-    Z, s = Z0[:, cols].clone(), s0.clone()
     zfree = zfree[:, cols]
-    zf, sf = zfree.to(Z.dtype), sfree.to(Z.dtype)
-
-    def evaluate(Z_, s_):
-        X = Zfull.clone()
-        X[:, cols] = Z_
-        r_, Jz_, Js_ = fun(X, s_)
-        return r_, Jz_[:, :, cols] * zf[:, None, :], Js_ * sf
-
-    def normal(r_, Jz_, Js_):
-        JzT = Jz_.transpose(-1, -2)
-        return (torch.bmm(JzT, Jz_), torch.bmm(JzT, Js_), torch.einsum("rmi,rmj->ij", Js_, Js_),
-                torch.bmm(JzT, r_[..., None])[..., 0], torch.einsum("rmi,rm->i", Js_, r_))
-
+    evaluate = _Blocks(fun, Z0, cols, zfree, sfree)
+    zf, sf = evaluate.zf, evaluate.sf
+    Z, s = Z0[:, cols].clone(), s0.clone()
     r, Jz, Js = evaluate(Z, s)
-    Hzz, Hzs, Hss, gz, gs = normal(r, Jz, Js)
+    H = _normal_equations(r, Jz, Js)
     S = float((r * r).sum())
-    Dz = Hzz.diagonal(dim1=-2, dim2=-1).clone()
-    Ds = Hss.diagonal().clone()
+    Dz = H[0].diagonal(dim1=-2, dim2=-1).clone()
+    Ds = H[2].diagonal().clone()
     big = max(float(Dz.max()) if Dz.numel() else 0.0, float(Ds.max()) if Ds.numel() else 0.0, 1e-300)
+    big = torch.tensor(big, dtype=Dz.dtype, device=Dz.device)
     mu, nu, n_jac, it = float(tau), 2.0, 1, 0
     converged, message = False, ""
-
-    def gcos():
-        d = torch.cat([(Hzz.diagonal(dim1=-2, dim2=-1) * zf).flatten(), Hss.diagonal() * sf]).clamp(min=1e-300)
-        g = torch.cat([(gz * zf).flatten(), gs * sf])
-        return float((g.abs() / torch.sqrt(d * max(S, 1e-300))).max()) if S > 0 else 0.0
-
     while it < max_iter:
         it += 1
-        Dzf = Dz.clamp(min=1e-6 * big)
-        Dsf = Ds.clamp(min=1e-6 * big)
-        dz, ds, _ = arrow_solve(Hzz + mu * torch.diag_embed(Dzf), Hzs, Hss + mu * torch.diag(Dsf), gz, gs, zfree,
-                                sfree)
+        Hzz, Hzs, Hss, gz, gs = H
+        dz, ds, _ = arrow_solve(Hzz + mu * torch.diag_embed(scaling_floor(Dz, big)), Hzs,
+                                Hss + mu * torch.diag(scaling_floor(Ds, big)), gz, gs, zfree, sfree)
         if dz is None:
-            mu, nu = mu * nu, nu * 2.0
+            mu, nu = damp_harder(mu, nu)
             continue
         Zn, sn = Z + dz, s + ds
         rn, Jzn, Jsn = evaluate(Zn, sn)
         Sn = float((rn * rn).sum())
         Jh = torch.bmm(Jz, dz[..., None])[..., 0] + Js @ ds
-        pred = float(-2.0 * ((dz * gz).sum() + (ds * gs).sum()) - (Jh * Jh).sum())
+        pred = float(predicted_decrease((dz * gz).sum() + (ds * gs).sum(), (Jh * Jh).sum()))
         gain = S - Sn
-        rho = gain / pred if pred > 0 and Sn == Sn else -1.0
+        rho = gain_ratio(gain, pred, Sn)
         hn = float(torch.sqrt((dz * dz).sum() + (ds * ds).sum()))
         xn = float(torch.sqrt((Z * Z * zf).sum() + (s * s * sf).sum()))
-        small_f = abs(gain) <= ftol * S and pred <= ftol * S and rho <= 2.0
-        small_x = hn <= xtol * (xn + xtol)
+        small_f = small_decrease(gain, pred, S, rho, ftol)
+        small_x = small_step(hn, xn, xtol)
+        mu, nu = nielsen_update(mu, nu, rho)
         if rho > 0:
             Z, s, r, Jz, Js, S = Zn, sn, rn, Jzn, Jsn, Sn
             n_jac += 1
-            Hzz, Hzs, Hss, gz, gs = normal(r, Jz, Js)
-            Dz = torch.maximum(Dz, Hzz.diagonal(dim1=-2, dim2=-1))
-            Ds = torch.maximum(Ds, Hss.diagonal())
-            mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-            nu = 2.0
-            if gcos() < gtol:
+            H = _normal_equations(r, Jz, Js)
+            Dz = torch.maximum(Dz, H[0].diagonal(dim1=-2, dim2=-1))
+            Ds = torch.maximum(Ds, H[2].diagonal())
+            if _gradient_test(H, S, zf, sf) < gtol:
                 converged, message = True, "projected gradient below gtol"
                 break
-        else:
-            mu, nu = mu * nu, nu * 2.0
         if small_f or small_x:
             converged = True
             message = "relative decrease of the sum of squares below ftol" if small_f else "step below xtol"
             break
-    Zout = Zfull.clone()
-    Zout[:, cols] = Z
-    Jout = Jz.new_zeros(*Jz.shape[:2], kz)
+    Jout = Jz.new_zeros(*Jz.shape[:2], Z0.shape[1])
     Jout[:, :, cols] = Jz
-    return ArrowResult(Z=Zout, s=s, r=r, Jz=Jout, Js=Js, sse=S, n_iter=it, n_jac=n_jac, converged=converged,
+    return ArrowResult(Z=evaluate.full(Z), s=s, r=r, Jz=Jout, Js=Js, sse=S, n_iter=it, n_jac=n_jac, converged=converged,
                        message=message or f"reached max_iter={max_iter}", wall_time_s=time.perf_counter() - t0)
