@@ -392,9 +392,10 @@ def _reference_rounds(robot, data):
     batched path must reproduce it. Returns values, free flags, reasons, solver messages and the
     robots whose SVD rank differs from the kept count."""
     from torchcal.pipelines.fitting import PLAUSIBLE, drop_imprecise, imprecise_reason
-    from torchcal.pipelines.fleet.data import FleetData, fleet_template, register_fleet
+    from torchcal.pipelines.fleet.data import FleetData, register_fleet
+    from torchcal.problems.template import candidate_template
     from torchcal.problems.uncertainty import residual_noise
-    template = fleet_template(robot, data[0].marker_names)
+    template = candidate_template(robot, data[0].marker_names)
     fd = FleetData.build(robot, data)
     X0 = register_fleet(robot, fd, template.values.expand(len(data), -1).clone())
     R_, K = X0.shape
@@ -523,10 +524,10 @@ def test_reasons_are_worded_when_read(kr5, ragged):
 def test_rank_check_needs_no_svd_where_the_factor_decides(mixed):
     """The Cholesky factor of the kept columns proves the rank of well-conditioned robots (no SVD);
     where it cannot, the SVD decides, so the warnings are the SVD's."""
-    from torchcal.pipelines.fleet.data import fleet_template
+    from torchcal.problems.template import candidate_template
     from torchcal.pipelines.fleet.identify import _rank_unsure, check_rank
     robot, data = mixed
-    p = fleet_template(robot, data[0].marker_names)
+    p = candidate_template(robot, data[0].marker_names)
     names = p.free_names
     Js = [PositionResidual(robot, d).jacobian(p.values)[:, p.free_index] for d in data]
     m = max(j.shape[0] for j in Js)

@@ -25,13 +25,18 @@ import torch
 from torch import Tensor
 
 from torchcal.effects import JointCompliance
+from torchcal.kinematics.robot import Robot
 from torchcal.optim import Result
 from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
+from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import imprecise
-from torchcal.pipelines.fleet.data import check_rows
+from torchcal.pipelines.fleet.data import FleetData, check_rows
 from torchcal.pipelines.fleet.identify import decide, explain
+from torchcal.pipelines.fleet.options import FleetOptions
+from torchcal.pipelines.fleet.solution import FleetSolution
+from torchcal.problems.uncertainty import standard_errors
 
-__all__ = ["solve_coupled", "CoupledSolution", "PRIOR_START"]
+__all__ = ["solve_coupled", "PRIOR_START"]
 
 PRIOR_START = {"m": 1e-3, "rad": 1e-3}  # starting prior scales (m, rad) before they are estimated
 _EM_ROUNDS, _EM_RTOL = 100, 1e-3  # scale updates on the linearised fleet: rounds without kinematics
@@ -44,18 +49,18 @@ _PAYLOAD = [("payload.m", "kg"), ("payload.mx", "kg*m"), ("payload.my", "kg*m"),
 
 
 @dataclass
-class CoupledSolution:
-    X: Tensor  # (R, K) geometry
-    free: Tensor  # (R, K + E) what each robot fitted (geometry, then its effect parameters)
-    reasons: list
-    solver: list
-    r: Tensor  # (R, m) data residuals (then prior rows)
-    J: Tensor  # (R, m, K + E)
-    se: Tensor  # (R, K + E)
-    effects: dict | None
-    prior: dict | None
-    test_errors: object = None
-    n_extra: Tensor | None = None
+class _Fit:
+    """One coupled fit: per-robot blocks ``Z (R, K + T (+4))`` and shared ``s (np + 4)`` values, the
+    arrow LM's result, and with a prior its scales ``tau (np,)`` (m, rad), the noise ``sigma`` (m),
+    the scale updates run and whether the scales were estimated."""
+
+    Z: Tensor
+    s: Tensor
+    res: object
+    tau: Tensor | None = None
+    sigma: float | None = None
+    rounds: int = 0
+    estimated: bool = False
 
 
 class _Model:
@@ -177,11 +182,14 @@ def _judge(model, Z, pay, cand, names, units, prefer, noise: float):
     return kept, why
 
 
-def solve_coupled(robot, fd, template, X0, names, *, prior=None, prior_scale=None, effects=(), payload="shared",
-                  prefer=None, options=None) -> CoupledSolution:
-    """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring)."""
-    comp = _compliance(robot, effects, payload)
-    opts = {k: v for k, v in (options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
+def solve_coupled(robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, names: list[str],
+                  opt: FleetOptions) -> FleetSolution:
+    """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring):
+    ``opt.prior``, ``opt.prior_scale``, ``opt.effects``, ``opt.payload``, ``opt.prefer`` and the
+    LM's ``opt.options`` (:class:`~torchcal.pipelines.fleet.options.FleetOptions`)."""
+    prior, prior_scale, payload, prefer = opt.prior, opt.prior_scale, opt.payload, opt.prefer
+    comp = _compliance(robot, list(opt.effects or []), payload)
+    opts = {k: v for k, v in (opt.options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
     R_, K = X0.shape
     dev = X0.device
     model = _Model(robot, fd, comp, payload)
@@ -206,9 +214,9 @@ def solve_coupled(robot, fd, template, X0, names, *, prior=None, prior_scale=Non
         model.P = torch.nonzero(free[:K] & geo).flatten() if prior else None
         s = torch.cat([Z[:, model.P].mean(0) if prior else pay[:0], pay])
         fit = _fit(model, Z, s, free[: model.kz], free[model.kz:], prior, prior_scale, template, opts)
-        Z, pay = fit["Z"], fit["s"][model.np:]
+        Z, pay = fit.Z, fit.s[model.np:]
         md = model.fd.n_obs.sum() * 3
-        noise = fit["sigma"] or float((fit["res"].r[:, : model.md] ** 2).sum() / (md - free.sum() * R_).clamp(min=1)) ** 0.5
+        noise = fit.sigma or float((fit.res.r[:, : model.md] ** 2).sum() / (md - free.sum() * R_).clamp(min=1)) ** 0.5
     return _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior)
 
 
@@ -230,13 +238,13 @@ def _compliance(robot, effects, payload) -> JointCompliance | None:
     return comp
 
 
-def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> dict:
+def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> _Fit:
     """One fit; with a prior, its scales and the noise by EM until they settle."""
     R_ = Z.shape[0]
     zfree = free_z.expand(R_, -1)
     if not prior:
         res = lm_arrow(model, Z, s, zfree, free_s, **opts)
-        return {"Z": res.Z, "s": res.s, "res": res, "tau": None, "sigma": None, "rounds": 0, "estimated": False}
+        return _Fit(res.Z, res.s, res)
     P = model.P
     names = [template.names[i] for i in P.tolist()]
     units = [template.units[i] for i in P.tolist()]
@@ -259,8 +267,7 @@ def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> dic
     model.scales = {"sigma": sigma, **dict(zip(names, tau.tolist()))}
     model.w = sigma / tau
     res = lm_arrow(model, Z, s, zfree, sfree, **opts)
-    return {"Z": res.Z, "s": res.s, "res": res, "tau": tau, "sigma": sigma, "rounds": rounds,
-            "estimated": prior_scale is None}
+    return _Fit(res.Z, res.s, res, tau, sigma, rounds, prior_scale is None)
 
 
 def _scales(model, Z, s, zfree, sfree, tau, sigma, floor, estimate_tau: bool, n_rows: float):
@@ -312,43 +319,52 @@ def _rel(a: Tensor, b: Tensor, floor: Tensor) -> float:
     return float(((a - b).abs() / torch.maximum(b, floor)).max()) if a.numel() else 0.0
 
 
-def _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> CoupledSolution:
-
-    res, fd, K = fit["res"], model.fd, model.K
-    Z, s = fit["Z"], fit["s"]
+def _finish(model, fit: _Fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> FleetSolution:
+    """The coupled fit as a fleet solution: standard errors at the fitted noise (the prior's σ, or
+    each robot's own as :func:`~torchcal.pipelines.calibrate.calibrate` estimates it), a solver
+    record per robot, the effects' and the prior's parameters."""
+    res, K, Z = fit.res, model.K, fit.Z
     R_ = Z.shape[0]
     fz = free[: model.kz].expand(R_, -1).clone()
-    f = fz.to(Z.dtype)
-    H = torch.bmm(res.Jz.transpose(-1, -2), res.Jz) * f[:, :, None] * f[:, None, :] + torch.diag_embed(1 - f)
-    if prior:
-        sigma2 = torch.full((R_,), fit["sigma"] ** 2, dtype=Z.dtype, device=Z.device)
-    else:  # each robot's own noise, as calibrate() estimates it
-        sigma2 = (res.r[:, : model.md] ** 2).sum(-1) / (3 * fd.n_obs - fz.sum(-1)).clamp(min=1).to(Z.dtype)
-    se = torch.sqrt(torch.linalg.inv(H).diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
+    se = standard_errors(res.Jz, res.r[:, : model.md], fit.sigma if prior else None, free=fz, rows=3 * model.fd.n_obs)
     se = torch.where(fz, se, float("nan"))
     solver = [Result(x=Z[b, fz[b]], fun=float((res.r[b] ** 2).sum()), n_evals=res.n_iter + 1, n_iter=res.n_iter,
                      wall_time_s=res.wall_time_s, converged=res.converged, message=res.message, method="lm-arrow")
               for b in range(R_)]
-    effects, test_errors = None, None
-    pay = s[model.np:]
+    effects = test_errors = None
     if model.comp is not None:
-        vals = [[v if ok else None for v, ok in zip(row, fr)] for row, fr in zip(Z[:, K:].tolist(), fz[:, K:].tolist())]
-        effects = {"names": names_z[K:], "units": units_z[K:], "values": vals,
-                   "free": fz[:, K:].tolist(), "std_errors": se[:, K:].tolist(),
-                   "shared": {n: float(v) for n, v, ok in zip(names_p, pay.tolist(), free[model.kz:].tolist()) if ok},
-                   "shared_units": dict(zip(names_p, units_p)), "payload": "per_robot" if model.own_mu else "shared"}
+        effects = _effects(model, fit, fz, se, free, names_z, units_z, names_p, units_p)
+        test_errors = _held_out(model, fit)
+    return FleetSolution(X=Z[:, :K], free=fz, se=se, r=res.r[:, : model.md], reasons=[dict(why) for _ in range(R_)],
+                         solver=solver, stage="geometric + joint_compliance" if model.comp is not None else "geometric",
+                         n_extra=fz[:, K:].sum(-1), effects=effects, test_errors=test_errors,
+                         prior=_prior_info(model, fit, template) if prior else None)
 
-        def test_errors(fd_test):
-            qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
-            idx = torch.arange(R_, device=Z.device)
-            return fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured
-    prior_info = None
-    if prior:
-        P = model.P
-        prior_info = {"parameters": [template.names[i] for i in P.tolist()], "mean": s[: model.np].tolist(),
-                      "tau": fit["tau"].tolist(), "units": [template.units[i] for i in P.tolist()],
-                      "sigma_m": fit["sigma"], "n_outer": fit["rounds"], "scales_estimated": fit["estimated"]}
-    reasons = [dict(why) for _ in range(R_)]
-    return CoupledSolution(X=Z[:, :K], free=fz, reasons=reasons, solver=solver, r=res.r[:, : model.md],
-                           J=res.Jz[:, : model.md], se=se, effects=effects, prior=prior_info, test_errors=test_errors,
-                           n_extra=fz[:, K:].sum(-1))
+
+def _effects(model, fit: _Fit, fz, se, free, names_z, units_z, names_p, units_p) -> dict:
+    """The effects' parameters per robot (None where not fitted) and the payload the fleet shares."""
+    K, pay = model.K, fit.s[model.np:]
+    vals = [[v if ok else None for v, ok in zip(row, fr)] for row, fr in zip(fit.Z[:, K:].tolist(), fz[:, K:].tolist())]
+    return {"names": names_z[K:], "units": units_z[K:], "values": vals, "free": fz[:, K:].tolist(),
+            "std_errors": se[:, K:].tolist(),
+            "shared": {n: float(v) for n, v, ok in zip(names_p, pay.tolist(), free[model.kz:].tolist()) if ok},
+            "shared_units": dict(zip(names_p, units_p)), "payload": "per_robot" if model.own_mu else "shared"}
+
+
+def _held_out(model, fit: _Fit):
+    """``FleetData -> (R, N', M, 3)`` held-out error vectors (m) of the model with its effects."""
+    Z, pay, K = fit.Z, fit.s[model.np:], model.K
+
+    def test_errors(fd_test):
+        qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
+        idx = torch.arange(Z.shape[0], device=Z.device)
+        return fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured
+    return test_errors
+
+
+def _prior_info(model, fit: _Fit, template) -> dict:
+    """The hierarchical prior as fitted: its parameters, fleet mean, scales and noise."""
+    P = model.P
+    return {"parameters": [template.names[i] for i in P.tolist()], "mean": fit.s[: model.np].tolist(),
+            "tau": fit.tau.tolist(), "units": [template.units[i] for i in P.tolist()], "sigma_m": fit.sigma,
+            "n_outer": fit.rounds, "scales_estimated": fit.estimated}

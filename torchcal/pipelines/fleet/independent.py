@@ -4,7 +4,7 @@ solution, and refitted while the set grows or a parameter its data pin down wors
 plausible size leaves, as :func:`~torchcal.pipelines.fitting.fit_identified` does for one robot."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import torch
 from torch import Tensor
@@ -14,10 +14,13 @@ from torchcal.optim.lm_batched import lm_batched
 from torchcal.pipelines.fitting import drop_imprecise
 from torchcal.pipelines.fleet.data import BASE_NAMES, FleetData, check_rows
 from torchcal.pipelines.fleet.identify import FleetDecision, check_rank, decide
+from torchcal.params import ParamSet
+from torchcal.pipelines.fleet.options import FleetOptions
+from torchcal.pipelines.fleet.solution import FleetSolution
 from torchcal.pipelines.fleet.views import FleetReasons, FleetSolvers
-from torchcal.problems.uncertainty import residual_noise
+from torchcal.problems.uncertainty import residual_noise, standard_errors
 
-__all__ = ["solve_independent", "pooled_decision", "standard_errors"]
+__all__ = ["solve_independent", "pooled_decision"]
 
 
 def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_c: list[str], prefer=None):
@@ -32,7 +35,8 @@ def pooled_decision(robot: Robot, fd: FleetData, X: Tensor, cand: Tensor, names_
     return decide(J.reshape(1, -1, J.shape[-1]), names_c, robot.marker_names, prefer)
 
 
-def solve_independent(robot, fd, template, X0, names, identify, prefer, opts, plausible) -> _Independent:
+def solve_independent(robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, names: list[str],
+                      opt: FleetOptions) -> FleetSolution:
     """Rounds of judge -> batched LM -> judge again at the solution, per robot, as
     :func:`torchcal.pipelines.fitting.fit_identified` does for one robot (with ``noise="residuals"``,
     as :func:`~torchcal.pipelines.calibrate.calibrate` calls it): a parameter that grows identifiable
@@ -43,6 +47,7 @@ def solve_independent(robot, fd, template, X0, names, identify, prefer, opts, pl
     Every decision is a batched tensor over the candidate parameters; a round waits for the device
     only to learn which robots go on. The reasons in words and each robot's solver record are
     views, written when read (:mod:`torchcal.pipelines.fleet.views`)."""
+    identify, prefer, opts, plausible = opt.identify, opt.prefer, opt.options, opt.plausible
     R_, K = X0.shape
     dev = X0.device
     cand = template.free_index
@@ -126,10 +131,10 @@ def solve_independent(robot, fd, template, X0, names, identify, prefer, opts, pl
         J = res.jacobian[change] if not bool(reset.any()) else None
     _check_ranks(decisions, names)
     f = free[:, cand]
-    se = in_k(standard_errors(J_fin * f[:, None, :].to(J_fin.dtype), r_fin, f, 3 * fd.n_obs))
-    return _Independent(X=X, free=free, se=se, r=r_fin,
-                        reasons=FleetReasons(decisions, names_c, units_c, loose, loose_se, loose_noise),
-                        solver=FleetSolvers(fits, fit_of, at, free))
+    se = in_k(standard_errors(J_fin, r_fin, free=f, rows=3 * fd.n_obs))
+    return FleetSolution(X=X, free=free, se=se, r=r_fin,
+                         reasons=FleetReasons(decisions, names_c, units_c, loose, loose_se, loose_noise),
+                         solver=FleetSolvers(fits, fit_of, at, free))
 
 
 def _imprecise(d: FleetDecision, kept: Tensor, limit: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
@@ -157,27 +162,3 @@ def _check_ranks(decisions: list, names: list[str]) -> None:
         def label(rw, rows=rows, robots=robots):
             return names[int(robots[rows == rw][-1])]
         check_rank(d, torch.unique(rows), label)
-
-
-@dataclass
-class _Independent:
-    """What the independent solve leaves for the per-robot views."""
-
-    X: Tensor
-    free: Tensor
-    se: Tensor
-    r: Tensor
-    reasons: FleetReasons
-    solver: FleetSolvers
-
-
-def standard_errors(J: Tensor, r: Tensor, free: Tensor, n_res: Tensor) -> Tensor:
-    """``(R, K)`` standard errors ``sqrt(diag(σ² (JᵀJ)⁻¹))`` of each robot's free parameters, with
-    ``σ² = SSR / max(m − k, 1)``; NaN where ``JᵀJ`` is singular (as :func:`torchcal.pipelines.calibrate`)."""
-    f = free.to(J.dtype)
-    A = torch.bmm(J.transpose(-1, -2), J) * f[:, :, None] * f[:, None, :] + torch.diag_embed(1.0 - f)
-    inv, info = torch.linalg.inv_ex(A)
-    dof = (n_res - free.sum(-1)).clamp(min=1).to(J.dtype)
-    sigma2 = (r * r).sum(-1) / dof
-    se = torch.sqrt(inv.diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
-    return torch.where((info != 0)[:, None], torch.full_like(se, float("nan")), se)
