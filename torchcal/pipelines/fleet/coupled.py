@@ -24,16 +24,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.effects import JointCompliance
 from torchcal.kinematics.robot import Robot
 from torchcal.optim import Result
 from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import imprecise
+from torchcal.pipelines.fitting import FitOptions, imprecise
+from torchcal.pipelines.fleet.coupled_model import CoupledModel, block_layout, fleet_compliance
 from torchcal.pipelines.fleet.data import FleetData, check_rows
 from torchcal.pipelines.fleet.identify import decide, explain
 from torchcal.pipelines.fleet.options import FleetOptions
 from torchcal.pipelines.fleet.solution import FleetSolution
+from torchcal.pipelines.rounds import fit_rounds
 from torchcal.problems.uncertainty import standard_errors
 
 __all__ = ["solve_coupled", "PRIOR_START"]
@@ -45,7 +46,6 @@ _TAU_FLOOR = 1e-3  # relative to PRIOR_START: below 1 µm / 1 µrad a scale's re
 _SIGMA_START = 2e-5  # m: a tracker's noise, only to weigh the first round; EM replaces it
 # plausible sizes of effect parameters (one standard error): beyond them the data do not see them
 PLAUSIBLE_EFFECT = {"rad/(N*m)": 1e-3, "kg": 50.0, "kg*m": 10.0}
-_PAYLOAD = [("payload.m", "kg"), ("payload.mx", "kg*m"), ("payload.my", "kg*m"), ("payload.mz", "kg*m")]
 
 
 @dataclass
@@ -61,101 +61,6 @@ class _Fit:
     sigma: float | None = None
     rounds: int = 0
     estimated: bool = False
-
-
-class _Model:
-    """Residuals and Jacobians of every robot. Per robot ``z = (x (K) geometry, c (T) compliances,
-    μ (4) payload when each robot has its own)``; shared ``s = (m (np) prior means, μ (4) payload
-    when the fleet shares it)``. The prior rows are on when ``w`` (their weights) is set."""
-
-    def __init__(self, robot, fd, compliance: JointCompliance | None, payload: str):
-        self.robot, self.fd, self.comp = robot, fd, compliance
-        self.K = robot.n_params
-        self.T = len(compliance.joints) if compliance is not None else 0
-        self.own_mu = compliance is not None and payload == "per_robot"
-        self.n_pay = 4 if compliance is not None and payload == "shared" else 0
-        self.kz = self.K + self.T + (4 if self.own_mu else 0)
-        self.P, self.w = None, None  # prior: indices into the geometry, weights σ/τ (m per unit)
-        self.scales: dict[str, float] = {}  # the latest estimates of σ and of each τ, by name
-        self.md = fd.seen.shape[1] * fd.seen.shape[2] * 3
-        if compliance is not None:
-            self.dof = torch.tensor([robot.joint_names.index(j) for j in compliance.joints], device=robot.device)
-            self.off = torch.tensor([robot.param_names.index(f"{j}.offset") for j in compliance.joints],
-                                    device=robot.device)
-            self.Wt = self.torque_features(fd)
-
-    @property
-    def np(self) -> int:
-        return 0 if self.P is None else int(self.P.numel())
-
-    @property
-    def ks(self) -> int:
-        return self.np + self.n_pay
-
-    def torque_features(self, fd) -> Tensor:
-        """``(R, N, T, 5)`` gravity torque on each compliant joint from the URDF bodies (0) and per
-        unit payload mass moment (1–4), at every robot's commands (padded rows 0)."""
-        R_, N = fd.q.shape[:2]
-        out = fd.q.new_zeros(R_, N, self.T, 5)
-        for r in range(R_):
-            n = fd.rows[r]
-            if n:
-                out[r, :n] = self.comp.prepare(fd.q[r, :n], {}).features["Wt"][:, :, 0, :]
-        return out
-
-    def joints(self, Z: Tensor, pay: Tensor, Wt: Tensor, q: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Joint values with the twists ``(R, N, dof)``, and the torques ``(R, N, T)`` (N·m)."""
-        if self.comp is None:
-            return q, None
-        c = Z[:, self.K: self.K + self.T]
-        mu = Z[:, self.K + self.T:] if self.own_mu else pay.expand(Z.shape[0], 4)
-        tau = Wt[..., 0] + torch.einsum("rntb,rb->rnt", Wt[..., 1:], mu)
-        return q.index_add(2, self.dof, c[:, None, :] * tau), tau
-
-    def data(self, Z: Tensor, pay: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Position residuals ``(R, md)`` (m), their Jacobian in ``z`` and in a shared payload."""
-        fd, R_ = self.fd, Z.shape[0]
-        idx = torch.arange(R_, device=Z.device)
-        x = Z[:, : self.K]
-        qe, tau = self.joints(Z, pay, getattr(self, "Wt", None), fd.q)
-        J = fd.jacobian(self.robot, x, idx, q=qe)
-        r = ((fd.positions(self.robot, x, idx, q=qe) - fd.measured) * fd.seen[..., None]).reshape(R_, -1)
-        parts, Jpay = [J], Z.new_zeros(R_, self.md, self.n_pay)
-        if self.comp is not None:
-            Jq = J[:, :, self.off].reshape(R_, fd.q.shape[1], -1, self.T)  # d/dq_j of each row, (R, N, M·3, T)
-            parts.append((Jq * tau[:, :, None, :]).reshape(R_, -1, self.T))
-            c = Z[:, self.K: self.K + self.T]
-            Jmu = torch.einsum("rnkt,rt,rntb->rnkb", Jq, c, self.Wt[..., 1:]).reshape(R_, -1, 4)
-            if self.own_mu:
-                parts.append(Jmu)
-            else:
-                Jpay = Jmu
-        return r, torch.cat(parts, -1), Jpay
-
-    def __call__(self, Z: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        R_, n = Z.shape[0], self.np
-        r, Jz, Jpay = self.data(Z, s[n:])
-        Js = torch.cat([Z.new_zeros(R_, r.shape[1], n), Jpay], -1)
-        if n and self.w is not None:
-            ar = torch.arange(n, device=Z.device)
-            rp = self.w * (Z[:, self.P] - s[:n])
-            Jp = Z.new_zeros(R_, n, self.kz)
-            Jp[:, ar, self.P] = self.w
-            Jsp = Z.new_zeros(R_, n, self.ks)
-            Jsp[:, ar, ar] = -self.w
-            r, Jz, Js = torch.cat([r, rp], 1), torch.cat([Jz, Jp], 1), torch.cat([Js, Jsp], 1)
-        return r, Jz, Js
-
-
-def _layout(robot, template, model) -> tuple[list[str], list[str], list[str], list[str]]:
-    """Names and units of the per-robot block and of the payload the fleet may share."""
-    names = list(template.names) + [f"{j}.twist" for j in (model.comp.joints if model.comp else [])]
-    units = list(template.units) + ["rad/(N*m)"] * model.T
-    if model.own_mu:
-        names += [n for n, _ in _PAYLOAD]
-        units += [u for _, u in _PAYLOAD]
-    shared = _PAYLOAD if model.n_pay else []
-    return names, units, [n for n, _ in shared], [u for _, u in shared]
 
 
 def _judge(model, Z, pay, cand, names, units, prefer, noise: float):
@@ -186,56 +91,73 @@ def solve_coupled(robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, n
                   opt: FleetOptions) -> FleetSolution:
     """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring):
     ``opt.prior``, ``opt.prior_scale``, ``opt.effects``, ``opt.payload``, ``opt.prefer`` and the
-    LM's ``opt.options`` (:class:`~torchcal.pipelines.fleet.options.FleetOptions`)."""
-    prior, prior_scale, payload, prefer = opt.prior, opt.prior_scale, opt.payload, opt.prefer
-    comp = _compliance(robot, list(opt.effects or []), payload)
-    opts = {k: v for k, v in (opt.options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
-    R_, K = X0.shape
-    dev = X0.device
-    model = _Model(robot, fd, comp, payload)
-    names_z, units_z, names_p, units_p = _layout(robot, template, model)
-    geo = torch.tensor([not n.startswith("base.") and n.split(".")[0] not in robot.marker_names
-                        for n in template.names], device=dev)
-    cand = torch.nonzero(torch.cat([template.free, torch.ones(model.kz - K + model.n_pay, dtype=torch.bool,
-                                                               device=dev)])).flatten()
-    Z = torch.cat([X0, X0.new_zeros(R_, model.kz - K)], 1)
-    pay = X0.new_zeros(model.n_pay)
-    free, why, fit = None, {}, None
-    # rounds as fit_identified: judge, fit, judge again at the solution while the set grows; the
-    # payload's columns vanish while the compliances are 0, so it enters in the second round
-    noise = _SIGMA_START
-    for _ in range(3):
-        kept, why_new = _judge(model, Z, pay, cand, names_z + names_p, units_z + units_p, prefer, noise)
-        if free is not None and bool((kept == free).all()):
-            break
-        free, why = kept, why_new
-        if not prior:
-            check_rows(fd, free[None, :K].expand(R_, -1), names)
-        model.P = torch.nonzero(free[:K] & geo).flatten() if prior else None
-        s = torch.cat([Z[:, model.P].mean(0) if prior else pay[:0], pay])
-        fit = _fit(model, Z, s, free[: model.kz], free[model.kz:], prior, prior_scale, template, opts)
-        Z, pay = fit.Z, fit.s[model.np:]
-        md = model.fd.n_obs.sum() * 3
-        noise = fit.sigma or float((fit.res.r[:, : model.md] ** 2).sum() / (md - free.sum() * R_).clamp(min=1)) ** 0.5
-    return _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior)
+    LM's ``opt.options`` (:class:`~torchcal.pipelines.fleet.options.FleetOptions`), in the rounds of
+    :func:`~torchcal.pipelines.rounds.fit_rounds`: judge, fit, judge again at the solution while
+    the set changes; the payload's columns vanish while the compliances are 0, so it enters in the
+    second round."""
+    fleet = _Coupled(robot, fd, template, X0, names, opt)
+    fit_rounds(fleet, FitOptions().rounds)
+    return _finish(fleet.model, fleet.fit, fleet.free, fleet.why, template, *fleet.layout, opt.prior)
 
 
-def _compliance(robot, effects, payload) -> JointCompliance | None:
-    if not effects:
-        return None
-    bad = [e for e in effects if e != "joint_compliance"]
-    if bad:
-        raise ValueError(f"fleet-wide effects: only 'joint_compliance' is supported, got {bad}; run the loop "
-                         "(torchcal.run_loop) per robot for the others")
-    if payload not in ("shared", "per_robot"):
-        raise ValueError(f"payload must be 'shared' or 'per_robot', got {payload!r}")
-    comp = JointCompliance(robot)
-    if comp.lumped:
-        raise ValueError("fleet-wide joint compliance needs link inertials in the URDF (the gravity torque); "
-                         "this model has none")
-    if any(f"{j}.offset" not in robot.param_names for j in comp.joints):
-        raise ValueError("fleet-wide joint compliance needs a URDF robot (joint offsets named '<joint>.offset')")
-    return comp
+class _Coupled:
+    """The pieces of a round (:class:`~torchcal.pipelines.rounds.Rounds`) for a coupled fleet: one
+    identifiable set for every robot, judged on the pooled design at the noise of the last fit
+    (effect parameters too imprecise leave in the same judgement), and the arrow LM over every
+    robot's block and the shared parameters (with a prior, its scales by EM)."""
+
+    def __init__(self, robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, names: list[str],
+                 opt: FleetOptions):
+        self.fd, self.template, self.names = fd, template, names
+        self.prior, self.prior_scale, self.prefer = opt.prior, opt.prior_scale, opt.prefer
+        self.lm = {k: v for k, v in (opt.options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
+        R_, K = X0.shape
+        dev = X0.device
+        comp = fleet_compliance(robot, list(opt.effects or []), opt.payload)
+        model = self.model = CoupledModel(robot, fd, comp, opt.payload)
+        self.layout = block_layout(robot, template, model)
+        self.geo = torch.tensor([not n.startswith("base.") and n.split(".")[0] not in robot.marker_names
+                                 for n in template.names], device=dev)
+        self.cand = torch.nonzero(torch.cat([template.free, torch.ones(model.kz - K + model.n_pay, dtype=torch.bool,
+                                                                        device=dev)])).flatten()
+        self.Z = torch.cat([X0, X0.new_zeros(R_, model.kz - K)], 1)
+        self.pay = X0.new_zeros(model.n_pay)
+        self.noise = _SIGMA_START
+        self.free, self.why, self.fit = None, {}, None
+
+    def judge_here(self) -> tuple[Tensor, dict]:
+        names_z, units_z, names_p, units_p = self.layout
+        return _judge(self.model, self.Z, self.pay, self.cand, names_z + names_p, units_z + units_p, self.prefer,
+                      self.noise)
+
+    # ------------------------------------------------------------------ the Rounds hooks
+    def start(self) -> None:
+        self.advance(self.judge_here(), last=False)
+
+    def solve(self) -> None:
+        model, free, R_ = self.model, self.free, self.Z.shape[0]
+        s = torch.cat([self.Z[:, model.P].mean(0) if self.prior else self.pay[:0], self.pay])
+        fit = self.fit = _fit(model, self.Z, s, free[: model.kz], free[model.kz:], self.prior, self.prior_scale,
+                              self.template, self.lm)
+        self.Z, self.pay = fit.Z, fit.s[model.np:]
+        md = self.fd.n_obs.sum() * 3
+        ssr = (fit.res.r[:, : model.md] ** 2).sum()
+        self.noise = fit.sigma or float(ssr / (md - free.sum() * R_).clamp(min=1)) ** 0.5
+
+    def judge(self, last: bool):
+        """The set judged at the solution when it differs from the one fitted; none after the last fit."""
+        if last:
+            return None
+        kept, why = self.judge_here()
+        return None if bool((kept == self.free).all()) else (kept, why)
+
+    def advance(self, change, last: bool) -> bool:
+        self.free, self.why = change
+        K, R_ = self.model.K, self.Z.shape[0]
+        if not self.prior:
+            check_rows(self.fd, self.free[None, :K].expand(R_, -1), self.names)
+        self.model.P = torch.nonzero(self.free[:K] & self.geo).flatten() if self.prior else None
+        return False
 
 
 def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> _Fit:

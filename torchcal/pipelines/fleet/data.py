@@ -14,8 +14,8 @@ from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
 
-__all__ = ["FleetData", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists", "check_fleet_motion",
-           "check_rows", "BASE_NAMES"]
+__all__ = ["FleetData", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
+           "check_fleet_motion", "check_rows", "BASE_NAMES"]
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 # Jacobian entries evaluated at once, per device: a CPU's caches hold a few hundred robots' worth;

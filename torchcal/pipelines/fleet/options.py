@@ -10,7 +10,6 @@ from torchcal.advice import advice
 from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import check_plausible
-from torchcal.report.fleet import FALSE_ALARM
 
 __all__ = ["FleetOptions"]
 
@@ -42,7 +41,8 @@ class FleetOptions(Options):
         z_threshold: the least distance from its siblings (in their standard deviations) at which a
             robot's parameter is flagged (:mod:`torchcal.report.fleet`).
         false_alarm: the chance that a fleet of healthy robots raises any flag; with few robots the
-            bound it sets (Student-t, Bonferroni over robots and parameters) exceeds ``z_threshold``.
+            bound it sets (Student-t, Bonferroni over robots and parameters) exceeds ``z_threshold``
+            (None: the report's default, :data:`torchcal.report.fleet.FALSE_ALARM`, 5 %).
         plausible: the largest plausible error per unit (``{"m": metres, "rad": radians}``), as for
             :func:`torchcal.pipelines.calibrate` (a robot's parameter its data pin down worse is
             fixed; ``{}``: none is).
@@ -64,7 +64,7 @@ class FleetOptions(Options):
     prefer: Any = None
     min_rows: int = 3
     z_threshold: float = 5.0
-    false_alarm: float = FALSE_ALARM
+    false_alarm: float | None = None
     plausible: dict | None = None
     options: dict | None = None
     ray: str | None = None
@@ -87,9 +87,10 @@ class FleetOptions(Options):
         if not (isinstance(self.z_threshold, numbers.Real) and 0 < self.z_threshold < float("inf")):
             raise ValueError("z_threshold is a robust z-score beyond which a parameter is flagged: give a positive "
                              f"number (default 5), got {self.z_threshold!r}")
-        if not (isinstance(self.false_alarm, numbers.Real) and 0 < self.false_alarm < 1):
+        if self.false_alarm is not None and not (isinstance(self.false_alarm, numbers.Real)
+                                                 and 0 < self.false_alarm < 1):
             raise ValueError("false_alarm is the chance that a fleet of healthy robots raises any flag: give a number "
-                             f"between 0 and 1 (default {FALSE_ALARM}), got {self.false_alarm!r}")
+                             f"between 0 and 1 (default 5 %), got {self.false_alarm!r}")
         self._check_prior(n_robots)
         if self.identify not in (None, "per_robot", "pooled"):
             raise ValueError(f"identify must be 'per_robot' or 'pooled', got {self.identify!r}")

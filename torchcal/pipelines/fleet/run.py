@@ -61,6 +61,8 @@ def calibrate_fleet(robot: Robot, data, *, names: list[str] | None = None, test=
     opt = FleetOptions.build(settings, **kw)
     names, datasets, tests = validate_fleet(robot, data, names, test, opt.min_rows)
     opt = opt.checked(len(names))
+    if opt.false_alarm is None:
+        opt = replace(opt, false_alarm=FALSE_ALARM)
     if opt.ray is not None:
         return calibrate_fleet_ray(robot, dict(zip(names, datasets)), test=None if tests is None else
                                    {n: t for n, t in zip(names, tests) if t is not None}, address=opt.ray,
@@ -93,7 +95,7 @@ def _batches(robot: Robot, names: list[str], datasets: list, tests: list | None,
     fd_test = None
     if tests is not None:
         none = torch.zeros(0, dtype=torch.long)
-        fd_test = FleetData.build(robot, [t if t is not None else datasets[i].subset(none) for i, t in enumerate(tests)])
+        fd_test = FleetData.build(robot, [t if t is not None else d.subset(none) for d, t in zip(datasets, tests)])
     X0 = template.values.expand(len(names), -1)
     check_fleet_motion(robot, fd, names, X0)
     if fd_test is not None:

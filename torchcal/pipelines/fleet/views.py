@@ -140,7 +140,8 @@ class FleetResults(Sequence):
         self._test_vectors = test_errors
         self._test_errors = test_errors.norm(dim=-1) if test_errors is not None else None
         self.stage = sol.stage
-        self.n_extra = torch.zeros(len(names), dtype=torch.long, device=X.device) if sol.n_extra is None else sol.n_extra
+        none = torch.zeros(len(names), dtype=torch.long, device=X.device)
+        self.n_extra = none if sol.n_extra is None else sol.n_extra
         self._made: dict[int, CalibrationResult] = {}
         self._all_stats: dict | None = None
         self.suspects: list[list[dict]] = [[] for _ in names]  # per robot, gross errors left out of its fit
@@ -231,7 +232,7 @@ class FleetResults(Sequence):
         return out
 
     def _build(self, b: int, stats: dict) -> CalibrationResult:
-        e, s, h = self._host_errors, b - stats["offset"], self._host
+        h = self._host
         p = self.template.clone()
         p.values, p.free = self.X[b].clone(), self.free[b].clone()
         start = self.template.clone()
@@ -240,11 +241,21 @@ class FleetResults(Sequence):
         std = {n: v for n, v, f in zip(p.names, h["se"][b], free) if f}
         dropped = [n for n, c, f in zip(p.names, h["cand"], free) if c and not f]
         reasons = self.reasons[b]
-        has_test = self.has_test[b]
+        stages, errors = self._stages(b, stats, sum(free) + h["n_extra"][b])
+        return CalibrationResult(robot=self.robot, params=p, std_errors=std,
+                                 unidentifiable={n: reasons.get(n, "not identifiable") for n in dropped},
+                                 stages=stages, solver=self.solver[b], method="lm", n_train=self.n_train[b],
+                                 n_test=self.n_test[b], start=start, loss="l2", wall_time_s=self.wall_time_s,
+                                 errors=errors, suspects=self.suspects[b])
+
+    def _stages(self, b: int, stats: dict, k: int) -> tuple[list[dict], dict]:
+        """Robot ``b``'s stages (nominal, then the fitted model with ``k`` parameters): their error
+        statistics, and the errors per stage and split that the plots read."""
+        e, s, has_test = self._host_errors, b - stats["offset"], self.has_test[b]
         stages, errors = [], {}
-        last = (self.stage, "E", "Et", sum(free) + h["n_extra"][b])
-        for i, (name, tr, te, k) in enumerate((("nominal", "E0", "Et0", 0), last)):
-            st = {"name": name, "n_params": k, "train": stats["train"][i][s]}
+        last = (self.stage, "E", "Et", k)
+        for i, (name, tr, te, n) in enumerate((("nominal", "E0", "Et0", 0), last)):
+            st = {"name": name, "n_params": n, "train": stats["train"][i][s]}
             errors[name] = {"train": e[tr][b][e["seen"][b]], "test": torch.zeros(0),
                             "train_details": self.details["train"][i][b]}
             if has_test:
@@ -252,8 +263,4 @@ class FleetResults(Sequence):
                 errors[name]["test"] = e[te][b][e["seen_test"][b]]
                 errors[name]["test_details"] = self.details["test"][i][b]
             stages.append(st)
-        return CalibrationResult(robot=self.robot, params=p, std_errors=std,
-                                 unidentifiable={n: reasons.get(n, "not identifiable") for n in dropped},
-                                 stages=stages, solver=self.solver[b], method="lm", n_train=self.n_train[b],
-                                 n_test=self.n_test[b], start=start, loss="l2", wall_time_s=self.wall_time_s,
-                                 errors=errors, suspects=self.suspects[b])
+        return stages, errors
