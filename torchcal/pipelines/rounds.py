@@ -21,6 +21,9 @@ plausible size leaves for good, at its start value, and what was fitted with it 
   two), and a drop resets only the dropped values to their start: every round counts, restarts
   included. Making the fleet restart like a single fit would move its fitted values (by the LM's
   tolerance) and add rounds; making the single fit judge like the fleet would move calibrate's.
+* :func:`torchcal.pipelines.fleet.coupled.solve_coupled` for a fleet fitted as one problem (a
+  hierarchical prior, a shared payload): one set for every robot, judged on the pooled design with
+  the effects' precision in the same judgement; no judgement follows the last fit.
 """
 from __future__ import annotations
 
