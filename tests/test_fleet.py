@@ -247,6 +247,34 @@ def test_fleet_joint_compliance_shared_and_per_robot_payload():
     assert "payload.m" in own.effects["names"] and not own.effects["shared"]
 
 
+def test_one_covariance_batched_equals_single():
+    """The fleet's batched standard errors (each robot its own free columns and noise) are the single
+    problem's; a prior's pseudo-inverse route (the loop's) equals the inverse where that is regular."""
+    from torchcal.problems.uncertainty import standard_errors
+    g = torch.Generator().manual_seed(3)
+    J = torch.randn(3, 20, 5, generator=g, dtype=torch.float64)
+    r = torch.randn(3, 20, generator=g, dtype=torch.float64)
+    free = torch.tensor([[1, 1, 1, 1, 1], [1, 0, 1, 1, 0], [0, 1, 1, 1, 1]], dtype=torch.bool)
+    se = standard_errors(J, r, free=free)
+    for b in range(3):
+        assert torch.allclose(se[b, free[b]], standard_errors(J[b][:, free[b]], r[b]), rtol=1e-12, atol=0)
+    w = torch.rand(5, generator=g, dtype=torch.float64)
+    assert torch.allclose(standard_errors(J[0], sigma=0.1, prior=w),
+                          standard_errors(J[0], sigma=0.1, prior=w, singular="pinv"), rtol=1e-10, atol=0)
+    tied = J[0].clone()
+    tied[:, 1] = tied[:, 0]
+    assert torch.isnan(standard_errors(tied, r[0])).all()
+
+
+def test_fleet_settings_record_equals_keywords(kr5, ragged):
+    from torchcal.pipelines.fleet.options import FleetOptions
+    with pytest.raises(TypeError, match="did you mean 'prior'"):
+        calibrate_fleet(kr5, ragged[:3], priors="fleet")
+    a = calibrate_fleet(kr5, ragged[:3], plausible={"m": 1e-3, "rad": 1e-3})
+    b = calibrate_fleet(kr5, ragged[:3], settings=FleetOptions(plausible={"m": 1e-3, "rad": 1e-3}))
+    assert torch.equal(a.values, b.values) and torch.equal(a.free, b.free)
+
+
 def test_fleet_validation(kr5, ragged):
     with pytest.raises(ValueError, match="no robots"):
         calibrate_fleet(kr5, [])
@@ -392,9 +420,10 @@ def _reference_rounds(robot, data):
     batched path must reproduce it. Returns values, free flags, reasons, solver messages and the
     robots whose SVD rank differs from the kept count."""
     from torchcal.pipelines.fitting import PLAUSIBLE, drop_imprecise, imprecise_reason
-    from torchcal.pipelines.fleet.data import FleetData, fleet_template, register_fleet
+    from torchcal.pipelines.fleet.data import FleetData, register_fleet
+    from torchcal.problems.template import candidate_template
     from torchcal.problems.uncertainty import residual_noise
-    template = fleet_template(robot, data[0].marker_names)
+    template = candidate_template(robot, data[0].marker_names)
     fd = FleetData.build(robot, data)
     X0 = register_fleet(robot, fd, template.values.expand(len(data), -1).clone())
     R_, K = X0.shape
@@ -523,10 +552,10 @@ def test_reasons_are_worded_when_read(kr5, ragged):
 def test_rank_check_needs_no_svd_where_the_factor_decides(mixed):
     """The Cholesky factor of the kept columns proves the rank of well-conditioned robots (no SVD);
     where it cannot, the SVD decides, so the warnings are the SVD's."""
-    from torchcal.pipelines.fleet.data import fleet_template
+    from torchcal.problems.template import candidate_template
     from torchcal.pipelines.fleet.identify import _rank_unsure, check_rank
     robot, data = mixed
-    p = fleet_template(robot, data[0].marker_names)
+    p = candidate_template(robot, data[0].marker_names)
     names = p.free_names
     Js = [PositionResidual(robot, d).jacobian(p.values)[:, p.free_index] for d in data]
     m = max(j.shape[0] for j in Js)

@@ -2,20 +2,23 @@
 judge again at the solution, and refit while the identifiable set grows."""
 from __future__ import annotations
 
-from typing import Callable
+from dataclasses import dataclass
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
 from torchcal.advice import advice
+from torchcal.options import Options
 from torchcal.measure.setup import SETUP_PREFIXES
 from torchcal.optim import Result, get_solver
 from torchcal.params import ParamSet, display_unit
+from torchcal.pipelines.rounds import fit_rounds
 from torchcal.problems.base import Problem
 from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.problems.uncertainty import residual_noise, unit_variances
 
-__all__ = ["reduce_free", "fit_identified", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
+__all__ = ["reduce_free", "fit_identified", "FitOptions", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
            "imprecise_reason", "implausible_values", "implausible_reason", "SMALL_DATA", "is_small"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
@@ -178,122 +181,175 @@ def _nominal(start: ParamSet, names) -> ParamSet:
     return p
 
 
-def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, method: str = "lm",
-                   options: dict | None = None, seed: int = 0, progress: bool = False, markers=(),
-                   kind: str = "position", prefer=None, reduce: bool = True, rounds: int = 3,
-                   solve: Callable | None = None, noise: float | str | Callable | None = None,
-                   plausible: dict | None = None, zero_dropped: tuple[str, ...] = ()
-                   ) -> tuple[ParamSet, Result, object]:
-    """Fit the identifiable subset of ``params``' free entries.
+@dataclass(frozen=True)
+class FitOptions(Options):
+    """How :func:`fit_identified` fits.
 
-    Identifiability depends on where it is judged (a marker guessed on a joint axis hides that
-    joint's offset), so it is judged at the start, then again at each solution; while the
-    identifiable set grows the fit is repeated from the current values (nothing is reset, so the
-    state stays consistent). Only once the set has stopped growing is each parameter's precision
-    judged, at the noise the model *with* it reaches (a parameter judged at the misfit of a model
-    that lacked it would look imprecise). A parameter judged too imprecise is fixed at its
-    nominal value for good and the whole fit restarts from the start values: the other values had
-    compensated for it, and continuing from them would keep that compensation.
-
-    Args:
-        make_problem: builds a problem for a ParamSet (its free flags choose the unknowns).
+    Attributes:
+        method, options, seed, progress: the solver (:func:`~torchcal.optim.get_solver`) and its settings.
         solve: optional ``(problem) -> Result`` replacing the plain solver call.
+        markers, kind, prefer: as for :func:`~torchcal.problems.identifiability.analyse_jacobian`.
+        reduce: judge identifiability (False: fit every free parameter once).
+        rounds: fits while the identifiable set grows (restarts for imprecision come on top:
+            each fixes at least one parameter, so they end).
         noise: the per-axis measurement noise (m) that judges imprecision (:func:`reduce_free`);
             ``"residuals"``: each fit's own (:func:`~torchcal.problems.uncertainty.residual_noise`,
             the σ its standard errors are reported with); a callable ``(problem, x) -> float``: the
             noise it says the fit at ``x`` shows (a robust estimate, say); None: rank alone.
-        rounds: fits while the identifiable set grows (restarts for imprecision come on top:
-            each fixes at least one parameter, so they end).
-        plausible: see :func:`reduce_free`.
+        plausible: the largest plausible error per unit (m, rad), see :func:`reduce_free`.
         zero_dropped: name prefixes of parameters set to 0 when identifiability drops them (a
             model's optional parts, whose start may hold meaningless values along the directions
             the data cannot see).
+    """
+
+    method: str = "lm"
+    options: dict | None = None
+    seed: int = 0
+    progress: bool = False
+    markers: Any = ()
+    kind: str = "position"
+    prefer: Any = None
+    reduce: bool = True
+    rounds: int = 3
+    solve: Callable | None = None
+    noise: float | str | Callable | None = None
+    plausible: dict | None = None
+    zero_dropped: tuple[str, ...] = ()
+
+
+def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet, settings: FitOptions | None = None,
+                   **kw) -> tuple[ParamSet, Result, object]:
+    """Fit the identifiable subset of ``params``' free entries, in the rounds of
+    :func:`~torchcal.pipelines.rounds.fit_rounds`.
+
+    Identifiability is judged at the start, then again at each solution; while the identifiable
+    set grows the fit is repeated from the current values (nothing is reset, so the state stays
+    consistent). Only once the set has stopped growing is each parameter's precision judged, at
+    the noise the model *with* it reaches (a parameter judged at the misfit of a model that lacked
+    it would look imprecise). A parameter judged too imprecise is fixed at its nominal value for
+    good and the whole fit restarts from the start values: the other values had compensated for
+    it, and continuing from them would keep that compensation.
+
+    Args:
+        make_problem: builds a problem for a ParamSet (its free flags choose the unknowns).
+        settings: a :class:`FitOptions`; ``kw``: its fields, overriding it.
     Returns:
         (fitted ParamSet, the solver's Result, the last identifiability report or None).
     """
-    candidates = params.clone()
-    if isinstance(noise, str) and noise != "residuals":
-        raise ValueError(f"noise must be metres, 'residuals', a callable or None, got {noise!r}")
-    judged = noise is not None and not isinstance(noise, (int, float))
+    opt = FitOptions.build(settings, **kw)
+    if isinstance(opt.noise, str) and opt.noise != "residuals":
+        raise ValueError(f"noise must be metres, 'residuals', a callable or None, got {opt.noise!r}")
+    one = _OneProblem(make_problem, params, opt)
+    if not opt.reduce:
+        p, res, _ = one.run(params)
+        return p, res, None
+    fit_rounds(one, opt.rounds)
+    return one.p, one.res, one.rep
 
-    def run(p: ParamSet):
-        prob = make_problem(p)
+
+class _OneProblem:
+    """:func:`fit_identified`'s pieces of a round (:class:`~torchcal.pipelines.rounds.Rounds`) for
+    one problem. ``loose``: the parameters fixed at nominal for good (imprecise, or tied at a
+    solution), and why."""
+
+    def __init__(self, make_problem: Callable[[ParamSet], Problem], params: ParamSet, opt: FitOptions):
+        self.make, self.opt = make_problem, opt
+        self.candidates = params.clone()
+        self.judged = opt.noise is not None and not isinstance(opt.noise, (int, float))
+        self.fixed_nz = None if self.judged else opt.noise  # a noise known before any fit
+        self.loose: dict[str, str] = {}
+        self.p, self.res, self.prob, self.rep = params, None, None, None
+        self.grown: tuple | None = None
+
+    def run(self, p: ParamSet):
+        """One solve of ``p``'s free entries: (fitted ParamSet, Result, the problem)."""
+        opt = self.opt
+        prob = self.make(p)
         m, k = getattr(prob, "m", None), len(p.free_names)
         if m is not None and m < k:
-            raise ValueError(f"{m} residuals for {k} free parameters{'' if reduce else ' (no reduction asked)'}: "
+            raise ValueError(f"{m} residuals for {k} free parameters{'' if opt.reduce else ' (no reduction asked)'}: "
                              "measure more poses, or fix parameters")
-        res = solve(prob) if solve is not None else \
-            get_solver(method, seed=seed, progress=progress, **dict(options or {})).minimize(prob)
+        res = opt.solve(prob) if opt.solve is not None else \
+            get_solver(opt.method, seed=opt.seed, progress=opt.progress, **dict(opt.options or {})).minimize(prob)
         out = p.clone()
         out.values = prob.full(res.x).detach()
         return out, res, prob
 
-    if not reduce:
-        p, res, _ = run(params)
-        return p, res, None
+    def reduce(self, p: ParamSet, noise):
+        opt = self.opt
+        return reduce_free(self.make, p, markers=opt.markers, kind=opt.kind, prefer=opt.prefer, noise=noise,
+                           plausible=opt.plausible)
 
-    def zeroed(p: ParamSet) -> ParamSet:
-        if zero_dropped:
+    def zeroed(self, p: ParamSet) -> ParamSet:
+        """``p`` with the optional parts identifiability dropped set to 0."""
+        if self.opt.zero_dropped:
             for i, (n, f) in enumerate(zip(p.names, p.free.tolist())):
-                if not f and n.startswith(zero_dropped) and candidates.free[i]:
+                if not f and n.startswith(self.opt.zero_dropped) and self.candidates.free[i]:
                     p.values[i] = 0.0
         return p
 
-    def noise_of(prob, res) -> float:
-        if noise == "residuals":
-            return float(residual_noise(prob.residuals(res.x[None])[0], res.x.numel()))
-        return float(noise(prob, res.x))
+    def noise(self) -> float:
+        """The per-axis noise the last fit shows."""
+        if self.opt.noise == "residuals":
+            return float(residual_noise(self.prob.residuals(self.res.x[None])[0], self.res.x.numel()))
+        return float(self.opt.noise(self.prob, self.res.x))
 
-    def judge(p: ParamSet, nz):
-        """Rank (and, with ``nz``, precision) at ``p``'s values over the candidates not fixed
+    def judge_at(self, p: ParamSet, noise):
+        """Rank (and, with ``noise``, precision) at ``p``'s values over the candidates not fixed
         for good."""
-        nxt = candidates.clone()
+        nxt = self.candidates.clone()
         nxt.values = p.values.clone()
-        if loose:
-            nxt.fix(*loose)
-        return reduce_free(make_problem, nxt, markers=markers, kind=kind, prefer=prefer, noise=nz,
-                           plausible=plausible)
+        if self.loose:
+            nxt.fix(*self.loose)
+        return self.reduce(nxt, noise)
 
-    def keep_reasons(rep_):
-        for n, why in loose.items():
-            if n not in rep_.reasons:
-                rep_.dropped.append(n)
-                rep_.reasons[n] = why
-        return rep_
+    def keep_reasons(self, rep):
+        for n, why in self.loose.items():
+            if n not in rep.reasons:
+                rep.dropped.append(n)
+                rep.reasons[n] = why
+        return rep
 
-    fixed_nz = None if judged else noise
-    loose: dict[str, str] = {}  # fixed at nominal for good (imprecise, or tied at a solution), and why
-    p, rep = reduce_free(make_problem, candidates, markers=markers, kind=kind, prefer=prefer, noise=fixed_nz,
-                         plausible=plausible)
-    p = zeroed(p)
-    grown = 0
-    while True:
-        p, res, prob = run(p)
-        nxt, rep2 = judge(p, fixed_nz)
-        grew = not set(nxt.free_names) <= set(p.free_names)
-        if grew and grown < rounds - 1:
-            grown += 1  # the set grew at the solution: fit it from here before judging precision
-            rep, p = keep_reasons(rep2), zeroed(nxt)
-            continue
+    # ------------------------------------------------------------------ the Rounds hooks
+    def start(self) -> None:
+        p, self.rep = self.reduce(self.candidates, self.fixed_nz)
+        self.p = self.zeroed(p)
+
+    def solve(self) -> None:
+        self.p, self.res, self.prob = self.run(self.p)
+
+    def judge(self, last: bool) -> str | None:
+        """``"grow"``: fit the grown set from here; ``"restart"``: a fitted parameter left for
+        good; None: final. Precision is judged only when the set does not grow (or cannot)."""
+        p = self.p
+        nxt, rep2 = self.judge_at(p, self.fixed_nz)
         late = [n for n in nxt.free_names if n not in p.free_names]
-        if judged:  # precision at the noise of the model as fitted
-            nxt, rep2 = judge(p, noise_of(prob, res))
+        if late and not last:
+            self.grown = (nxt, rep2)
+            return "grow"
+        if self.judged:  # precision at the noise of the model as fitted
+            nxt, rep2 = self.judge_at(p, self.noise())
         for n in late:  # seen only now, after the last round: never fitted, so never judged either
             if n in rep2.identifiable:
                 rep2.identifiable.remove(n)
                 rep2.dropped.append(n)
-                rep2.reasons[n] = f"{n} became identifiable only at the last solution, after {rounds} rounds: not fitted"
+                rep2.reasons[n] = (f"{n} became identifiable only at the last solution, after {self.opt.rounds} "
+                                   "rounds: not fitted")
             if n in nxt.free_names:
                 nxt.fix(n)
-        imp = [n for n in rep2.imprecise if n not in loose]
+        imp = [n for n in rep2.imprecise if n not in self.loose]
         tied = [n for n in p.free_names if n not in nxt.free_names and n not in imp]
-        loose.update({n: rep2.reasons[n] for n in imp})
-        loose.update({n: rep2.reasons.get(n, f"{n} depends on other parameters at the solution") for n in tied})
-        rep = keep_reasons(rep2)
-        if not [n for n in imp if n in p.free_names] and not tied:
-            break
+        self.loose.update({n: rep2.reasons[n] for n in imp})
+        self.loose.update({n: rep2.reasons.get(n, f"{n} depends on other parameters at the solution") for n in tied})
+        self.rep = self.keep_reasons(rep2)
+        return "restart" if [n for n in imp if n in p.free_names] or tied else None
+
+    def advance(self, change: str, last: bool) -> bool:
+        if change == "grow":
+            nxt, rep2 = self.grown
+            self.rep, self.p = self.keep_reasons(rep2), self.zeroed(nxt)
+            return False
         # restart from a consistent state: every value from its start, the dropped at nominal
-        p, rep = reduce_free(make_problem, _nominal(candidates, list(loose)), markers=markers, kind=kind,
-                             prefer=prefer, noise=fixed_nz, plausible=plausible)
-        p, rep, grown = zeroed(p), keep_reasons(rep), 0
-    return p, res, rep
+        p, rep = self.reduce(_nominal(self.candidates, list(self.loose)), self.fixed_nz)
+        self.p, self.rep = self.zeroed(p), self.keep_reasons(rep)
+        return True

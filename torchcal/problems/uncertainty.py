@@ -1,5 +1,6 @@
-"""Parameter uncertainty of a least-squares fit: ``σ² (JᵀJ)⁻¹`` and the standard errors from it,
-one implementation for every problem."""
+"""Parameter uncertainty of a least-squares fit: ``σ² (JᵀJ + W²)⁻¹`` and the standard errors from
+it, one implementation for every problem: a single calibration, the loop's fits under a Gaussian
+prior, and a fleet's robots in one batch (each with its own free columns and noise)."""
 from __future__ import annotations
 
 import torch
@@ -8,29 +9,59 @@ from torch import Tensor
 __all__ = ["covariance", "standard_errors", "residual_noise", "unit_variances"]
 
 
-def covariance(J: Tensor, residuals: Tensor, sigma: float | None = None) -> Tensor:
-    """Parameter covariance of a least-squares fit: ``σ² (JᵀJ)⁻¹``.
+def covariance(J: Tensor, residuals: Tensor | None = None, sigma: float | Tensor | None = None, *,
+               prior: Tensor | None = None, free: Tensor | None = None, rows: Tensor | int | None = None,
+               singular: str = "nan") -> Tensor:
+    """Parameter covariance of a least-squares fit: ``σ² (JᵀJ + W²)⁻¹``, one problem or a batch.
 
     Args:
-        J: ``(m, k)`` Jacobian at the solution; residuals: ``(m,)``.
-        sigma: measurement σ per row (units of the residuals); default the estimate
-            ``sqrt(SSR / (m - k))``.
-
+        J: ``(..., m, k)`` Jacobian at the solution (units of the residuals per parameter unit).
+        residuals: ``(..., m)``, for the estimate ``σ² = SSR / max(rows − k, 1)`` when ``sigma``
+            is not given; sigma: the measurement σ per row (units of the residuals), a number or
+            ``(...)``.
+        prior: ``(..., k)`` weights ``W`` of a Gaussian prior (diagonal precision ``W²`` in units
+            of ``JᵀJ``); free: ``(..., k)`` bool, the fitted columns (the others get an identity
+            row and column, so their variance reads ``σ²``); ``k`` then counts the free ones.
+        rows: the measured rows per problem (default ``m``: a padded batch counts its own).
+        singular: ``"nan"``: NaN for every entry of a problem whose matrix cannot be inverted;
+            ``"pinv"``: the pseudo-inverse of the matrix scaled to a unit diagonal (a prior-free
+            direction the data do not see gets variance 0, not NaN).
     Returns:
-        ``(k, k)``. Raises ``RuntimeError`` (from the inverse) when ``JᵀJ`` is singular.
+        ``(..., k, k)``.
     """
-    m, k = J.shape
-    s2 = float(residuals @ residuals) / max(m - k, 1) if sigma is None else float(sigma) ** 2
-    return s2 * torch.linalg.inv(J.mT @ J)
+    A = J.mT @ J
+    if prior is not None:
+        A = A + torch.diag_embed(prior * prior)
+    if free is not None:
+        f = free.to(J.dtype)
+        A = A * f[..., :, None] * f[..., None, :] + torch.diag_embed(1.0 - f)
+    if singular == "pinv":
+        s = A.diagonal(dim1=-2, dim2=-1).clamp(min=1e-300).sqrt()
+        inv = torch.linalg.pinv(A / s[..., :, None] / s[..., None, :]) / s[..., :, None] / s[..., None, :]
+    elif singular == "nan":
+        inv, info = torch.linalg.inv_ex(A)
+        inv = torch.where((info != 0)[..., None, None], torch.full_like(inv, float("nan")), inv)
+    else:
+        raise ValueError(f"singular must be 'nan' or 'pinv', got {singular!r}")
+    return _variance(J, residuals, sigma, free, rows)[..., None, None] * inv
 
 
-def standard_errors(J: Tensor, residuals: Tensor, sigma: float | None = None) -> Tensor:
-    """``(k,)`` standard errors (square roots of the covariance diagonal, :func:`covariance`);
-    NaN for every parameter when ``JᵀJ`` cannot be inverted."""
-    try:
-        return torch.sqrt(torch.diagonal(covariance(J, residuals, sigma)).clamp(min=0))
-    except RuntimeError:
-        return torch.full((J.shape[1],), float("nan"), dtype=J.dtype, device=J.device)
+def _variance(J: Tensor, residuals: Tensor | None, sigma, free: Tensor | None, rows) -> Tensor:
+    """``σ²`` per problem ``(...)``: the given σ squared, or ``SSR / max(rows − k, 1)``."""
+    if sigma is not None:
+        return torch.as_tensor(sigma, dtype=J.dtype, device=J.device) ** 2
+    k = J.shape[-1] if free is None else free.sum(-1)
+    m = J.shape[-2] if rows is None else rows
+    dof = torch.as_tensor(m - k, device=J.device).clamp(min=1).to(J.dtype)
+    return (residuals * residuals).sum(-1) / dof
+
+
+def standard_errors(J: Tensor, residuals: Tensor | None = None, sigma: float | Tensor | None = None,
+                    **kw) -> Tensor:
+    """``(..., k)`` standard errors: square roots of the diagonal of :func:`covariance` (its
+    keywords ``prior``, ``free``, ``rows``, ``singular``); NaN for every parameter of a problem
+    whose matrix cannot be inverted."""
+    return covariance(J, residuals, sigma, **kw).diagonal(dim1=-2, dim2=-1).clamp(min=0).sqrt()
 
 
 def residual_noise(residuals: Tensor, n_params) -> Tensor:

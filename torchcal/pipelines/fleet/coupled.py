@@ -24,14 +24,20 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.effects import JointCompliance
+from torchcal.kinematics.robot import Robot
 from torchcal.optim import Result
 from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
-from torchcal.pipelines.fitting import imprecise
-from torchcal.pipelines.fleet.data import check_rows
+from torchcal.params import ParamSet
+from torchcal.pipelines.fitting import FitOptions, imprecise
+from torchcal.pipelines.fleet.coupled_model import CoupledModel, block_layout, fleet_compliance
+from torchcal.pipelines.fleet.data import FleetData, check_rows
 from torchcal.pipelines.fleet.identify import decide, explain
+from torchcal.pipelines.fleet.options import FleetOptions
+from torchcal.pipelines.fleet.solution import FleetSolution
+from torchcal.pipelines.rounds import fit_rounds
+from torchcal.problems.uncertainty import standard_errors
 
-__all__ = ["solve_coupled", "CoupledSolution", "PRIOR_START"]
+__all__ = ["solve_coupled", "PRIOR_START"]
 
 PRIOR_START = {"m": 1e-3, "rad": 1e-3}  # starting prior scales (m, rad) before they are estimated
 _EM_ROUNDS, _EM_RTOL = 100, 1e-3  # scale updates on the linearised fleet: rounds without kinematics
@@ -40,117 +46,21 @@ _TAU_FLOOR = 1e-3  # relative to PRIOR_START: below 1 µm / 1 µrad a scale's re
 _SIGMA_START = 2e-5  # m: a tracker's noise, only to weigh the first round; EM replaces it
 # plausible sizes of effect parameters (one standard error): beyond them the data do not see them
 PLAUSIBLE_EFFECT = {"rad/(N*m)": 1e-3, "kg": 50.0, "kg*m": 10.0}
-_PAYLOAD = [("payload.m", "kg"), ("payload.mx", "kg*m"), ("payload.my", "kg*m"), ("payload.mz", "kg*m")]
 
 
 @dataclass
-class CoupledSolution:
-    X: Tensor  # (R, K) geometry
-    free: Tensor  # (R, K + E) what each robot fitted (geometry, then its effect parameters)
-    reasons: list
-    solver: list
-    r: Tensor  # (R, m) data residuals (then prior rows)
-    J: Tensor  # (R, m, K + E)
-    se: Tensor  # (R, K + E)
-    effects: dict | None
-    prior: dict | None
-    test_errors: object = None
-    n_extra: Tensor | None = None
+class _Fit:
+    """One coupled fit: per-robot blocks ``Z (R, K + T (+4))`` and shared ``s (np + 4)`` values, the
+    arrow LM's result, and with a prior its scales ``tau (np,)`` (m, rad), the noise ``sigma`` (m),
+    the scale updates run and whether the scales were estimated."""
 
-
-class _Model:
-    """Residuals and Jacobians of every robot. Per robot ``z = (x (K) geometry, c (T) compliances,
-    μ (4) payload when each robot has its own)``; shared ``s = (m (np) prior means, μ (4) payload
-    when the fleet shares it)``. The prior rows are on when ``w`` (their weights) is set."""
-
-    def __init__(self, robot, fd, compliance: JointCompliance | None, payload: str):
-        self.robot, self.fd, self.comp = robot, fd, compliance
-        self.K = robot.n_params
-        self.T = len(compliance.joints) if compliance is not None else 0
-        self.own_mu = compliance is not None and payload == "per_robot"
-        self.n_pay = 4 if compliance is not None and payload == "shared" else 0
-        self.kz = self.K + self.T + (4 if self.own_mu else 0)
-        self.P, self.w = None, None  # prior: indices into the geometry, weights σ/τ (m per unit)
-        self.scales: dict[str, float] = {}  # the latest estimates of σ and of each τ, by name
-        self.md = fd.seen.shape[1] * fd.seen.shape[2] * 3
-        if compliance is not None:
-            self.dof = torch.tensor([robot.joint_names.index(j) for j in compliance.joints], device=robot.device)
-            self.off = torch.tensor([robot.param_names.index(f"{j}.offset") for j in compliance.joints],
-                                    device=robot.device)
-            self.Wt = self.torque_features(fd)
-
-    @property
-    def np(self) -> int:
-        return 0 if self.P is None else int(self.P.numel())
-
-    @property
-    def ks(self) -> int:
-        return self.np + self.n_pay
-
-    def torque_features(self, fd) -> Tensor:
-        """``(R, N, T, 5)`` gravity torque on each compliant joint from the URDF bodies (0) and per
-        unit payload mass moment (1–4), at every robot's commands (padded rows 0)."""
-        R_, N = fd.q.shape[:2]
-        out = fd.q.new_zeros(R_, N, self.T, 5)
-        for r in range(R_):
-            n = fd.rows[r]
-            if n:
-                out[r, :n] = self.comp.prepare(fd.q[r, :n], {}).features["Wt"][:, :, 0, :]
-        return out
-
-    def joints(self, Z: Tensor, pay: Tensor, Wt: Tensor, q: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Joint values with the twists ``(R, N, dof)``, and the torques ``(R, N, T)`` (N·m)."""
-        if self.comp is None:
-            return q, None
-        c = Z[:, self.K: self.K + self.T]
-        mu = Z[:, self.K + self.T:] if self.own_mu else pay.expand(Z.shape[0], 4)
-        tau = Wt[..., 0] + torch.einsum("rntb,rb->rnt", Wt[..., 1:], mu)
-        return q.index_add(2, self.dof, c[:, None, :] * tau), tau
-
-    def data(self, Z: Tensor, pay: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Position residuals ``(R, md)`` (m), their Jacobian in ``z`` and in a shared payload."""
-        fd, R_ = self.fd, Z.shape[0]
-        idx = torch.arange(R_, device=Z.device)
-        x = Z[:, : self.K]
-        qe, tau = self.joints(Z, pay, getattr(self, "Wt", None), fd.q)
-        J = fd.jacobian(self.robot, x, idx, q=qe)
-        r = ((fd.positions(self.robot, x, idx, q=qe) - fd.measured) * fd.seen[..., None]).reshape(R_, -1)
-        parts, Jpay = [J], Z.new_zeros(R_, self.md, self.n_pay)
-        if self.comp is not None:
-            Jq = J[:, :, self.off].reshape(R_, fd.q.shape[1], -1, self.T)  # d/dq_j of each row, (R, N, M·3, T)
-            parts.append((Jq * tau[:, :, None, :]).reshape(R_, -1, self.T))
-            c = Z[:, self.K: self.K + self.T]
-            Jmu = torch.einsum("rnkt,rt,rntb->rnkb", Jq, c, self.Wt[..., 1:]).reshape(R_, -1, 4)
-            if self.own_mu:
-                parts.append(Jmu)
-            else:
-                Jpay = Jmu
-        return r, torch.cat(parts, -1), Jpay
-
-    def __call__(self, Z: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        R_, n = Z.shape[0], self.np
-        r, Jz, Jpay = self.data(Z, s[n:])
-        Js = torch.cat([Z.new_zeros(R_, r.shape[1], n), Jpay], -1)
-        if n and self.w is not None:
-            ar = torch.arange(n, device=Z.device)
-            rp = self.w * (Z[:, self.P] - s[:n])
-            Jp = Z.new_zeros(R_, n, self.kz)
-            Jp[:, ar, self.P] = self.w
-            Jsp = Z.new_zeros(R_, n, self.ks)
-            Jsp[:, ar, ar] = -self.w
-            r, Jz, Js = torch.cat([r, rp], 1), torch.cat([Jz, Jp], 1), torch.cat([Js, Jsp], 1)
-        return r, Jz, Js
-
-
-def _layout(robot, template, model) -> tuple[list[str], list[str], list[str], list[str]]:
-    """Names and units of the per-robot block and of the payload the fleet may share."""
-    names = list(template.names) + [f"{j}.twist" for j in (model.comp.joints if model.comp else [])]
-    units = list(template.units) + ["rad/(N*m)"] * model.T
-    if model.own_mu:
-        names += [n for n, _ in _PAYLOAD]
-        units += [u for _, u in _PAYLOAD]
-    shared = _PAYLOAD if model.n_pay else []
-    return names, units, [n for n, _ in shared], [u for _, u in shared]
+    Z: Tensor
+    s: Tensor
+    res: object
+    tau: Tensor | None = None
+    sigma: float | None = None
+    rounds: int = 0
+    estimated: bool = False
 
 
 def _judge(model, Z, pay, cand, names, units, prefer, noise: float):
@@ -177,66 +87,86 @@ def _judge(model, Z, pay, cand, names, units, prefer, noise: float):
     return kept, why
 
 
-def solve_coupled(robot, fd, template, X0, names, *, prior=None, prior_scale=None, effects=(), payload="shared",
-                  prefer=None, options=None) -> CoupledSolution:
-    """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring)."""
-    comp = _compliance(robot, effects, payload)
-    opts = {k: v for k, v in (options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
-    R_, K = X0.shape
-    dev = X0.device
-    model = _Model(robot, fd, comp, payload)
-    names_z, units_z, names_p, units_p = _layout(robot, template, model)
-    geo = torch.tensor([not n.startswith("base.") and n.split(".")[0] not in robot.marker_names
-                        for n in template.names], device=dev)
-    cand = torch.nonzero(torch.cat([template.free, torch.ones(model.kz - K + model.n_pay, dtype=torch.bool,
-                                                               device=dev)])).flatten()
-    Z = torch.cat([X0, X0.new_zeros(R_, model.kz - K)], 1)
-    pay = X0.new_zeros(model.n_pay)
-    free, why, fit = None, {}, None
-    # rounds as fit_identified: judge, fit, judge again at the solution while the set grows; the
-    # payload's columns vanish while the compliances are 0, so it enters in the second round
-    noise = _SIGMA_START
-    for _ in range(3):
-        kept, why_new = _judge(model, Z, pay, cand, names_z + names_p, units_z + units_p, prefer, noise)
-        if free is not None and bool((kept == free).all()):
-            break
-        free, why = kept, why_new
-        if not prior:
-            check_rows(fd, free[None, :K].expand(R_, -1), names)
-        model.P = torch.nonzero(free[:K] & geo).flatten() if prior else None
-        s = torch.cat([Z[:, model.P].mean(0) if prior else pay[:0], pay])
-        fit = _fit(model, Z, s, free[: model.kz], free[model.kz:], prior, prior_scale, template, opts)
-        Z, pay = fit["Z"], fit["s"][model.np:]
-        md = model.fd.n_obs.sum() * 3
-        noise = fit["sigma"] or float((fit["res"].r[:, : model.md] ** 2).sum() / (md - free.sum() * R_).clamp(min=1)) ** 0.5
-    return _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior)
+def solve_coupled(robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, names: list[str],
+                  opt: FleetOptions) -> FleetSolution:
+    """Fit the fleet with a hierarchical prior and/or joint compliance (see the module docstring):
+    ``opt.prior``, ``opt.prior_scale``, ``opt.effects``, ``opt.payload``, ``opt.prefer`` and the
+    LM's ``opt.options`` (:class:`~torchcal.pipelines.fleet.options.FleetOptions`), in the rounds of
+    :func:`~torchcal.pipelines.rounds.fit_rounds`: judge, fit, judge again at the solution while
+    the set changes; the payload's columns vanish while the compliances are 0, so it enters in the
+    second round."""
+    fleet = _Coupled(robot, fd, template, X0, names, opt)
+    fit_rounds(fleet, FitOptions().rounds)
+    return _finish(fleet.model, fleet.fit, fleet.free, fleet.why, template, *fleet.layout, opt.prior)
 
 
-def _compliance(robot, effects, payload) -> JointCompliance | None:
-    if not effects:
-        return None
-    bad = [e for e in effects if e != "joint_compliance"]
-    if bad:
-        raise ValueError(f"fleet-wide effects: only 'joint_compliance' is supported, got {bad}; run the loop "
-                         "(torchcal.run_loop) per robot for the others")
-    if payload not in ("shared", "per_robot"):
-        raise ValueError(f"payload must be 'shared' or 'per_robot', got {payload!r}")
-    comp = JointCompliance(robot)
-    if comp.lumped:
-        raise ValueError("fleet-wide joint compliance needs link inertials in the URDF (the gravity torque); "
-                         "this model has none")
-    if any(f"{j}.offset" not in robot.param_names for j in comp.joints):
-        raise ValueError("fleet-wide joint compliance needs a URDF robot (joint offsets named '<joint>.offset')")
-    return comp
+class _Coupled:
+    """The pieces of a round (:class:`~torchcal.pipelines.rounds.Rounds`) for a coupled fleet: one
+    identifiable set for every robot, judged on the pooled design at the noise of the last fit
+    (effect parameters too imprecise leave in the same judgement), and the arrow LM over every
+    robot's block and the shared parameters (with a prior, its scales by EM)."""
+
+    def __init__(self, robot: Robot, fd: FleetData, template: ParamSet, X0: Tensor, names: list[str],
+                 opt: FleetOptions):
+        self.fd, self.template, self.names = fd, template, names
+        self.prior, self.prior_scale, self.prefer = opt.prior, opt.prior_scale, opt.prefer
+        self.lm = {k: v for k, v in (opt.options or {}).items() if k in ("max_iter", "tau", "gtol", "xtol", "ftol")}
+        R_, K = X0.shape
+        dev = X0.device
+        comp = fleet_compliance(robot, list(opt.effects or []), opt.payload)
+        model = self.model = CoupledModel(robot, fd, comp, opt.payload)
+        self.layout = block_layout(robot, template, model)
+        self.geo = torch.tensor([not n.startswith("base.") and n.split(".")[0] not in robot.marker_names
+                                 for n in template.names], device=dev)
+        self.cand = torch.nonzero(torch.cat([template.free, torch.ones(model.kz - K + model.n_pay, dtype=torch.bool,
+                                                                        device=dev)])).flatten()
+        self.Z = torch.cat([X0, X0.new_zeros(R_, model.kz - K)], 1)
+        self.pay = X0.new_zeros(model.n_pay)
+        self.noise = _SIGMA_START
+        self.free, self.why, self.fit = None, {}, None
+
+    def judge_here(self) -> tuple[Tensor, dict]:
+        names_z, units_z, names_p, units_p = self.layout
+        return _judge(self.model, self.Z, self.pay, self.cand, names_z + names_p, units_z + units_p, self.prefer,
+                      self.noise)
+
+    # ------------------------------------------------------------------ the Rounds hooks
+    def start(self) -> None:
+        self.advance(self.judge_here(), last=False)
+
+    def solve(self) -> None:
+        model, free, R_ = self.model, self.free, self.Z.shape[0]
+        s = torch.cat([self.Z[:, model.P].mean(0) if self.prior else self.pay[:0], self.pay])
+        fit = self.fit = _fit(model, self.Z, s, free[: model.kz], free[model.kz:], self.prior, self.prior_scale,
+                              self.template, self.lm)
+        self.Z, self.pay = fit.Z, fit.s[model.np:]
+        md = self.fd.n_obs.sum() * 3
+        ssr = (fit.res.r[:, : model.md] ** 2).sum()
+        self.noise = fit.sigma or float(ssr / (md - free.sum() * R_).clamp(min=1)) ** 0.5
+
+    def judge(self, last: bool):
+        """The set judged at the solution when it differs from the one fitted; none after the last fit."""
+        if last:
+            return None
+        kept, why = self.judge_here()
+        return None if bool((kept == self.free).all()) else (kept, why)
+
+    def advance(self, change, last: bool) -> bool:
+        self.free, self.why = change
+        K, R_ = self.model.K, self.Z.shape[0]
+        if not self.prior:
+            check_rows(self.fd, self.free[None, :K].expand(R_, -1), self.names)
+        self.model.P = torch.nonzero(self.free[:K] & self.geo).flatten() if self.prior else None
+        return False
 
 
-def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> dict:
+def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> _Fit:
     """One fit; with a prior, its scales and the noise by EM until they settle."""
     R_ = Z.shape[0]
     zfree = free_z.expand(R_, -1)
     if not prior:
         res = lm_arrow(model, Z, s, zfree, free_s, **opts)
-        return {"Z": res.Z, "s": res.s, "res": res, "tau": None, "sigma": None, "rounds": 0, "estimated": False}
+        return _Fit(res.Z, res.s, res)
     P = model.P
     names = [template.names[i] for i in P.tolist()]
     units = [template.units[i] for i in P.tolist()]
@@ -259,8 +189,7 @@ def _fit(model, Z, s, free_z, free_s, prior, prior_scale, template, opts) -> dic
     model.scales = {"sigma": sigma, **dict(zip(names, tau.tolist()))}
     model.w = sigma / tau
     res = lm_arrow(model, Z, s, zfree, sfree, **opts)
-    return {"Z": res.Z, "s": res.s, "res": res, "tau": tau, "sigma": sigma, "rounds": rounds,
-            "estimated": prior_scale is None}
+    return _Fit(res.Z, res.s, res, tau, sigma, rounds, prior_scale is None)
 
 
 def _scales(model, Z, s, zfree, sfree, tau, sigma, floor, estimate_tau: bool, n_rows: float):
@@ -312,43 +241,52 @@ def _rel(a: Tensor, b: Tensor, floor: Tensor) -> float:
     return float(((a - b).abs() / torch.maximum(b, floor)).max()) if a.numel() else 0.0
 
 
-def _finish(model, fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> CoupledSolution:
-
-    res, fd, K = fit["res"], model.fd, model.K
-    Z, s = fit["Z"], fit["s"]
+def _finish(model, fit: _Fit, free, why, template, names_z, units_z, names_p, units_p, prior) -> FleetSolution:
+    """The coupled fit as a fleet solution: standard errors at the fitted noise (the prior's σ, or
+    each robot's own as :func:`~torchcal.pipelines.calibrate.calibrate` estimates it), a solver
+    record per robot, the effects' and the prior's parameters."""
+    res, K, Z = fit.res, model.K, fit.Z
     R_ = Z.shape[0]
     fz = free[: model.kz].expand(R_, -1).clone()
-    f = fz.to(Z.dtype)
-    H = torch.bmm(res.Jz.transpose(-1, -2), res.Jz) * f[:, :, None] * f[:, None, :] + torch.diag_embed(1 - f)
-    if prior:
-        sigma2 = torch.full((R_,), fit["sigma"] ** 2, dtype=Z.dtype, device=Z.device)
-    else:  # each robot's own noise, as calibrate() estimates it
-        sigma2 = (res.r[:, : model.md] ** 2).sum(-1) / (3 * fd.n_obs - fz.sum(-1)).clamp(min=1).to(Z.dtype)
-    se = torch.sqrt(torch.linalg.inv(H).diagonal(dim1=-2, dim2=-1).clamp(min=0) * sigma2[:, None])
+    se = standard_errors(res.Jz, res.r[:, : model.md], fit.sigma if prior else None, free=fz, rows=3 * model.fd.n_obs)
     se = torch.where(fz, se, float("nan"))
     solver = [Result(x=Z[b, fz[b]], fun=float((res.r[b] ** 2).sum()), n_evals=res.n_iter + 1, n_iter=res.n_iter,
                      wall_time_s=res.wall_time_s, converged=res.converged, message=res.message, method="lm-arrow")
               for b in range(R_)]
-    effects, test_errors = None, None
-    pay = s[model.np:]
+    effects = test_errors = None
     if model.comp is not None:
-        vals = [[v if ok else None for v, ok in zip(row, fr)] for row, fr in zip(Z[:, K:].tolist(), fz[:, K:].tolist())]
-        effects = {"names": names_z[K:], "units": units_z[K:], "values": vals,
-                   "free": fz[:, K:].tolist(), "std_errors": se[:, K:].tolist(),
-                   "shared": {n: float(v) for n, v, ok in zip(names_p, pay.tolist(), free[model.kz:].tolist()) if ok},
-                   "shared_units": dict(zip(names_p, units_p)), "payload": "per_robot" if model.own_mu else "shared"}
+        effects = _effects(model, fit, fz, se, free, names_z, units_z, names_p, units_p)
+        test_errors = _held_out(model, fit)
+    return FleetSolution(X=Z[:, :K], free=fz, se=se, r=res.r[:, : model.md], reasons=[dict(why) for _ in range(R_)],
+                         solver=solver, stage="geometric + joint_compliance" if model.comp is not None else "geometric",
+                         n_extra=fz[:, K:].sum(-1), effects=effects, test_errors=test_errors,
+                         prior=_prior_info(model, fit, template) if prior else None)
 
-        def test_errors(fd_test):
-            qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
-            idx = torch.arange(R_, device=Z.device)
-            return fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured
-    prior_info = None
-    if prior:
-        P = model.P
-        prior_info = {"parameters": [template.names[i] for i in P.tolist()], "mean": s[: model.np].tolist(),
-                      "tau": fit["tau"].tolist(), "units": [template.units[i] for i in P.tolist()],
-                      "sigma_m": fit["sigma"], "n_outer": fit["rounds"], "scales_estimated": fit["estimated"]}
-    reasons = [dict(why) for _ in range(R_)]
-    return CoupledSolution(X=Z[:, :K], free=fz, reasons=reasons, solver=solver, r=res.r[:, : model.md],
-                           J=res.Jz[:, : model.md], se=se, effects=effects, prior=prior_info, test_errors=test_errors,
-                           n_extra=fz[:, K:].sum(-1))
+
+def _effects(model, fit: _Fit, fz, se, free, names_z, units_z, names_p, units_p) -> dict:
+    """The effects' parameters per robot (None where not fitted) and the payload the fleet shares."""
+    K, pay = model.K, fit.s[model.np:]
+    vals = [[v if ok else None for v, ok in zip(row, fr)] for row, fr in zip(fit.Z[:, K:].tolist(), fz[:, K:].tolist())]
+    return {"names": names_z[K:], "units": units_z[K:], "values": vals, "free": fz[:, K:].tolist(),
+            "std_errors": se[:, K:].tolist(),
+            "shared": {n: float(v) for n, v, ok in zip(names_p, pay.tolist(), free[model.kz:].tolist()) if ok},
+            "shared_units": dict(zip(names_p, units_p)), "payload": "per_robot" if model.own_mu else "shared"}
+
+
+def _held_out(model, fit: _Fit):
+    """``FleetData -> (R, N', M, 3)`` held-out error vectors (m) of the model with its effects."""
+    Z, pay, K = fit.Z, fit.s[model.np:], model.K
+
+    def test_errors(fd_test):
+        qe, _ = model.joints(Z, pay, model.torque_features(fd_test), fd_test.q)
+        idx = torch.arange(Z.shape[0], device=Z.device)
+        return fd_test.positions(model.robot, Z[:, :K], idx, q=qe) - fd_test.measured
+    return test_errors
+
+
+def _prior_info(model, fit: _Fit, template) -> dict:
+    """The hierarchical prior as fitted: its parameters, fleet mean, scales and noise."""
+    P = model.P
+    return {"parameters": [template.names[i] for i in P.tolist()], "mean": fit.s[: model.np].tolist(),
+            "tau": fit.tau.tolist(), "units": [template.units[i] for i in P.tolist()], "sigma_m": fit.sigma,
+            "n_outer": fit.rounds, "scales_estimated": fit.estimated}

@@ -14,11 +14,9 @@ from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
 from torchcal.measure.records import ErrorDetails
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
-from torchcal.params import ParamSet
 
-__all__ = ["FleetData", "fleet_template", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
-           "check_fleet_motion",
-           "check_rows", "BASE_NAMES"]
+__all__ = ["FleetData", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
+           "check_fleet_motion", "check_rows", "BASE_NAMES"]
 
 BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 # Jacobian entries evaluated at once, per device: a CPU's caches hold a few hundred robots' worth;
@@ -161,20 +159,6 @@ def _runs(cols) -> list[tuple[int, int]]:
         else:
             runs.append([c, c + 1])
     return [(a, e) for a, e in runs]
-
-
-def fleet_template(robot: Robot, marker_names: list[str], params: ParamSet | None = None, free=None) -> ParamSet:
-    """The candidate parameters of every robot, as :func:`torchcal.pipelines.calibrate` chooses them for
-    position data: ``free`` patterns (default the ParamSet's flags), markers the data never see
-    fixed, marker orientations fixed."""
-    p = (params if params is not None else robot.params()).clone()
-    if free is not None:
-        p.only(*([free] if isinstance(free, str) else list(free)))
-    for m in robot.marker_names:
-        if m not in marker_names:
-            p.fix(f"{m}.*")
-        p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
-    return p
 
 
 def _named(data, names, what: str) -> tuple[list[str], list]:

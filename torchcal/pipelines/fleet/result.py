@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.pipelines.calibration_result import CalibrationResult
-from torchcal.report.fleet import FALSE_ALARM, fleet_markdown, fleet_report, parameter_spread, save_fleet
+from torchcal.report.fleet import FALSE_ALARM, fleet_markdown, fleet_report, save_fleet
 
 __all__ = ["FleetResult"]
 

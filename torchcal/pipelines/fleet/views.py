@@ -24,6 +24,7 @@ from torchcal.optim.result import Result
 from torchcal.pipelines.calibration_result import CalibrationResult
 from torchcal.pipelines.fitting import imprecise_reason
 from torchcal.pipelines.fleet.identify import FleetDecision, explain
+from torchcal.pipelines.fleet.solution import FleetSolution
 
 __all__ = ["FleetResults", "FleetReasons", "FleetSolvers"]
 
@@ -119,29 +120,29 @@ class FleetSolvers(Sequence):
 class FleetResults(Sequence):
     """Every robot's :class:`~torchcal.pipelines.calibrate.CalibrationResult`, built on first access.
 
-    ``X``, ``free``: ``(R, K)`` final parameters and what was fitted; ``se``: ``(R, ≥K)`` standard
-    errors (m or rad); ``residuals``: ``(R, ≥N·M·3)`` final training residuals (m); ``reasons``,
-    ``solver``: per robot (lists, or :class:`FleetReasons` / :class:`FleetSolvers`);
-    ``test_errors``: ``(R, N', M)`` held-out errors of the final model, or their vectors ``(R, N', M, 3)``
-    (default: ``X`` alone);
-    ``stage``, ``n_extra``: the final stage's name and each robot's parameters beyond the geometry.
+    ``X0``: ``(R, K)`` the start values; the fitted model comes from the fleet's solution ``sol``
+    (:class:`~torchcal.pipelines.fleet.solution.FleetSolution`: its values, free flags, standard
+    errors, training residuals, reasons, solver records, stage name, effect parameters per robot and
+    held-out errors where the geometry alone does not predict them).
     """
 
-    def __init__(self, robot, names: list[str], datasets, tests, fd, fd_test, template, X0: Tensor, X: Tensor,
-                 free: Tensor, se: Tensor, residuals: Tensor, reasons, solver, wall_time_s: float,
-                 test_errors: Tensor | None = None, stage: str = "geometric", n_extra: Tensor | None = None):
+    def __init__(self, robot, names: list[str], datasets, tests, fd, fd_test, template, X0: Tensor,
+                 sol: FleetSolution, wall_time_s: float):
+        X = sol.X
         K = X.shape[1]
         self.robot, self.names, self.fd, self.fd_test, self.template = robot, names, fd, fd_test, template
         self.n_train = [len(d) for d in datasets]
         self.has_test = [tests is not None and t is not None for t in (tests or [None] * len(names))]
         self.n_test = [len(t) if h else 0 for t, h in zip(tests or [None] * len(names), self.has_test)]
-        self.X0, self.X, self.free, self.se = X0, X, free[:, :K], se[:, :K]
-        self.residuals, self.reasons, self.solver, self.wall_time_s = residuals, reasons, solver, wall_time_s
+        self.X0, self.X, self.free, self.se = X0, X, sol.free[:, :K], sol.se[:, :K]
+        self.residuals, self.reasons, self.solver, self.wall_time_s = sol.r, sol.reasons, sol.solver, wall_time_s
         # held-out errors of the final model: vectors (R, N', M, 3) keep what the plots need
-        self._test_vectors = test_errors if test_errors is not None and test_errors.ndim == 4 else None
-        self._test_errors = test_errors.norm(dim=-1) if self._test_vectors is not None else test_errors
-        self.stage = stage
-        self.n_extra = torch.zeros(len(names), dtype=torch.long, device=X.device) if n_extra is None else n_extra
+        test_errors = sol.test_errors(fd_test) if fd_test is not None and sol.test_errors is not None else None
+        self._test_vectors = test_errors
+        self._test_errors = test_errors.norm(dim=-1) if test_errors is not None else None
+        self.stage = sol.stage
+        none = torch.zeros(len(names), dtype=torch.long, device=X.device)
+        self.n_extra = none if sol.n_extra is None else sol.n_extra
         self._made: dict[int, CalibrationResult] = {}
         self._all_stats: dict | None = None
         self.suspects: list[list[dict]] = [[] for _ in names]  # per robot, gross errors left out of its fit
@@ -223,7 +224,7 @@ class FleetResults(Sequence):
                 "cand": self.template.free.tolist()}
 
     def _build(self, b: int, stats: dict) -> CalibrationResult:
-        s, h = b - stats["offset"], self._host
+        h = self._host
         p = self.template.clone()
         p.values, p.free = self.X[b].clone(), self.free[b].clone()
         start = self.template.clone()
@@ -232,13 +233,19 @@ class FleetResults(Sequence):
         std = {n: v for n, v, f in zip(p.names, h["se"][b], free) if f}
         dropped = [n for n, c, f in zip(p.names, h["cand"], free) if c and not f]
         reasons = self.reasons[b]
-        has_test = self.has_test[b]
-        stages, errors = [], {}
-        for i, (name, k) in enumerate((("nominal", 0), (self.stage, sum(free) + h["n_extra"][b]))):
-            stages.append(Stage(name, k, stats["train"][i][s], stats["test"][i][s] if has_test else None))
-            errors[name] = StageErrors(self.details["train"][i][b], self.details["test"][i][b] if has_test else None)
+        stages, errors = self._stages(b, stats, sum(free) + h["n_extra"][b])
         return CalibrationResult(robot=self.robot, params=p, std_errors=std,
                                  unidentifiable={n: reasons.get(n, "not identifiable") for n in dropped},
                                  stages=stages, solver=self.solver[b], method="lm", n_train=self.n_train[b],
                                  n_test=self.n_test[b], start=start, loss="l2", wall_time_s=self.wall_time_s,
                                  errors=errors, suspects=self.suspects[b])
+
+    def _stages(self, b: int, stats: dict, k: int) -> tuple[list[Stage], dict[str, StageErrors]]:
+        """Robot ``b``'s stages (nominal, then the fitted model with ``k`` parameters): their error
+        statistics, and the errors per stage and split that the plots read."""
+        s, has_test = b - stats["offset"], self.has_test[b]
+        stages, errors = [], {}
+        for i, (name, n) in enumerate((("nominal", 0), (self.stage, k))):
+            stages.append(Stage(name, n, stats["train"][i][s], stats["test"][i][s] if has_test else None))
+            errors[name] = StageErrors(self.details["train"][i][b], self.details["test"][i][b] if has_test else None)
+        return stages, errors

@@ -324,12 +324,8 @@ def noise_sigma(ctx: Context, m: Model) -> float:
 def standard_errors(J: Tensor, prior: Tensor | None, names: list[str], sigma: float) -> dict[str, float]:
     """``name -> σ sqrt((JᵀJ + W²)⁻¹_ii)`` for the free parameters of a fit (its units), with the
     robust noise ``σ`` (m per axis): how far noise alone moves each value."""
-    A = J.T @ J
-    if prior is not None:
-        A = A + torch.diag(prior * prior)
-    s = A.diagonal().clamp(min=1e-300).sqrt()
-    cov = torch.linalg.pinv(A / s[:, None] / s[None, :]) / s[:, None] / s[None, :]
-    return dict(zip(names, (sigma * cov.diagonal().clamp(min=0).sqrt()).tolist()))
+    from torchcal.problems import uncertainty  # the one covariance (this function's name shadows its own)
+    return dict(zip(names, uncertainty.standard_errors(J, sigma=sigma, prior=prior, singular="pinv").tolist()))
 
 
 # ----------------------------------------------------------------------------- parameters by effect
