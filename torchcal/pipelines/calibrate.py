@@ -23,6 +23,7 @@ from torchcal.pipelines.calibrate_prior import PriorChoice, choose_prior
 from torchcal.pipelines.calibration_result import CalibrationResult
 from torchcal.pipelines.fitting import check_plausible, fit_identified, implausible_values, is_small, reduce_free
 from torchcal.problems.calibration import CalibrationProblem
+from torchcal.problems.template import candidate_template
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.threads import threads_by_size
 
@@ -174,17 +175,9 @@ def _check(robot, data: Measurements, test: Measurements | None, opt: CalibrateO
 
 
 def _start(robot, data: Measurements, opt: CalibrateOptions) -> ParamSet:
-    """The start: the chosen free set, markers the data never sees fixed (they cannot be
-    identified), the base registered and, for poses, the measured frames' rotation freed."""
-    p = (opt.params if opt.params is not None else robot.params()).clone()
-    if opt.free is not None:
-        p = p.only(*([opt.free] if isinstance(opt.free, str) else opt.free))
-    for m in robot.marker_names:
-        if m not in data.marker_names:
-            p.fix(f"{m}.*")
-    if opt.kind == "position":
-        for m in robot.marker_names:
-            p.fix(f"{m}.droll", f"{m}.dpitch", f"{m}.dyaw")
+    """The start: the candidate parameters (:func:`~torchcal.problems.template.candidate_template`),
+    the base registered and, for poses, the measured frames' rotation freed."""
+    p = candidate_template(robot, data.marker_names, opt.params, opt.free, opt.kind)
     if opt.register and bool(p.free[[p.index(n) for n in _BASE]].any()):
         p = register_base(robot, data, p)
     if opt.kind == "pose" and opt.free is None:
