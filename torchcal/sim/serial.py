@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.gravity import gravity_features
+from torchcal.kinematics.bounds import config_bounds
 from torchcal.kinematics.urdf import read_inertials
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import save_measurements
@@ -19,7 +20,7 @@ from torchcal.outputs import atomic_write_text
 from torchcal.params import ParamSet
 from torchcal.sim.base import Simulated, expected_noise_norm
 
-__all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
+__all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset",
            "simulate_fleet", "SimulatedRobot", "simulated_robot", "hide_axes"]
 
 
@@ -45,18 +46,8 @@ class SimConfig:
     seed: int = 0
 
 
-def config_bounds(robot, margin: float = 0.1) -> tuple[Tensor, Tensor]:
-    """``(dof,)`` lower and upper joint values (rad / m, CPU float64) that :func:`random_configs`
-    draws between: the joint limits (±π where a joint has none), ``margin`` of each range left
-    out at both ends."""
-    lo, hi = (x.cpu().to(torch.float64) for x in robot.joint_limits)
-    lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
-    span = hi - lo
-    return lo + margin * span, hi - margin * span
-
-
 def random_configs(robot, n: int, generator: torch.Generator, margin: float = 0.1) -> Tensor:
-    """``(n, dof)`` uniform joint values inside the limits (±π where a joint has none)."""
+    """``(n, dof)`` uniform joint values inside :func:`~torchcal.kinematics.bounds.config_bounds`."""
     lo, hi = config_bounds(robot, margin)
     u = torch.rand(n, robot.dof, generator=generator, dtype=torch.float64)
     return (lo + (hi - lo) * u).to(device=robot.device, dtype=robot.dtype)
@@ -301,8 +292,7 @@ class SimulatedRobot:
         gradient of the signed distance); each contact triggers at a signed distance drawn from
         the instrument noise. Only commands and plane labels are returned."""
         m = self._marker(marker)
-        lo, hi = (x.to(self.robot.dtype) for x in self.robot.joint_limits)
-        lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
+        lo, hi = (x.to(self.robot.dtype) for x in config_bounds(self.robot, 0.0))
         qs, idx = [], []
         for k, (label, (nrm, d)) in enumerate(planes.items()):
             nrm = torch.as_tensor(nrm, dtype=self.robot.dtype)
