@@ -28,7 +28,7 @@ import time
 
 import torch
 
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
