@@ -248,14 +248,15 @@ def tune_directions(A_plus_sel: Tensor, D: Tensor, kind: str, flip: Tensor, pass
 
 # ----------------------------------------------------------------------------- gradient refinement
 def refine_poses(columns: DesignColumns, q0: Tensor, D: Tensor | None, keep: list[int], scale: Tensor,
-                 lo: Tensor, hi: Tensor, kind: str, feasible, steps: int = 100,
+                 bounds: tuple[Tensor, Tensor], kind: str, feasible, steps: int = 100,
                  lr: float = 0.1) -> tuple[Tensor, list[float]]:
     """Gradient ascent of the criterion over the joint values of a plan.
 
-    The joints are ``lo + (hi − lo)·sigmoid(u)``, so every step stays strictly inside the
-    bounds; Adam moves ``u``. A step that takes a pose out of ``feasible`` (a callable
+    The joints are ``lo + (hi − lo)·sigmoid(u)`` for ``bounds = (lo, hi)`` (``(dof,)`` each), so
+    every step stays strictly inside the bounds; Adam moves ``u``. A step that takes a pose out of ``feasible`` (a callable
     ``q (S, dof) -> (S,) bool``: reachability box, self-collision) is undone for that pose.
     Returns the best plan seen (never worse than ``q0``) and the criterion per step."""
+    lo, hi = bounds
     span = (hi - lo).to(q0)
     lo = lo.to(q0)
     x = ((q0 - lo) / span).clamp(1e-6, 1 - 1e-6)

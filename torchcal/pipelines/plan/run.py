@@ -310,8 +310,8 @@ def _plan_poses(robot, n_select, opt: PlanOptions, n_candidates: int, candidates
     planned = bool((flip >= 0).any())
     q, hist = qc[sel], []
     if opt.refine_steps > 0:
-        q, hist = refine_poses(cols, q, D if planned else None, keep, scale, lo.to(**dt), hi.to(**dt), opt.criterion,
-                               feasible, steps=opt.refine_steps)
+        q, hist = refine_poses(cols, q, D if planned else None, keep, scale, (lo.to(**dt), hi.to(**dt)),
+                               opt.criterion, feasible, steps=opt.refine_steps)
     with torch.no_grad():
         A_plan = cols(q, D if planned else None)[:, :, keep]
     stages["refined"] = float(criterion_value(information(A_plan / scale), n_select * A.shape[1], opt.criterion))
