@@ -60,8 +60,6 @@ class PlanOptions(Options):
     """How :func:`plan_poses` plans.
 
     Attributes:
-        n_candidates: candidates drawn uniformly inside the joint limits (±π where a joint has
-            none), ``margin`` (a fraction) of each range left out at both ends.
         criterion: ``"D"`` (log det), ``"O1"`` or ``"O4"`` (:mod:`torchcal.pipelines.plan.design`).
         effects: effect names to plan for (:func:`plannable_effects`); one name may be a string.
         reachable: ``(xmin, xmax, ymin, ymax, zmin, zmax)`` m, robot base frame: every marker
@@ -70,12 +68,12 @@ class PlanOptions(Options):
             shapes (:class:`~torchcal.pipelines.plan.feasible.SelfCollision`); None: not checked.
             ``urdf_path`` lets mesh files be found beside the URDF.
         noise: the instrument's noise, m per axis, for the expected standard errors.
+        margin: the fraction of each joint range left out at both ends when candidates are drawn.
         refine_steps: gradient steps of the refinement (0: none); ``exchange_passes``: sweeps of
             the exchange pass.
         seed: seeds the candidate draw and the random reference subsets.
     """
 
-    n_candidates: int = 5000
     criterion: str = "D"
     effects: Sequence[str] = ()
     reachable: Any = None
@@ -107,7 +105,7 @@ def _whole(v, what: str, lo: int) -> int:
 
 def _check_candidates(robot, candidates) -> Tensor:
     """``(N, dof)`` candidate poses, refused when not joint values inside the robot's limits."""
-    qc = robot.check_q(candidates, "candidates", _stacklevel=6)  # the caller of plan_poses
+    qc = robot.check_q(candidates, "candidates", _stacklevel=5)  # the caller of plan_poses
     lo, hi = (x.to(qc) for x in robot.joint_limits)
     out = (qc < lo - 1e-9) | (qc > hi + 1e-9)
     if bool(out.any()):
@@ -119,14 +117,14 @@ def _check_candidates(robot, candidates) -> Tensor:
     return qc
 
 
-def _check_args(n_select, opt: "PlanOptions", effects: list[str], candidates) -> int:
+def _check_args(n_select, n_candidates, opt: PlanOptions, effects: list[str], candidates) -> int:
     criterion, noise, margin = opt.criterion, opt.noise, opt.margin
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
     check_plannable(effects)
     n_select = _whole(n_select, "n_select (poses to select)", 1)
     _whole(opt.refine_steps, "refine_steps", 0)
-    n_cand = candidates.shape[0] if candidates is not None else _whole(opt.n_candidates, "n_candidates", 1)
+    n_cand = candidates.shape[0] if candidates is not None else _whole(n_candidates, "n_candidates", 1)
     if n_select > n_cand:
         raise ValueError(f"cannot select {n_select} poses from {n_cand} candidates: draw more candidates "
                          "(n_candidates / --candidates) or select fewer")
@@ -138,7 +136,7 @@ def _check_args(n_select, opt: "PlanOptions", effects: list[str], candidates) ->
     return n_select
 
 
-def _feasible_candidates(robot, qc: Tensor, p: Tensor, opt: "PlanOptions", n_select: int):
+def _feasible_candidates(robot, qc: Tensor, p: Tensor, opt: PlanOptions, n_select: int):
     """The candidates inside the box and clear of self-collision, what was kept at each step,
     and the test ``q (S, dof) -> (S,) bool`` the refinement must keep passing."""
     feas = {"drawn": int(qc.shape[0])}
@@ -162,7 +160,7 @@ def _feasible_candidates(robot, qc: Tensor, p: Tensor, opt: "PlanOptions", n_sel
         else:
             reason = "the URDF has no <collision> shapes on two movable bodies" if robot.urdf_text else \
                 "the robot was not built from a URDF"
-            warnings.warn(f"self-collision not checked: {reason}", stacklevel=5)
+            warnings.warn(f"self-collision not checked: {reason}", stacklevel=4)
             feas["collision"] = {"checked": False, "reason": reason}
     feas["clear"] = int(qc.shape[0])
     if qc.shape[0] < n_select:
@@ -194,12 +192,12 @@ def _linearised_at(robot, params, free) -> tuple[Tensor, list[int]]:
     return p, resolve_free(robot, free)
 
 
-def _draw_candidates(robot, opt: PlanOptions, candidates, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+def _draw_candidates(robot, n: int, margin: float, candidates, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
     """``(N, dof)`` candidates (drawn, or those given) and the ``(dof,)`` bounds the refinement
     keeps to (widened to the candidates given)."""
-    lo, hi = config_bounds(robot, opt.margin)
+    lo, hi = config_bounds(robot, margin)
     if candidates is None:
-        u = torch.rand(opt.n_candidates, robot.dof, generator=g, dtype=torch.float64)
+        u = torch.rand(n, robot.dof, generator=g, dtype=torch.float64)
         return (lo + (hi - lo) * u).to(dtype=robot.dtype, device=robot.device), lo, hi
     lo, hi = torch.minimum(lo, candidates.min(0).values.cpu()), torch.maximum(hi, candidates.max(0).values.cpu())
     return candidates, lo, hi
@@ -257,7 +255,7 @@ def _expected_errors(robot, A_plan: Tensor, names: list[str], units: list[str], 
     not_seen = {n: rep.reasons[n] for n in rep.dropped}
     if prep.rank < k:
         warnings.warn(f"the plan identifies only {prep.rank} of the {k} parameters the candidates can; dropped: "
-                      f"{prep.dropped[:5]}: select more poses", RuntimeWarning, stacklevel=5)
+                      f"{prep.dropped[:5]}: select more poses", RuntimeWarning, stacklevel=4)
         not_seen.update({n: "not from this plan: " + prep.reasons[n] for n in prep.dropped})
     ok = [names.index(n) for n in prep.identifiable]
     J, names, units, sc = J[:, ok], [names[i] for i in ok], [units[i] for i in ok], scale[ok]
@@ -268,13 +266,16 @@ def _expected_errors(robot, A_plan: Tensor, names: list[str], units: list[str], 
     return obs, dict(zip(names, se.tolist())), dict(zip(names, units)), not_seen
 
 
-def plan_poses(robot, n_select: int = 30, *, candidates: Tensor | None = None, params=None, free=None,
-               options: PlanOptions | None = None, **kw) -> Plan:
+@threads_by_size("n_candidates", "candidates")
+def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, candidates: Tensor | None = None,
+               params=None, free=None, options: PlanOptions | None = None, **kw) -> Plan:
     """Plan ``n_select`` calibration poses for ``robot`` (module docstring).
 
     Args:
         robot: a :class:`~torchcal.kinematics.robot.Robot` with its markers declared.
-        candidates: ``(N, dof)`` candidate poses (rad / m) instead of ``n_candidates`` drawn ones.
+        n_candidates: candidates drawn uniformly inside the joint limits (±π where a joint has
+            none), ``margin`` of each range left out at both ends; or give ``candidates (N, dof)``
+            (rad / m).
         params: ``(K,)`` or a ParamSet: where the model is linearised (default nominal).
         free: the geometric parameters to plan for (names or globs; default as
             :func:`torchcal.pipelines.calibrate`: everything but the markers' orientations).
@@ -284,25 +285,19 @@ def plan_poses(robot, n_select: int = 30, *, candidates: Tensor | None = None, p
     Returns:
         A :class:`~torchcal.pipelines.plan.result.Plan`.
     """
-    opt = PlanOptions.build(options, **kw)
-    return _plan_poses(robot, n_select, opt, opt.n_candidates, candidates, params, free)
-
-
-@threads_by_size("n_candidates", "candidates")
-def _plan_poses(robot, n_select, opt: PlanOptions, n_candidates: int, candidates, params, free) -> Plan:
-    # n_candidates and candidates are arguments of their own so that threads_by_size can count them
     t0 = time.perf_counter()
+    opt = PlanOptions.build(options, **kw)
     if not isinstance(robot, Robot):
         raise TypeError(f"robot must be a torchcal.Robot with its markers (Robot.from_urdf(path, markers=[...])), got "
                         f"{type(robot).__name__}")
     effects = [opt.effects] if isinstance(opt.effects, str) else list(opt.effects)
     candidates = None if candidates is None else _check_candidates(robot, candidates)
-    n_select = _check_args(n_select, opt, effects, candidates)
+    n_select = _check_args(n_select, n_candidates, opt, effects, candidates)
     dt = dict(dtype=robot.dtype, device=robot.device)
     p, geo = _linearised_at(robot, params, free)
     cols = DesignColumns(robot, p, geo, [build_effect(e, robot, geometry=p) for e in effects])
     g = torch.Generator().manual_seed(int(opt.seed))
-    qc, lo, hi = _draw_candidates(robot, opt, candidates, g)
+    qc, lo, hi = _draw_candidates(robot, n_candidates, opt.margin, candidates, g)
     qc, feas, feasible = _feasible_candidates(robot, qc, p, opt, n_select)
     A, scale, keep, flip, rep = _scaled_columns(robot, cols, qc, g, n_select)
 
