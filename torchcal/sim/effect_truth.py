@@ -65,10 +65,11 @@ def _simulated(name: str) -> None:
     """Refuse an effect the simulator has no truth for, saying whether torchcal can fit it at all."""
     if name in _DRAW:
         return
-    fitted = name in EFFECTS
-    raise ValueError(f"{'the simulator cannot make' if fitted else 'unknown'} effect {name!r}"
-                     f"{' (torchcal fits it, but the simulator has no truth of its own for it)' if fitted else ''}; "
-                     f"simulate one of {sorted(EFFECT_DEFAULTS)}")
+    if name in EFFECTS:
+        what = f"the simulator cannot make effect {name!r} (torchcal fits it, but the simulator has no truth of its own)"
+    else:
+        what = f"unknown effect {name!r}"
+    raise ValueError(f"{what}; simulate one of {sorted(EFFECT_DEFAULTS)}")
 
 
 def draw_effects(robot, names: list[str], generator: torch.Generator, options: dict | None = None) -> dict:
