@@ -31,7 +31,7 @@ from seed002_mma_elm import make_data  # noqa: E402
 from torchcal.sim.compliant_arm import CompliantArm, sample_q, ur5e_masses  # noqa: E402
 
 from torchcal.deploy.correct import Corrector  # noqa: E402
-from torchcal.deploy.elm import tune_elm  # noqa: E402
+from torchcal.elm import tune_elm  # noqa: E402
 from torchcal.kinematics.ik import solve_ik  # noqa: E402
 from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402

@@ -42,7 +42,8 @@ from pathlib import Path
 
 import torch
 
-from torchcal.pipelines.dynamics import DynamicsSettings, study
+from torchcal.pipelines.dynamics import DynamicsSettings
+from torchcal.studies.dynamics import study
 
 
 def parse() -> argparse.Namespace:

@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from torchcal import calibrate  # noqa: E402
 from torchcal.kinematics.transforms import matrix_to_quat  # noqa: E402
 from torchcal.deploy.correct import Corrector  # noqa: E402
-from torchcal.deploy.elm import ELM, tune_elm  # noqa: E402
+from torchcal.elm import ELM, tune_elm  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402

@@ -20,7 +20,7 @@ PSD, distance) on the same truth and aims.
    weighted by their expected spot covariance).
 3. **Draws**: the robot with the true errors goes to the joints of each set of aims (the
    headline's, found by IK on the true model as in the seed script, or the designed ones, found
-   by IK on the nominal model), ``torchcal.pipelines.psd_design.measure_psd`` adds the noise and drops spots
+   by IK on the nominal model), ``torchcal.sim.psd.measure_psd`` adds the noise and drops spots
    off the PSD; calibrations: the seed's pose modification, one round (``pm1``) and iterated
    (``pmR``); the spots with PSD poses (``spots``); the same weighted by the expected spot
    covariance (``spots_w``, generalised least squares).
@@ -52,10 +52,10 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 from seed003_pmpsd import CENTRES, FACING, HOME, TARGET_MM, design_sets, fresh_errors, true_errors  # noqa: E402
 from torchcal.pipelines.psd import calibrate_psd  # noqa: E402
-from torchcal.sim.psd import simulate_psd  # noqa: E402
+from torchcal.sim.psd import measure_psd, simulate_psd  # noqa: E402
 from torchcal.measure.psd import PSDData, spot_covariance  # noqa: E402
 from torchcal.measure.laser import Laser, psd_frame  # noqa: E402
-from torchcal.pipelines.psd_design import information, measure_psd, predicted_max_error, select_design  # noqa: E402
+from torchcal.pipelines.psd_design import information, predicted_max_error, select_design  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import random_configs  # noqa: E402
 

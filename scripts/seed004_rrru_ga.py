@@ -47,7 +47,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from torchcal.kinematics.rrru_params import PARAM_NAMES, PARAM_UNITS  # noqa: E402
-from torchcal.pipelines.rrru import FREE, MM, study  # noqa: E402
+from torchcal.pipelines.rrru import FREE, MM  # noqa: E402
+from torchcal.studies.rrru import study  # noqa: E402
 
 
 def disp(name: str, v: float) -> float:

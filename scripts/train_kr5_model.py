@@ -37,7 +37,7 @@ from torchcal import calibrate  # noqa: E402
 from torchcal.cli.correct import correct_main  # noqa: E402
 from torchcal.kinematics.transforms import matrix_to_quat  # noqa: E402
 from torchcal.deploy.correct import Corrector  # noqa: E402
-from torchcal.deploy.elm import tune_elm  # noqa: E402
+from torchcal.elm import tune_elm  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402
 from torchcal.deploy.model import CalibratedModel, pose_error  # noqa: E402
 from torchcal.deploy.persist import load, save  # noqa: E402

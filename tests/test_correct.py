@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchcal.deploy.correct import Corrector
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.kinematics.ik import REASONS, solve_ik
 from torchcal.deploy.model import CalibratedModel, apply_pose_error, pose_error
 from torchcal.kinematics.robots import shipped

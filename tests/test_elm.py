@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.deploy.elm import ELM, tune_elm
+from torchcal.elm import ELM, tune_elm
 from torchcal.optim import FunctionProblem, get_solver
 from torchcal.problems.elm import ELMProblem, fit_population, hidden_layer, solve_output_weights
 

@@ -17,7 +17,7 @@ from torchcal.kinematics.transforms import matrix_to_quat, quat_to_matrix
 
 def cli_main(argv):
     return torchcal_main(["correct", *argv])
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.deploy.model import CalibratedModel
 from torchcal.effects import register_effect
 from torchcal.deploy.persist import FORMAT_VERSION, load, save

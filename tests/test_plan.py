@@ -14,7 +14,8 @@ from torchcal.problems.identifiability import stacked_jacobian
 from torchcal.pipelines.plan.design import CRITERIA, candidate_values, criterion_value, information
 from torchcal.pipelines.plan.feasible import SelfCollision, in_box, parse_box
 from torchcal.kinematics.robots import shipped, urdf_path
-from torchcal.sim.serial import SimConfig, config_bounds, random_configs, simulate
+from torchcal.kinematics.bounds import config_bounds
+from torchcal.sim.serial import SimConfig, random_configs, simulate
 
 KR5 = str(urdf_path("kuka_kr5_arc"))
 SMR = "smr@flange=0,0,0"

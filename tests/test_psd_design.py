@@ -8,7 +8,8 @@ from torchcal.pipelines.psd import calibrate_psd
 from torchcal.problems.psd import SpotResidual
 from torchcal.measure.psd import PSDData, spot_covariance, spot_sensitivity, spot_whitening
 from torchcal.measure.laser import Laser, laser_beams, plane_intersection, psd_frame
-from torchcal.pipelines.psd_design import _greedy, information, measure_psd, predicted_max_error, select_design
+from torchcal.pipelines.psd_design import _greedy, information, predicted_max_error, select_design
+from torchcal.sim.psd import measure_psd
 from torchcal.kinematics.robots import shipped
 
 F64 = dict(dtype=torch.float64)

@@ -193,10 +193,10 @@ def test_ga_recovers_errors_on_decorrelated_coding(model):
 
 
 def test_pipeline_study_reproduces_the_lesson_with_lm():
-    """pipelines.rrru.study end to end (short GA, no Monte Carlo): 13 of 14 parameters identifiable
+    """studies.rrru.study end to end (short GA, no Monte Carlo): 13 of 14 parameters identifiable
     (dr is not), LM on the spiral compensates both trajectories within 4 σ of the tracker noise,
     LM on the lines does not on the spiral (the seed's lesson)."""
-    from torchcal.pipelines.rrru import study
+    from torchcal.studies.rrru import study
 
     s = study(noise_mm=0.02, seed=0, ga_iter=20, mc_draws=0, raw_ga=False)["summary"]
     assert s["identifiable"] == "13 of 14" and s["dropped"] == ["dr"]

@@ -6,7 +6,7 @@ Robot model -> measurement model -> problem -> solver -> result/report:
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
 from torchcal.deploy.correct import Corrector
-from torchcal.deploy.elm import ELM, tune_elm
+from torchcal.elm import ELM, tune_elm
 from torchcal.deploy.model import CalibratedModel
 from torchcal.deploy.persist import load, save
 from torchcal.kinematics import robots  # the shipped robots: torchcal.robots.shipped('ur5e')

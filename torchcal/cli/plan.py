@@ -15,7 +15,7 @@ import torch
 from torchcal.cli.common import (add_common, inputs_of, int_at_least, nonnegative_float, parse_markers,
                                  positive_float)
 from torchcal.outputs import check_out_file, provenance
-from torchcal.pipelines.plan.run import PLANNABLE_EFFECTS, check_plannable, plan_paths, plan_poses
+from torchcal.pipelines.plan.run import check_plannable, plan_paths, plan_poses, plannable_effects
 from torchcal.pipelines.plan.design import CRITERIA
 from torchcal.pipelines.plan.feasible import parse_box
 from torchcal.kinematics.robot import Robot
@@ -61,7 +61,7 @@ def add_plan_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--criterion", choices=CRITERIA, default="D",
                    help="D: log det of the information matrix (default); O1, O4: observability indices")
     p.add_argument("--effect", action="append", default=[], type=_effect, metavar="EFFECT",
-                   help="also plan for this effect (repeatable): " + ", ".join(PLANNABLE_EFFECTS))
+                   help="also plan for this effect (repeatable): " + ", ".join(plannable_effects()))
     p.add_argument("--reachable", type=_box, metavar="BOX",
                    help="xmin,xmax,ymin,ymax,zmin,zmax (m, robot base frame): every marker must stay inside")
     p.add_argument("--collision-margin-mm", type=nonnegative_float,

@@ -47,7 +47,7 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.kinematics.transforms import homogeneous, so3_exp, so3_log
 from torchcal.params import ParamSet
 
@@ -105,7 +105,7 @@ class CalibratedModel:
             nominal model, seed 002's model-free use).
         effects: effect models (see the module docstring); their joint corrections are all
             evaluated at the commanded ``q`` and summed; default none.
-        residual: an :class:`~torchcal.deploy.elm.ELM` predicting the pose error left after the
+        residual: an :class:`~torchcal.elm.model.ELM` predicting the pose error left after the
             kinematics and effects, from ``[q, covariates]``; ``n_outputs`` 6 (pose error) or 3
             (position error); ``None`` for none.
         marker: the marker the residual (and the corrector) is about (default the first).

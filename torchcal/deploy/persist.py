@@ -32,7 +32,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from torchcal.advice import advice
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.deploy.model import ERROR_NAMES, CalibratedModel
 from torchcal.effects.registry import effect_class, effect_type
 from torchcal.kinematics.robot import Robot

@@ -35,10 +35,12 @@ from torch import Tensor
 
 from torchcal.params import display_unit
 
-__all__ = ["Effect", "Prepared", "LinearBasis", "TIME_COVARIATES"]
+__all__ = ["Effect", "Prepared", "LinearBasis", "TIME_COVARIATES", "PLANNED_COVARIATES"]
 
 # Covariates that count time: a model reading one must never extrapolate it to another day
 TIME_COVARIATES = ("t_start_robot", "t_end_robot", "time", "t", "timestamp")
+# Kinds of covariate (:attr:`Effect.reads`) a pose plan can choose for every pose it proposes
+PLANNED_COVARIATES = ("direction",)
 
 
 @dataclass
@@ -82,6 +84,10 @@ class Effect:
     selectable = True             # the loop chooses its modes (joints, links, directions) one by one
     supersedes: tuple[str, ...] = ()  # accepted effects whose modes this one takes over
     fallback = False              # a general family, tried in a round only when no physical effect passes
+    # what the effect reads beyond the commanded joint values, by kind: "direction" (the approach
+    # direction of a joint, ``dir.<joint>`` = ±1, which a pose plan chooses) and "measured" (a
+    # temperature, a time or another column only the running robot gives, which no plan chooses)
+    reads: tuple[str, ...] = ()
 
     def __init__(self, robot, joints: list[str] | None = None, geometry: Tensor | None = None):
         self.robot = robot
@@ -105,6 +111,17 @@ class Effect:
         self.ridge_mm: float | None = None  # that prior's σ: the RMS displacement a mode may cause (mm)
 
     # -- description --------------------------------------------------------------------
+    @classmethod
+    def plannable(cls) -> bool:
+        """Whether a pose plan can serve the effect: everything it reads is a function of the
+        commands and of covariates a plan chooses (:data:`PLANNED_COVARIATES`)."""
+        return set(cls.reads) <= set(PLANNED_COVARIATES)
+
+    def direction_flips(self) -> list[int]:
+        """Per parameter, the index of the joint whose approach direction flips the sign of that
+        parameter's column (an offset that follows ``dir.<joint>``), else -1."""
+        return [-1] * self.n_params
+
     def default_joints(self) -> list[str]:
         return [n for n, u in zip(self.robot.joint_names, self.robot.joint_units) if u == "rad"]
 

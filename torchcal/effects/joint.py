@@ -80,6 +80,7 @@ class Backlash(Effect):
 
     name = "backlash"
     description = "offset whose sign follows the direction of the last motion"
+    reads = ("direction",)
 
     def default_joints(self):
         return list(self.robot.joint_names)
@@ -91,6 +92,9 @@ class Backlash(Effect):
     @property
     def covariates(self) -> list[str]:
         return [f"dir.{j}" for j in self.joints]
+
+    def direction_flips(self) -> list[int]:
+        return [self.robot.joint_names.index(j) for j in self.joints]
 
     def applicable(self, data):
         missing = [j for j in self.joints if f"dir.{j}" not in data.covariates]

@@ -84,6 +84,7 @@ class JointTerms(Effect):
 
     name = "joint_terms"
     description = "joint errors as terms in other joints' angles, harmonics, covariates and directions"
+    reads = ("direction", "measured")
     selectable = True
     fallback = True
 

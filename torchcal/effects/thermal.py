@@ -57,6 +57,7 @@ class ThermalDrift(Effect):
 
     name = "thermal_drift"
     description = "link lengths growing with a temperature, a time or another covariate"
+    reads = ("measured",)
     selectable = True
 
     def __init__(self, robot, joints=None, geometry=None, covariate: str | None = None, t0: float | None = None,

@@ -62,10 +62,11 @@ from torchcal.kinematics.transforms import so3_exp
 from torchcal.measure.laser import Laser, laser_beams, plane_intersection
 from torchcal.measure.psd import PSDData, spot_covariance, spot_whitening
 from torchcal.optim import Result, get_solver
+from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.problems.psd import PointConstraint, SpotResidual, DISTANCE_WEIGHT
 
-__all__ = ["modify_poses", "calibrate_psd", "PSDCalibration", "SEED_LM"]
+__all__ = ["modify_poses", "calibrate_psd", "PSDOptions", "PSDCalibration", "SEED_LM"]
 
 #: The seed's LM settings for :func:`~torchcal.optim.get_solver` (Δs0 = 0 comes from the start
 #: point): μ0 = 0.1 on an identity damping matrix, ν = 2, accept when the gain ratio ρ > 0, else
@@ -139,54 +140,86 @@ class PSDCalibration:
     rounds: list[dict] = field(default_factory=list)
 
 
-def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, method: str = "pm",
-                  rounds: int = 1, round_tol: float = 0.0, distances: Sequence[tuple[int, int, float]] = (),
-                  distance_weight: float = DISTANCE_WEIGHT, min_angle_deg: float = 5.0,
-                  lm: dict | None = None, noise: tuple[float, float, float] | None = None) -> PSDCalibration:
-    """Identify robot errors from PSD data.
+@dataclass(frozen=True)
+class PSDOptions(Options):
+    """How :func:`calibrate_psd` identifies.
 
-    Args:
-        free: ``robot.params()`` with the unknowns free and everything else at its known value
-            (start point = its values, Δs0 = 0 for zeros). Free only identifiable parameters: a
-            point constraint cannot fix the gauge (see the module docstring).
+    Attributes:
         method: ``"pm"`` the seed: PSD poses from the spots (model at the current estimate),
             pose modification, then LM on the point constraint, ``rounds`` times; ``"raw"`` the
             point constraint on the recorded beams (right only when they hit the centre);
             ``"spots"`` LM on :class:`SpotResidual` (robot errors and PSD poses together).
         rounds: pose-modification rounds at most (``"pm"``); round_tol: stop earlier once no
             free parameter moved by more than this in a round (m or rad; 0 runs all rounds).
-        distances: known distances between PSD centres ``(a, b, D in m)``.
+        distances: known distances between PSD centres ``(a, b, D in m)``; ``distance_weight``:
+            their weight (m of residual per m of distance error).
+        min_angle_deg: beam pairs of the point constraint at least this far apart (deg).
         lm: LM options on top of :data:`SEED_LM` (the seed's μ0 = 0.1, ν = 2, identity damping).
         noise: ``(q_noise rad, uv_noise m, distance_noise m)`` stds; with ``"spots"``, weight each
             beam by its expected spot covariance (encoder noise through the arm, at the start
             model and PSD poses, plus PSD noise; :func:`spot_covariance`) and each known
             distance by one over its std: generalised least squares.
     """
-    if method not in ("pm", "raw", "spots"):
-        raise ValueError(f"method must be 'pm', 'raw' or 'spots', got {method!r}")
-    if noise is not None and (method != "spots" or (distances and not noise[2] > 0)):
+
+    method: str = "pm"
+    rounds: int = 1
+    round_tol: float = 0.0
+    distances: Sequence[tuple[int, int, float]] = ()
+    distance_weight: float = DISTANCE_WEIGHT
+    min_angle_deg: float = 5.0
+    lm: dict | None = None
+    noise: tuple[float, float, float] | None = None
+
+
+def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, options: PSDOptions | None = None,
+                  **kw) -> PSDCalibration:
+    """Identify robot errors from PSD data.
+
+    Args:
+        free: ``robot.params()`` with the unknowns free and everything else at its known value
+            (start point = its values, Δs0 = 0 for zeros). Free only identifiable parameters: a
+            point constraint cannot fix the gauge (see the module docstring).
+        options, kw: a :class:`PSDOptions` and/or its fields as keywords (``method="spots"``,
+            ``rounds=3``, ``distances=…``, ``noise=…``).
+    """
+    opt = PSDOptions.build(options, **kw)
+    if opt.method not in ("pm", "raw", "spots"):
+        raise ValueError(f"method must be 'pm', 'raw' or 'spots', got {opt.method!r}")
+    if opt.noise is not None and (opt.method != "spots" or (opt.distances and not opt.noise[2] > 0)):
         raise ValueError("noise weights the spot residuals: it needs method='spots', and a positive distance "
                          "noise std when distances are given")
-    cur = free.clone()
+    if opt.method == "spots":
+        return _calibrate_spots(robot, laser, data, free.clone(), opt)
+    return _calibrate_points(robot, laser, data, free.clone(), opt)
+
+
+def _calibrate_spots(robot, laser: Laser, data: PSDData, cur: ParamSet, opt: PSDOptions) -> PSDCalibration:
+    """Robot errors and PSD poses together by LM on the spots (``method="spots"``)."""
+    out = PSDCalibration(params=cur.values.clone(), psd_R=torch.empty(0), psd_c=torch.empty(0), method=opt.method)
+    R0, c0, rms0 = fit_psd_poses(robot, laser, data, cur.values)
+    W, distance_weight = None, opt.distance_weight
+    if opt.noise is not None:
+        cov = spot_covariance(robot, laser, data.q, data.loc, R0, c0, cur.values, q_noise=opt.noise[0],
+                              uv_noise=opt.noise[1])
+        W, distance_weight = spot_whitening(cov), 1.0 / opt.noise[2]
+    blk = SpotResidual(robot, laser, data, cur, R0, c0, distances=opt.distances, distance_weight=distance_weight,
+                       whiten=W)
+    res = get_solver("lm", **{**SEED_LM, **(opt.lm or {})}).minimize(blk)
+    out.params = blk.robot_params(res.x)
+    out.psd_R, out.psd_c = blk.psd_poses(res.x)
+    out.results.append(res)
+    out.rounds.append({"params": out.params.detach().clone(), "psd_rms_m": rms0.tolist(),
+                       "rms_m": float(torch.sqrt((res.extra["residuals"] ** 2).mean()))})
+    return out
+
+
+def _calibrate_points(robot, laser: Laser, data: PSDData, cur: ParamSet, opt: PSDOptions) -> PSDCalibration:
+    """LM on the point constraint, on the recorded beams (``"raw"``) or on the beams pose
+    modification turns through the PSD centres, round after round (``"pm"``)."""
+    method = opt.method
     out = PSDCalibration(params=cur.values.clone(), psd_R=torch.empty(0), psd_c=torch.empty(0), method=method)
-    if method == "spots":
-        R0, c0, rms0 = fit_psd_poses(robot, laser, data, cur.values)
-        W = None
-        if noise is not None:
-            cov = spot_covariance(robot, laser, data.q, data.loc, R0, c0, cur.values, q_noise=noise[0],
-                                  uv_noise=noise[1])
-            W, distance_weight = spot_whitening(cov), 1.0 / noise[2]
-        blk = SpotResidual(robot, laser, data, cur, R0, c0, distances=distances, distance_weight=distance_weight,
-                           whiten=W)
-        res = get_solver("lm", **{**SEED_LM, **(lm or {})}).minimize(blk)
-        out.params = blk.robot_params(res.x)
-        out.psd_R, out.psd_c = blk.psd_poses(res.x)
-        out.results.append(res)
-        out.rounds.append({"params": out.params.detach().clone(), "psd_rms_m": rms0.tolist(),
-                           "rms_m": float(torch.sqrt((res.extra["residuals"] ** 2).mean()))})
-        return out
-    opts = {**SEED_LM, **(lm or {})}
-    n_rounds = 1 if method == "raw" else int(rounds)
+    opts = {**SEED_LM, **(opt.lm or {})}
+    n_rounds = 1 if method == "raw" else int(opt.rounds)
     for _ in range(n_rounds):
         info: dict = {}
         q = data.q
@@ -196,8 +229,8 @@ def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, method:
             out.psd_R, out.psd_c = R, c
             info = {"psd_rms_m": rms.tolist(), "correction_max_rad": float(mi["angle"].max()),
                     "ik_all_converged": bool(mi["ik_converged"].all())}
-        blk = PointConstraint(robot, laser, q, data.loc, cur, distances=distances, distance_weight=distance_weight,
-                              min_angle_deg=min_angle_deg)
+        blk = PointConstraint(robot, laser, q, data.loc, cur, distances=opt.distances,
+                              distance_weight=opt.distance_weight, min_angle_deg=opt.min_angle_deg)
         res = get_solver("lm", **opts).minimize(blk)
         step = float((blk.robot_params(res.x).detach() - cur.values).abs().max())
         cur.values = blk.robot_params(res.x).detach()
@@ -208,7 +241,7 @@ def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, method:
         out.results.append(res)
         out.rounds.append(info)
         out.q_used = q
-        if step <= round_tol:
+        if step <= opt.round_tol:
             break
     out.params = cur.values.clone()
     if method == "raw":

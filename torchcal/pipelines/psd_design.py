@@ -31,12 +31,13 @@ import torch
 from torch import Tensor
 
 from torchcal.kinematics.transforms import skew
-from torchcal.measure.laser import Laser, laser_beams, plane_intersection
+from torchcal.measure.laser import Laser
 from torchcal.measure.psd import PSDData, spot_covariance, spot_whitening
+from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.problems.psd import SpotResidual
 
-__all__ = ["PSDDesign", "whitened_rows", "information", "predicted_max_error", "select_design", "measure_psd"]
+__all__ = ["PSDDesign", "DesignOptions", "whitened_rows", "information", "predicted_max_error", "select_design"]
 
 
 @dataclass
@@ -102,18 +103,48 @@ def whitened_rows(robot, laser: Laser, data: PSDData, psd_R: Tensor, psd_c: Tens
     return spot_whitening(cov) @ J, blk.kr
 
 
+@dataclass(frozen=True)
+class DesignOptions(Options):
+    """The noise model and settings of the PSD design (:func:`information`, :func:`select_design`).
+
+    Attributes:
+        q_noise, uv_noise: encoder (rad) and PSD (m) noise std, for the beam weights (required).
+        distances: slot pairs whose centre distance will be measured, ``distance_noise`` m std.
+        params: ``(K,)`` the model the rows are computed at (default ``free.values``: the
+            nominal model, never the truth).
+        ridge: (:func:`select_design`) ``ridge ×`` the mean diagonal of the candidates'
+            information is added to ``M`` so that it is invertible before the data identify
+            everything.
+    """
+
+    q_noise: float | None = None
+    uv_noise: float | None = None
+    distances: Sequence[tuple[int, int]] = ((0, 1),)
+    distance_noise: float = 2e-6
+    params: Tensor | None = None
+    ridge: float = 1e-9
+
+    def checked(self) -> "DesignOptions":
+        if self.q_noise is None or self.uv_noise is None:
+            raise TypeError("give q_noise (encoder noise std, rad) and uv_noise (PSD noise std, m): the beam weights "
+                            "need both")
+        return self
+
+
 def information(robot, laser: Laser, data: PSDData, psd_R: Tensor, psd_c: Tensor, free: ParamSet, *,
-                q_noise: float, uv_noise: float, distances: Sequence[tuple[int, int]] = ((0, 1),),
-                distance_noise: float = 2e-6, params: Tensor | None = None) -> tuple[Tensor, int]:
+                options: DesignOptions | None = None, **kw) -> tuple[Tensor, int]:
     """Information matrix ``Jᵀ Σ⁻¹ J`` ``(n, n)`` of the whitened spot model for ``data`` (its
     locations ``0 .. m-1`` at ``psd_R``, ``psd_c``) plus the known centre distances; and ``kd``,
-    the number of robot errors (the first ``kd`` unknowns)."""
-    WJ, kd = whitened_rows(robot, laser, data, psd_R, psd_c, free, q_noise=q_noise, uv_noise=uv_noise, params=params)
+    the number of robot errors (the first ``kd`` unknowns). ``options``, ``kw``: a
+    :class:`DesignOptions` and/or its fields as keywords (``q_noise`` and ``uv_noise`` required)."""
+    o = DesignOptions.build(options, **kw).checked()
+    WJ, kd = whitened_rows(robot, laser, data, psd_R, psd_c, free, q_noise=o.q_noise, uv_noise=o.uv_noise,
+                           params=o.params)
     n = WJ.shape[-1]
     m = (n - kd) // 6
     M = torch.einsum("bri,brj->ij", WJ, WJ)
     for s in range(m):
-        M = M + _distance_info(list(range(m)), psd_c, distances, s, kd, n, distance_noise)
+        M = M + _distance_info(list(range(m)), psd_c, o.distances, s, kd, n, o.distance_noise)
     return M, kd
 
 
@@ -139,8 +170,7 @@ def predicted_max_error(robot, M: Tensor, kd: int, free: ParamSet, q_fresh: Tens
 
 
 def select_design(robot, laser: Laser, cand: PSDData, psd_R: Tensor, psd_c: Tensor, free: ParamSet, *, m: int,
-                  k: int, q_noise: float, uv_noise: float, distances: Sequence[tuple[int, int]] = ((0, 1),),
-                  distance_noise: float = 2e-6, params: Tensor | None = None, ridge: float = 1e-9) -> PSDDesign:
+                  k: int, options: DesignOptions | None = None, **kw) -> PSDDesign:
     """Greedy Ds-optimal choice of ``m`` PSD locations and ``k`` aims per location.
 
     Args:
@@ -149,18 +179,17 @@ def select_design(robot, laser: Laser, cand: PSDData, psd_R: Tensor, psd_c: Tens
         psd_R, psd_c: ``(L, 3, 3)``, ``(L, 3)`` (m) the candidate PSD poses.
         free: the robot errors to identify (its free flags).
         m, k: locations to choose and aims per location.
-        q_noise, uv_noise: encoder (rad) and PSD (m) noise std, for the beam weights.
-        distances: slot pairs whose centre distance will be measured (``distance_noise`` m std).
-        ridge: ``ridge ×`` the mean diagonal of the candidates' information is added to ``M``
-            so that it is invertible before the data identify everything.
+        options, kw: a :class:`DesignOptions` and/or its fields as keywords (``q_noise`` and
+            ``uv_noise`` required; ``distances``, ``distance_noise``, ``params``, ``ridge``).
 
     Slots are filled in turn: for each remaining candidate location the ``k`` best aims are
     chosen greedily, and the location whose aims reach the largest criterion takes the slot.
     """
-    WJ, kd = whitened_rows(robot, laser, cand, psd_R, psd_c, free, q_noise=q_noise, uv_noise=uv_noise,
-                           params=params)
+    o = DesignOptions.build(options, **kw).checked()
+    WJ, kd = whitened_rows(robot, laser, cand, psd_R, psd_c, free, q_noise=o.q_noise, uv_noise=o.uv_noise,
+                           params=o.params)
     n = kd + 6 * m
-    M = torch.eye(n, dtype=WJ.dtype, device=WJ.device) * ridge * float((WJ * WJ).sum((0, 1)).mean())
+    M = torch.eye(n, dtype=WJ.dtype, device=WJ.device) * o.ridge * float((WJ * WJ).sum((0, 1)).mean())
     design = PSDDesign(locations=[], rows=torch.empty(0, dtype=torch.long, device=WJ.device))
     rows = []
     for s in range(m):
@@ -173,7 +202,7 @@ def select_design(robot, laser: Laser, cand: PSDData, psd_R: Tensor, psd_c: Tens
             U = torch.zeros(idx.numel(), n, 2, dtype=WJ.dtype, device=WJ.device)
             U[:, :kd] = WJ[idx, :, :kd].transpose(1, 2)
             U[:, kd + 6 * s: kd + 6 * s + 6] = WJ[idx, :, kd + 6 * c: kd + 6 * c + 6].transpose(1, 2)
-            Ms = M + _distance_info(design.locations + [c], psd_c, distances, s, kd, n, distance_noise)
+            Ms = M + _distance_info(design.locations + [c], psd_c, o.distances, s, kd, n, o.distance_noise)
             Mc, picks = _greedy(Ms, U, k, kd)
             tried[c] = _ds_logdet(Mc, kd)
             if best is None or tried[c] > best[0]:
@@ -202,24 +231,3 @@ def _distance_info(locs: list[int], psd_c: Tensor, pairs, s: int, kd: int, n: in
         row[kd + 6 * b + 3: kd + 6 * b + 6] = -u / sigma
         out += row[:, None] * row[None]
     return out
-
-
-def measure_psd(robot, params: Tensor, laser: Laser, q: Tensor, loc: Tensor, psd_R: Tensor, psd_c: Tensor, *,
-                generator: torch.Generator, q_noise: float = 0.0, uv_noise: float = 0.0,
-                psd_half: float = 10e-3) -> tuple[PSDData, Tensor]:
-    """What the PSD records when the robot with errors ``params (K,)`` goes to commanded joints
-    ``q (N, dof)`` (rad) aimed at locations ``loc (N,)`` with true poses ``psd_R``, ``psd_c``.
-
-    The encoders read the joints with ``q_noise`` (rad std) error; the spots carry ``uv_noise``
-    (m std). Aims whose spot misses the active area (``psd_half``, m) or hits it from behind are
-    dropped. Returns the data and the ``(N,)`` bool mask of the aims kept.
-    """
-    p, w = laser_beams(robot, laser, q, params)
-    R, c = psd_R[loc], psd_c[loc]
-    _, uv = plane_intersection(p, w, c, R)
-    keep = (uv.abs() <= psd_half).all(-1) & ((w * R[..., 2]).sum(-1) < 0)
-    dt = dict(dtype=q.dtype, device=q.device)
-    qn = q_noise * torch.randn(q.shape, generator=generator, dtype=torch.float64).to(**dt)
-    un = uv_noise * torch.randn(uv.shape, generator=generator, dtype=torch.float64).to(**dt)
-    data = PSDData((q + qn)[keep], (uv + un)[keep], loc[keep], int(psd_R.shape[0]))
-    return data, keep

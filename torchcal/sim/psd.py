@@ -3,6 +3,7 @@ encoder and PSD noise; the true joint values are kept apart from what the PSD re
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -10,35 +11,70 @@ from torch import Tensor
 from torchcal.kinematics.ik import solve_ik
 from torchcal.measure.laser import Laser, laser_beams, plane_intersection, psd_frame
 from torchcal.measure.psd import PSDData
+from torchcal.options import Options
 from torchcal.sim.base import Simulated
 
-__all__ = ["simulate_psd", "PSDSimulator"]
+__all__ = ["simulate_psd", "measure_psd", "PSDNoise", "AimOptions", "PSDSimulator"]
+
+
+@dataclass(frozen=True)
+class PSDNoise(Options):
+    """What the recorded readings carry.
+
+    Attributes:
+        q_noise: encoder noise, std per joint (rad), added to the recorded joints.
+        uv_noise: PSD noise, std per axis (m), added to the spots.
+        psd_half: half the side of the PSD's active area (m); spots outside it are not recorded.
+    """
+
+    q_noise: float = 0.0
+    uv_noise: float = 0.0
+    psd_half: float = 10e-3
+
+
+@dataclass(frozen=True)
+class AimOptions(PSDNoise):
+    """How :func:`simulate_psd` aims the laser, beyond :class:`PSDNoise`.
+
+    Attributes:
+        cone_deg: aims come from a random direction within this angle of the PSD normal (deg).
+        standoff: ``(min, max)`` distance of the laser from the spot (m).
+        spot_half: aims at a random point with ``|u|, |v| <=`` this (m; 0: the centre).
+        roll_deg: random roll about the beam within ``±`` this (deg).
+        q0: ``(dof,)`` start of the aiming IK (the arm branch); ik_tol: its tolerance (m, rad).
+            The spots are computed from the joints IK found, so they are exact whatever the
+            tolerance; it matters only for aims at the centre (``spot_half=0``).
+    """
+
+    cone_deg: float = 35.0
+    standoff: tuple[float, float] = (0.25, 0.45)
+    spot_half: float = 8e-3
+    roll_deg: float = 90.0
+    q0: Tensor | None = None
+    ik_tol: float = 1e-13
 
 
 def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: int, *,
-                 generator: torch.Generator, cone_deg: float = 35.0, standoff=(0.25, 0.45),
-                 spot_half: float = 8e-3, roll_deg: float = 90.0, q_noise: float = 0.0,
-                 uv_noise: float = 0.0, psd_half: float = 10e-3, q0: Tensor | None = None,
-                 ik_tol: float = 1e-13) -> tuple[PSDData, Tensor]:
+                 generator: torch.Generator, options: AimOptions | None = None, **kw) -> tuple[PSDData, Tensor]:
     """What the PSD procedure would record on a robot with errors ``params``.
 
     Per location the robot aims its laser at a random point of the surface (``|u|, |v| <=
     spot_half``) from a random direction within ``cone_deg`` of the normal, ``standoff`` m away,
     at a random roll about the beam (``±roll_deg``); IK on the *true* model gives the joints (the
-    operator jogs until the spot is on the PSD). Unreachable aims are redrawn.
+    operator jogs until the spot is on the PSD). Unreachable aims, and spots off the active area,
+    are redrawn.
 
     Args:
         params: ``(K,)`` true errors. psd_R, psd_c: ``(m, 3, 3)``, ``(m, 3)`` true PSD poses.
-        q_noise: encoder noise, std per joint (rad), added to the recorded joints.
-        uv_noise: PSD noise, std per axis (m), added to the spots.
-        psd_half: half the side of the PSD's active area (m); spots outside it are redrawn.
-        q0: ``(dof,)`` start of the aiming IK (the arm branch); ik_tol: its tolerance (m, rad).
-            The spots are computed from the joints IK found, so they are exact whatever the
-            tolerance; it matters only for aims at the centre (``spot_half=0``).
+        options, kw: an :class:`AimOptions` and/or its fields as keywords (``q_noise`` rad,
+            ``uv_noise`` m, ``cone_deg``, ``q0``, …).
     Returns:
         ``(data, q_true)``: :class:`PSDData` with ``k`` samples per location (location-major)
         and the true joints ``(m*k, dof)``.
     """
+    o = AimOptions.build(options, **kw)
+    cone_deg, standoff, spot_half, roll_deg = o.cone_deg, o.standoff, o.spot_half, o.roll_deg
+    q_noise, uv_noise, psd_half, q0, ik_tol = o.q_noise, o.uv_noise, o.psd_half, o.q0, o.ik_tol
     dt = dict(dtype=robot.dtype, device=robot.device)
     params = torch.as_tensor(params, **dt)
     m = psd_R.shape[0]
@@ -98,14 +134,36 @@ def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: i
     return PSDData(q_rec, uv_meas, torch.cat(locs), m), q_true
 
 
+def measure_psd(robot, params: Tensor, laser: Laser, q: Tensor, loc: Tensor, psd_R: Tensor, psd_c: Tensor, *,
+                generator: torch.Generator, options: PSDNoise | None = None, **kw) -> tuple[PSDData, Tensor]:
+    """What the PSD records when the robot with errors ``params (K,)`` goes to commanded joints
+    ``q (N, dof)`` (rad) aimed at locations ``loc (N,)`` with true poses ``psd_R``, ``psd_c``.
+
+    The encoders read the joints with ``q_noise`` (rad std) error; the spots carry ``uv_noise``
+    (m std). Aims whose spot misses the active area (``psd_half``, m) or hits it from behind are
+    dropped. ``options``, ``kw``: a :class:`PSDNoise` and/or its fields as keywords. Returns the
+    data and the ``(N,)`` bool mask of the aims kept.
+    """
+    o = PSDNoise.build(options, **kw)
+    p, w = laser_beams(robot, laser, q, params)
+    R, c = psd_R[loc], psd_c[loc]
+    _, uv = plane_intersection(p, w, c, R)
+    keep = (uv.abs() <= o.psd_half).all(-1) & ((w * R[..., 2]).sum(-1) < 0)
+    dt = dict(dtype=q.dtype, device=q.device)
+    qn = o.q_noise * torch.randn(q.shape, generator=generator, dtype=torch.float64).to(**dt)
+    un = o.uv_noise * torch.randn(uv.shape, generator=generator, dtype=torch.float64).to(**dt)
+    data = PSDData((q + qn)[keep], (uv + un)[keep], loc[keep], int(psd_R.shape[0]))
+    return data, keep
+
+
 class PSDSimulator:
     """Seed 003's set-up behind :class:`~torchcal.sim.base.Simulator`.
 
     Args:
         robot: the robot model; params: ``(K,)`` its true error values.
         laser: the flange laser; psd_R, psd_c: ``(m, 3, 3)``, ``(m, 3)`` true PSD poses (m).
-        **options: passed to :func:`simulate_psd` (aim cone, stand-off, noise ``q_noise`` rad and
-            ``uv_noise`` m, ...).
+        **options: fields of :class:`AimOptions` for :func:`simulate_psd` (aim cone, stand-off,
+            noise ``q_noise`` rad and ``uv_noise`` m, ...).
     """
 
     def __init__(self, robot, params: Tensor, laser: Laser, psd_R: Tensor, psd_c: Tensor, **options):

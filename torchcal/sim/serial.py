@@ -11,15 +11,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchcal.effects.gravity import gravity_features
-from torchcal.kinematics.urdf import read_inertials
+from torchcal.kinematics.bounds import config_bounds
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import save_measurements
 from torchcal.outputs import atomic_write_text
 from torchcal.params import ParamSet
 from torchcal.sim.base import Simulated, expected_noise_norm
+from torchcal.sim.effect_truth import apply_effects, directions_of, draw_effects
 
-__all__ = ["SimConfig", "config_bounds", "random_configs", "random_errors", "simulate", "write_dataset",
+__all__ = ["SimConfig", "random_configs", "random_errors", "simulate", "write_dataset",
            "simulate_fleet", "SimulatedRobot", "simulated_robot", "hide_axes"]
 
 
@@ -45,18 +45,8 @@ class SimConfig:
     seed: int = 0
 
 
-def config_bounds(robot, margin: float = 0.1) -> tuple[Tensor, Tensor]:
-    """``(dof,)`` lower and upper joint values (rad / m, CPU float64) that :func:`random_configs`
-    draws between: the joint limits (±π where a joint has none), ``margin`` of each range left
-    out at both ends."""
-    lo, hi = (x.cpu().to(torch.float64) for x in robot.joint_limits)
-    lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
-    span = hi - lo
-    return lo + margin * span, hi - margin * span
-
-
 def random_configs(robot, n: int, generator: torch.Generator, margin: float = 0.1) -> Tensor:
-    """``(n, dof)`` uniform joint values inside the limits (±π where a joint has none)."""
+    """``(n, dof)`` uniform joint values inside :func:`~torchcal.kinematics.bounds.config_bounds`."""
     lo, hi = config_bounds(robot, margin)
     u = torch.rand(n, robot.dof, generator=generator, dtype=torch.float64)
     return (lo + (hi - lo) * u).to(device=robot.device, dtype=robot.dtype)
@@ -143,91 +133,6 @@ def simulate_fleet(robot, n_robots: int, cfg: SimConfig | None = None, *, spread
     return train, test, truths
 
 
-# ---------------------------------------------------------------------------- effects
-EFFECT_DEFAULTS = {
-    # joint deflection per N·m; a 2.5 kg tool 8 cm beyond the tool link origin that the URDF lacks
-    "joint_compliance": {"compliance": 2e-5, "payload_kg": 2.5, "payload_com": (0.0, 0.0, 0.08)},
-    "backlash": {"half_play": 3e-4},                       # rad, on every joint
-    "cyclic_joint_error": {"amp1": 4e-4, "amp2": 2e-4},    # rad, first and second harmonic
-    "joint_scale": {"scale": 3e-4},                        # relative gear-ratio error
-    "thermal_drift": {"alpha": 1.2e-5, "dT": 30.0},        # 1/K (steel), K span of the run
-}
-
-
-def draw_effects(robot, names: list[str], generator: torch.Generator, options: dict | None = None) -> dict:
-    """Draw the true size of each named physical effect (the hidden truth of a simulated robot).
-
-    Written independently of the fitted effect classes where that is cheap (random phases,
-    true masses plus a payload), so that the loop is not shown its own model."""
-
-    opts = {k: dict(v) for k, v in EFFECT_DEFAULTS.items()}
-    for k, v in (options or {}).items():
-        opts.setdefault(k, {}).update(v)
-    dof = robot.dof
-    rnd = lambda *shape: torch.rand(*shape, generator=generator, dtype=torch.float64)  # noqa: E731
-    truth: dict = {}
-    for name in names:
-        o = opts.get(name, {})
-        if name == "joint_compliance":
-            inert = read_inertials(robot.urdf_text) if robot.urdf_text else {}
-            links = [l for l in inert if l in {jt.child for jt in robot.joints}]
-            m = o["payload_kg"]
-            mm = [[inert[l]["mass"], *(inert[l]["mass"] * inert[l]["com"]).tolist()] for l in links]
-            mm.append([m, *(m * torch.tensor(o["payload_com"], dtype=torch.float64)).tolist()])
-            truth[name] = {"compliance_rad_per_Nm": (o["compliance"] * (0.5 + rnd(dof))).tolist(),
-                           "payload_kg": m, "payload_com_m": list(o["payload_com"]),
-                           "links": links + [robot.markers[0].link], "mass_moments": mm}
-        elif name == "backlash":
-            truth[name] = {"half_play_rad": (o["half_play"] * (0.5 + rnd(dof))).tolist()}
-        elif name == "cyclic_joint_error":
-            truth[name] = {"phase_rad": (2 * math.pi * rnd(2, dof)).tolist(),
-                           "amp1_rad": (o["amp1"] * (0.5 + rnd(dof))).tolist(),
-                           "amp2_rad": (o["amp2"] * (0.5 + rnd(dof))).tolist()}
-        elif name == "joint_scale":
-            truth[name] = {"scale": (o["scale"] * torch.randn(dof, generator=generator, dtype=torch.float64)).tolist()}
-        elif name == "thermal_drift":
-            truth[name] = {"alpha_per_K": o["alpha"], "span_K": o["dT"], "t_ref_C": 20.0 + o["dT"] / 2}
-        else:
-            raise ValueError(f"unknown effect {name!r}; simulate one of {sorted(EFFECT_DEFAULTS)}")
-    return truth
-
-
-def apply_effects(robot, q: Tensor, truth: dict, *, directions: Tensor | None = None,
-                  temperature: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
-    """Joint deflections ``Δq (N, dof)`` and the row scale of robot-base positions (thermal, or
-    None) of the effects in ``truth`` at commands ``q``. ``directions (N, dof)`` (+1/-1) and
-    ``temperature (N,)`` °C are the states backlash and thermal drift need."""
-
-    dq = torch.zeros_like(q)
-    scale = None
-    rev = torch.tensor([u == "rad" for u in robot.joint_units], device=q.device)
-    T = lambda v: torch.as_tensor(v, dtype=q.dtype, device=q.device)  # noqa: E731
-    for name, t in truth.items():
-        if name == "joint_compliance":
-            F = gravity_features(robot, q, t["links"])  # (N, L, dof, 4)
-            tau = torch.einsum("nljf,lf->nj", F, T(t["mass_moments"]))
-            dq = dq + T(t["compliance_rad_per_Nm"]) * tau * rev
-        elif name == "backlash":
-            dq = dq + T(t["half_play_rad"]) * directions
-        elif name == "cyclic_joint_error":
-            ph = T(t["phase_rad"])
-            dq = dq + (T(t["amp1_rad"]) * torch.sin(q + ph[0]) + T(t["amp2_rad"]) * torch.sin(2 * q + ph[1])) * rev
-        elif name == "joint_scale":
-            dq = dq + T(t["scale"]) * q
-        elif name == "thermal_drift":
-            scale = 1 + t["alpha_per_K"] * (temperature - t["t_ref_C"])
-    return dq, scale
-
-
-def directions_of(q: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """Direction (+1/-1) from which each joint reaches each pose when the poses are visited in
-    order; the first pose's direction is drawn (or +1)."""
-    first = (torch.sign(torch.randn(1, q.shape[1], generator=generator, dtype=torch.float64)).to(q)
-             if generator is not None else torch.ones(1, q.shape[1], dtype=q.dtype, device=q.device))
-    steps = torch.diff(q, dim=0, prepend=q[:1] - 1e-3 * first)
-    return torch.where(steps >= 0, torch.ones_like(q), -torch.ones_like(q))
-
-
 class SimulatedRobot:
     """A "real" robot for simulation: geometric errors, physical effects and an instrument.
 
@@ -301,8 +206,7 @@ class SimulatedRobot:
         gradient of the signed distance); each contact triggers at a signed distance drawn from
         the instrument noise. Only commands and plane labels are returned."""
         m = self._marker(marker)
-        lo, hi = (x.to(self.robot.dtype) for x in self.robot.joint_limits)
-        lo, hi = lo.clamp(min=-math.pi), hi.clamp(max=math.pi)
+        lo, hi = (x.to(self.robot.dtype) for x in config_bounds(self.robot, 0.0))
         qs, idx = [], []
         for k, (label, (nrm, d)) in enumerate(planes.items()):
             nrm = torch.as_tensor(nrm, dtype=self.robot.dtype)

@@ -2,7 +2,7 @@
 it passes the same cross-validated rule as an effect."""
 from __future__ import annotations
 
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.pipelines.loop.fit import Context, Model
 from torchcal.pipelines.loop.records import Candidate
 from torchcal.pipelines.loop.selection import compare, rmse_mm

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from torchcal.deploy.elm import ELM
+from torchcal.elm import ELM
 from torchcal.effects import build_effect
 from torchcal.measure.setup import Setup
 from torchcal.pipelines.loop.fit import (Context, Model, evaluate, evaluate_prior, noise_sigma,

@@ -32,7 +32,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcal.effects import Backlash, Effect
+from torchcal.effects import Effect
 
 __all__ = ["CRITERIA", "DesignColumns", "criterion_value", "information", "candidate_values", "greedy_select", "exchange",
            "balanced_signs", "column_signs", "tune_directions", "refine_poses"]
@@ -64,8 +64,7 @@ class DesignColumns:
         self.units = [robot.param_units[i] for i in geo_idx] + [u for e in effects for u in e.param_units]
         flip = [-1] * len(geo_idx)
         for e in effects:
-            flip += ([robot.joint_names.index(j) for j in e.joints] if isinstance(e, Backlash)
-                     else [-1] * e.n_params)
+            flip += e.direction_flips()
         self.flip = torch.tensor(flip, dtype=torch.long, device=robot.device)
 
     def __call__(self, q: Tensor, directions: Tensor | None = None) -> Tensor:
@@ -82,7 +81,7 @@ class DesignColumns:
         Rb, _ = robot.base_transform(self.params)
         cols = [J]
         for e in self.effects:
-            cov = {f"dir.{j}": d[:, i] for i, j in enumerate(robot.joint_names)} if isinstance(e, Backlash) else {}
+            cov = {f"dir.{j}": d[:, i] for i, j in enumerate(robot.joint_names)} if "direction" in e.reads else {}
             basis = e.linear_basis(e.prepare(q, cov))
             L = sum(len(g) for g in basis.groups)
             c = J.new_zeros(N, J.shape[1], 3, L)
@@ -249,14 +248,15 @@ def tune_directions(A_plus_sel: Tensor, D: Tensor, kind: str, flip: Tensor, pass
 
 # ----------------------------------------------------------------------------- gradient refinement
 def refine_poses(columns: DesignColumns, q0: Tensor, D: Tensor | None, keep: list[int], scale: Tensor,
-                 lo: Tensor, hi: Tensor, kind: str, feasible, steps: int = 100,
+                 bounds: tuple[Tensor, Tensor], kind: str, feasible, steps: int = 100,
                  lr: float = 0.1) -> tuple[Tensor, list[float]]:
     """Gradient ascent of the criterion over the joint values of a plan.
 
-    The joints are ``lo + (hi − lo)·sigmoid(u)``, so every step stays strictly inside the
-    bounds; Adam moves ``u``. A step that takes a pose out of ``feasible`` (a callable
+    The joints are ``lo + (hi − lo)·sigmoid(u)`` for ``bounds = (lo, hi)`` (``(dof,)`` each), so
+    every step stays strictly inside the bounds; Adam moves ``u``. A step that takes a pose out of ``feasible`` (a callable
     ``q (S, dof) -> (S,) bool``: reachability box, self-collision) is undone for that pose.
     Returns the best plan seen (never worse than ``q0``) and the criterion per step."""
+    lo, hi = bounds
     span = (hi - lo).to(q0)
     lo = lo.to(q0)
     x = ((q0 - lo) / span).clamp(1e-6, 1 - 1e-6)

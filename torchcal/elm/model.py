@@ -1,4 +1,5 @@
-"""Extreme learning machines (ELM) and their tuning by swarm solvers (seed 002, MMA-ELM).
+"""Extreme learning machines (ELM): the model (seed 002, MMA-ELM; its tuning by swarm solvers is
+:mod:`torchcal.elm.tune`).
 
 An ELM is a one-hidden-layer network ``y = V · g(W x + b)`` whose input weights ``W`` and biases
 ``b`` are drawn at random (``W`` in [-1, 1], ``b`` in [0, 1]) and whose output weights ``V`` are
@@ -23,19 +24,12 @@ position errors and mrad-sized angle errors alike. Predictions are returned in t
 """
 from __future__ import annotations
 
-import math
-import time
-
 import torch
 from torch import Tensor
 
-from torchcal.optim import Result, get_solver
-from torchcal.problems.elm import (ACTIVATIONS, ELMProblem, Scaler, as_matrix, activation_fn, fit_population,
-                                   hidden_layer)
+from torchcal.problems.elm import ACTIVATIONS, Scaler, as_matrix, activation_fn, fit_population, hidden_layer
 
-__all__ = ["ELM", "ACTIVATIONS", "tune_elm"]
-
-"""Hidden-layer activations by name (seed 002 uses ``"sigmoid"``)."""
+__all__ = ["ELM", "ACTIVATIONS"]
 
 
 class ELM:
@@ -51,7 +45,7 @@ class ELM:
             ``|H V - Y|² + ridge |V|²`` on the standardised targets.
         seed: seeds the private generator that draws ``W ~ U(-1, 1)``, ``b ~ U(0, 1)``.
         input_weights, biases: ``(n_in, H)`` and ``(H,)`` to use instead of a random draw (what
-            :func:`tune_elm` passes); both or neither.
+            :func:`~torchcal.elm.tune.tune_elm` passes); both or neither.
         dtype, device: of all tensors (float64 and CPU by default).
 
     Learned attributes (after :meth:`fit`): ``W_ (n_in, H)``, ``b_ (H,)``, ``V_ (H, n_out)``,
@@ -204,66 +198,3 @@ class ELM:
             raise ValueError(f"ELM state does not match n_hidden={m.n_hidden}: W {tuple(W.shape)}, "
                              f"V {tuple(m.V_.shape)}")
         return m
-
-
-def _random_search(problem: ELMProblem, n_evals: int, seed: int, batch: int = 64) -> Result:
-    """Uniform random search in the bounds: the baseline every tuner must beat at equal
-    evaluations (``W, b`` drawn in the search bounds, best validation RMSE kept)."""
-    t0 = time.perf_counter()
-    g = torch.Generator(device=problem.device).manual_seed(int(seed))
-    best_x, best_f, hist, done = None, math.inf, [], 0
-    while done < n_evals:
-        m = min(batch, n_evals - done)
-        X = problem.lower + (problem.upper - problem.lower) * torch.rand(
-            m, problem.dim, generator=g, dtype=problem.dtype, device=problem.device)
-        f = problem.fitness(X)
-        f = torch.where(torch.isnan(f), torch.full_like(f, math.inf), f)
-        j = int(torch.argmin(f))
-        if float(f[j]) < best_f:
-            best_f, best_x = float(f[j]), X[j].clone()
-        hist.append(best_f)
-        done += m
-    return Result(x=best_x, fun=best_f, history=hist, n_evals=done, n_iter=len(hist),
-                  wall_time_s=time.perf_counter() - t0, message=f"{done} random candidates",
-                  method="random")
-
-
-def tune_elm(X_train, Y_train, X_val, Y_val, method: str = "mma", n_hidden: int = 40, *,
-             activation: str = "sigmoid", ridge: float = 0.0, options: dict | None = None,
-             seed: int = 0, progress: bool = False, refit: str = "train") -> tuple[ELM, Result]:
-    """Tune an ELM's ``W`` and ``b`` with a swarm solver (seed 002's MMA-ELM and its relatives).
-
-    Args:
-        X_train, Y_train: ``(N, n_in)``, ``(N, n_out)`` data the output weights are solved on.
-        X_val, Y_val: validation split; the fitness is its RMSE (standardised outputs).
-        method: any solver of :mod:`torchcal.optim` by name (``"mma"`` = seed 002, ``"ma"``,
-            ``"pso"``, ``"ga"``, ...) or ``"random"`` (uniform random search; ``options`` then
-            takes ``n_evals``, default 2000).
-        n_hidden: hidden neurons; the search dimension is ``n_in·n_hidden + n_hidden``.
-        options: solver options (e.g. ``{"pop_size": 20, "max_iter": 100}``).
-        refit: ``"train"`` keeps ``V`` solved on the training split (what the fitness saw);
-            ``"all"`` re-solves ``V`` on training + validation data with the tuned ``W, b``
-            (and scaling from both).
-    Returns:
-        ``(elm, result)``: the fitted :class:`ELM` with the best ``W, b``, and the solver's
-        :class:`~torchcal.optim.Result` (``fun`` = best validation RMSE, standardised units).
-    """
-    if refit not in ("train", "all"):
-        raise ValueError(f"refit must be 'train' or 'all', got {refit!r}")
-    prob = ELMProblem(X_train, Y_train, X_val, Y_val, n_hidden, activation, ridge)
-    opts = dict(options or {})
-    if method.lower() == "random":
-        res = _random_search(prob, int(opts.pop("n_evals", 2000)), seed, int(opts.pop("batch", 64)))
-        if opts:
-            raise ValueError(f"random search takes n_evals and batch, not {sorted(opts)}")
-    else:
-        res = get_solver(method, seed=seed, progress=progress, **opts).minimize(prob)
-    W, b = prob.decode(res.x)
-    elm = ELM(n_hidden, activation, ridge, seed=None, input_weights=W.clone(), biases=b.clone(),
-              dtype=prob.dtype, device=prob.device)
-    Xt, Yt, Xv, Yv = prob.raw
-    if refit == "all":
-        elm.fit(torch.cat([Xt, Xv]), torch.cat([Yt, Yv]))
-    else:
-        elm.fit(Xt, Yt)
-    return elm, res
