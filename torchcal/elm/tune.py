@@ -65,7 +65,7 @@ def _random_search(problem: ELMProblem, n_evals: int, seed: int, batch: int = 64
 
 
 def tune_elm(X_train, Y_train, X_val, Y_val, method: str = "mma", n_hidden: int = 40, *,
-             tuning: TuneOptions | None = None, **kw) -> tuple[ELM, Result]:
+             settings: TuneOptions | None = None, **kw) -> tuple[ELM, Result]:
     """Tune an ELM's ``W`` and ``b`` with a swarm solver (seed 002's MMA-ELM and its relatives).
 
     Args:
@@ -74,14 +74,14 @@ def tune_elm(X_train, Y_train, X_val, Y_val, method: str = "mma", n_hidden: int 
         method: any solver of :mod:`torchcal.optim` by name (``"mma"`` = seed 002, ``"ma"``,
             ``"pso"``, ``"ga"``, ...) or ``"random"`` (uniform random search).
         n_hidden: hidden neurons; the search dimension is ``n_in·n_hidden + n_hidden``.
-        tuning, kw: a :class:`TuneOptions` and/or its fields as keywords (``options=`` there is
+        settings, kw: a :class:`TuneOptions` and/or its fields as keywords (``options=`` there is
             the solver's own options dict, ``seed=``, ``refit=``, …).
     Returns:
         ``(elm, result)``: the fitted :class:`~torchcal.elm.model.ELM` with the best ``W, b``, and
         the solver's :class:`~torchcal.optim.Result` (``fun`` = best validation RMSE,
         standardised units).
     """
-    opt = TuneOptions.build(tuning, **kw)
+    opt = TuneOptions.build(settings, **kw)
     if opt.refit not in ("train", "all"):
         raise ValueError(f"refit must be 'train' or 'all', got {opt.refit!r}")
     prob = ELMProblem(X_train, Y_train, X_val, Y_val, n_hidden, opt.activation, opt.ridge)

@@ -175,7 +175,7 @@ class _Task:
         return ok if er is None else ok & (er.norm(dim=-1) <= self.opt.tol_rot)
 
 
-def solve_ik(robot, params, target, q0=None, options: IKOptions | None = None, **kw) -> IKResult:
+def solve_ik(robot, params, target, q0=None, settings: IKOptions | None = None, **kw) -> IKResult:
     """Joint values that put ``marker`` on each target, batched over targets.
 
     Args:
@@ -185,13 +185,13 @@ def solve_ik(robot, params, target, q0=None, options: IKOptions | None = None, *
             (the instrument frame; the robot base when the base parameters are zero).
         q0: ``(N, dof)`` or ``(dof,)`` start values (the branch you want: elbow up/down, wrist
             flip); default the middle of the joint limits (0 where a joint has none).
-        options, kw: an :class:`IKOptions` and/or its fields as keywords (``marker``,
+        settings, kw: an :class:`IKOptions` and/or its fields as keywords (``marker``,
             ``tol_pos_m``, ``tol_rot``, ``max_iter``, ``limits``, ``rot_weight``, ``restarts``,
             ``seed``, ``sing_tol``).
     Returns:
         :class:`IKResult`.
     """
-    opt = IKOptions.build(options, **kw)
+    opt = IKOptions.build(settings, **kw)
     R_t, p_t = target_frames(robot, target)
     m = _marker_index(robot, opt.marker)
     if isinstance(params, ParamSet):

@@ -323,7 +323,7 @@ class _Batch:
 
 
 def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable[[Tensor, Tensor], Tensor],
-               x0: Tensor, free: Tensor, lower: Tensor, upper: Tensor, options: LMBatchedOptions | None = None, *,
+               x0: Tensor, free: Tensor, lower: Tensor, upper: Tensor, settings: LMBatchedOptions | None = None, *,
                jac0: Tensor | None = None, columns: Tensor | None = None, **kw) -> BatchedLMResult:
     """Minimise ``B`` independent sums of squares with Levenberg-Marquardt (Marquardt scaling).
 
@@ -333,7 +333,7 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         x0: ``(B, K)`` start; ``free``: ``(B, K)`` bool, what each problem fits.
         lower, upper: ``(K,)`` or ``(B, K)`` bounds, as :class:`~torchcal.optim.LevenbergMarquardt`
             uses them (clipping plus an active set).
-        options, kw: an :class:`LMBatchedOptions` and/or its fields as keywords (``max_iter``,
+        settings, kw: an :class:`LMBatchedOptions` and/or its fields as keywords (``max_iter``,
             ``tau``, ``gtol``, ``xtol``, ``ftol``, ``reuse``).
         columns: ``(c,)`` the parameters (indices into K) whose columns the jacobian callback
             returns (default all K); every parameter a problem fits must be among them.
@@ -342,7 +342,7 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
     Returns:
         a :class:`BatchedLMResult`.
     """
-    opt = LMBatchedOptions.build(options, **kw)
+    opt = LMBatchedOptions.build(settings, **kw)
     t0 = time.perf_counter()
     batch = _Batch(residuals, jacobian, x0, free, lower, upper, jac0, columns, opt)
     while (act := batch.active()).numel():

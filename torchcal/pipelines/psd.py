@@ -171,7 +171,7 @@ class PSDOptions(Options):
     noise: tuple[float, float, float] | None = None
 
 
-def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, options: PSDOptions | None = None,
+def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, settings: PSDOptions | None = None,
                   **kw) -> PSDCalibration:
     """Identify robot errors from PSD data.
 
@@ -179,10 +179,10 @@ def calibrate_psd(robot, laser: Laser, data: PSDData, free: ParamSet, *, options
         free: ``robot.params()`` with the unknowns free and everything else at its known value
             (start point = its values, Δs0 = 0 for zeros). Free only identifiable parameters: a
             point constraint cannot fix the gauge (see the module docstring).
-        options, kw: a :class:`PSDOptions` and/or its fields as keywords (``method="spots"``,
+        settings, kw: a :class:`PSDOptions` and/or its fields as keywords (``method="spots"``,
             ``rounds=3``, ``distances=…``, ``noise=…``).
     """
-    opt = PSDOptions.build(options, **kw)
+    opt = PSDOptions.build(settings, **kw)
     if opt.method not in ("pm", "raw", "spots"):
         raise ValueError(f"method must be 'pm', 'raw' or 'spots', got {opt.method!r}")
     if opt.noise is not None and (opt.method != "spots" or (opt.distances and not opt.noise[2] > 0)):

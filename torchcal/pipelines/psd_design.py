@@ -132,12 +132,12 @@ class DesignOptions(Options):
 
 
 def information(robot, laser: Laser, data: PSDData, psd_R: Tensor, psd_c: Tensor, free: ParamSet, *,
-                options: DesignOptions | None = None, **kw) -> tuple[Tensor, int]:
+                settings: DesignOptions | None = None, **kw) -> tuple[Tensor, int]:
     """Information matrix ``Jᵀ Σ⁻¹ J`` ``(n, n)`` of the whitened spot model for ``data`` (its
     locations ``0 .. m-1`` at ``psd_R``, ``psd_c``) plus the known centre distances; and ``kd``,
-    the number of robot errors (the first ``kd`` unknowns). ``options``, ``kw``: a
+    the number of robot errors (the first ``kd`` unknowns). ``settings``, ``kw``: a
     :class:`DesignOptions` and/or its fields as keywords (``q_noise`` and ``uv_noise`` required)."""
-    o = DesignOptions.build(options, **kw).checked()
+    o = DesignOptions.build(settings, **kw).checked()
     WJ, kd = whitened_rows(robot, laser, data, psd_R, psd_c, free, q_noise=o.q_noise, uv_noise=o.uv_noise,
                            params=o.params)
     n = WJ.shape[-1]
@@ -170,7 +170,7 @@ def predicted_max_error(robot, M: Tensor, kd: int, free: ParamSet, q_fresh: Tens
 
 
 def select_design(robot, laser: Laser, cand: PSDData, psd_R: Tensor, psd_c: Tensor, free: ParamSet, *, m: int,
-                  k: int, options: DesignOptions | None = None, **kw) -> PSDDesign:
+                  k: int, settings: DesignOptions | None = None, **kw) -> PSDDesign:
     """Greedy Ds-optimal choice of ``m`` PSD locations and ``k`` aims per location.
 
     Args:
@@ -179,13 +179,13 @@ def select_design(robot, laser: Laser, cand: PSDData, psd_R: Tensor, psd_c: Tens
         psd_R, psd_c: ``(L, 3, 3)``, ``(L, 3)`` (m) the candidate PSD poses.
         free: the robot errors to identify (its free flags).
         m, k: locations to choose and aims per location.
-        options, kw: a :class:`DesignOptions` and/or its fields as keywords (``q_noise`` and
+        settings, kw: a :class:`DesignOptions` and/or its fields as keywords (``q_noise`` and
             ``uv_noise`` required; ``distances``, ``distance_noise``, ``params``, ``ridge``).
 
     Slots are filled in turn: for each remaining candidate location the ``k`` best aims are
     chosen greedily, and the location whose aims reach the largest criterion takes the slot.
     """
-    o = DesignOptions.build(options, **kw).checked()
+    o = DesignOptions.build(settings, **kw).checked()
     WJ, kd = whitened_rows(robot, laser, cand, psd_R, psd_c, free, q_noise=o.q_noise, uv_noise=o.uv_noise,
                            params=o.params)
     n = kd + 6 * m

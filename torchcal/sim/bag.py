@@ -209,18 +209,18 @@ def _record(path, joint_names: list[str], s: _Samples, o: BagOptions) -> None:
 
 
 def write_bag(path, q: np.ndarray, p: np.ndarray, joint_names: list[str], *, quat: np.ndarray | None = None,
-              options: BagOptions | None = None, **kw) -> BagTruth:
+              settings: BagOptions | None = None, **kw) -> BagTruth:
     """Write a bag at ``path`` (a ``.bag`` file for ROS 1, a new directory for ROS 2).
 
     Args:
         q: ``(K, dof)`` still joint values (rad / m), visited in order; ``p``: ``(K, 3)`` marker
             positions there (m, instrument frame); ``quat``: ``(K, 4)`` orientations (w, x, y, z;
             default identity).
-        options, kw: a :class:`BagOptions` and/or its fields as keywords (``storage``, ``marker``,
+        settings, kw: a :class:`BagOptions` and/or its fields as keywords (``storage``, ``marker``,
             ``noise_m``, ``lost``, …).
     Times: header stamps ``t0 + t``; the bag's receive time is 2 ms later.
     """
-    o = BagOptions.build(options, **kw)
+    o = BagOptions.build(settings, **kw)
     if o.storage not in STORAGES or o.marker not in MARKER_KINDS:
         raise ValueError(f"storage must be one of {STORAGES} and marker one of {list(MARKER_KINDS)}")
     q, p = np.asarray(q, dtype=np.float64), np.asarray(p, dtype=np.float64)

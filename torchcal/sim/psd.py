@@ -55,7 +55,7 @@ class AimOptions(PSDNoise):
 
 
 def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: int, *,
-                 generator: torch.Generator, options: AimOptions | None = None, **kw) -> tuple[PSDData, Tensor]:
+                 generator: torch.Generator, settings: AimOptions | None = None, **kw) -> tuple[PSDData, Tensor]:
     """What the PSD procedure would record on a robot with errors ``params``.
 
     Per location the robot aims its laser at a random point of the surface (``|u|, |v| <=
@@ -66,13 +66,13 @@ def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: i
 
     Args:
         params: ``(K,)`` true errors. psd_R, psd_c: ``(m, 3, 3)``, ``(m, 3)`` true PSD poses.
-        options, kw: an :class:`AimOptions` and/or its fields as keywords (``q_noise`` rad,
+        settings, kw: an :class:`AimOptions` and/or its fields as keywords (``q_noise`` rad,
             ``uv_noise`` m, ``cone_deg``, ``q0``, …).
     Returns:
         ``(data, q_true)``: :class:`PSDData` with ``k`` samples per location (location-major)
         and the true joints ``(m*k, dof)``.
     """
-    o = AimOptions.build(options, **kw)
+    o = AimOptions.build(settings, **kw)
     cone_deg, standoff, spot_half, roll_deg = o.cone_deg, o.standoff, o.spot_half, o.roll_deg
     q_noise, uv_noise, psd_half, q0, ik_tol = o.q_noise, o.uv_noise, o.psd_half, o.q0, o.ik_tol
     dt = dict(dtype=robot.dtype, device=robot.device)
@@ -135,16 +135,16 @@ def simulate_psd(robot, params, laser: Laser, psd_R: Tensor, psd_c: Tensor, k: i
 
 
 def measure_psd(robot, params: Tensor, laser: Laser, q: Tensor, loc: Tensor, psd_R: Tensor, psd_c: Tensor, *,
-                generator: torch.Generator, options: PSDNoise | None = None, **kw) -> tuple[PSDData, Tensor]:
+                generator: torch.Generator, settings: PSDNoise | None = None, **kw) -> tuple[PSDData, Tensor]:
     """What the PSD records when the robot with errors ``params (K,)`` goes to commanded joints
     ``q (N, dof)`` (rad) aimed at locations ``loc (N,)`` with true poses ``psd_R``, ``psd_c``.
 
     The encoders read the joints with ``q_noise`` (rad std) error; the spots carry ``uv_noise``
     (m std). Aims whose spot misses the active area (``psd_half``, m) or hits it from behind are
-    dropped. ``options``, ``kw``: a :class:`PSDNoise` and/or its fields as keywords. Returns the
+    dropped. ``settings``, ``kw``: a :class:`PSDNoise` and/or its fields as keywords. Returns the
     data and the ``(N,)`` bool mask of the aims kept.
     """
-    o = PSDNoise.build(options, **kw)
+    o = PSDNoise.build(settings, **kw)
     p, w = laser_beams(robot, laser, q, params)
     R, c = psd_R[loc], psd_c[loc]
     _, uv = plane_intersection(p, w, c, R)

@@ -268,7 +268,7 @@ def _expected_errors(robot, A_plan: Tensor, names: list[str], units: list[str], 
 
 @threads_by_size("n_candidates", "candidates")
 def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, candidates: Tensor | None = None,
-               params=None, free=None, options: PlanOptions | None = None, **kw) -> Plan:
+               params=None, free=None, settings: PlanOptions | None = None, **kw) -> Plan:
     """Plan ``n_select`` calibration poses for ``robot`` (module docstring).
 
     Args:
@@ -279,14 +279,14 @@ def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, candidate
         params: ``(K,)`` or a ParamSet: where the model is linearised (default nominal).
         free: the geometric parameters to plan for (names or globs; default as
             :func:`torchcal.pipelines.calibrate`: everything but the markers' orientations).
-        options, kw: a :class:`PlanOptions` and/or its fields as keywords (``criterion="O4"``,
+        settings, kw: a :class:`PlanOptions` and/or its fields as keywords (``criterion="O4"``,
             ``effects=["backlash"]``, ``noise=2e-5``, …).
 
     Returns:
         A :class:`~torchcal.pipelines.plan.result.Plan`.
     """
     t0 = time.perf_counter()
-    opt = PlanOptions.build(options, **kw)
+    opt = PlanOptions.build(settings, **kw)
     if not isinstance(robot, Robot):
         raise TypeError(f"robot must be a torchcal.Robot with its markers (Robot.from_urdf(path, markers=[...])), got "
                         f"{type(robot).__name__}")
