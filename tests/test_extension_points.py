@@ -1,6 +1,7 @@
 """ARCHITECTURE.md's "where a new piece goes", tested: a toy effect and a toy solver, each in one
 file of ``tests/toys/`` that only registers it, run through ``calibrate``, the loop, a pose plan and
-the command line with nothing else changed.
+the command line with nothing else changed. (A new measurement type has no registry yet: it still
+touches ``measure/observations.py`` and ``measure/io.py``.)
 
 The data are simulated here, independently of the effect class: the toy error ``Δq = a q²`` is
 added to the commanded angles before the robot's kinematics with known geometric errors, and
@@ -94,6 +95,16 @@ def test_the_loop_tries_and_names_the_toy_effect(toys, robot):
         assert fitted[j] == pytest.approx(a, rel=0.2)
     assert set(fitted) <= set(QUAD) | {j for j in fitted if abs(fitted[j]) < 3e-4}
     assert res.stages[-1].test.mean < 0.5 * res.stages[1].test.mean
+
+
+def test_a_pose_plan_plans_for_the_toy_effect(toys, robot):
+    from torchcal.pipelines.plan.run import plan_poses, plannable_effects
+    assert "toy_quadratic" in plannable_effects()  # it reads nothing but the commanded angles
+    plan = plan_poses(robot, 30, n_candidates=600, effects=["toy_quadratic"], seed=0)
+    toy = {n: v for n, v in plan.std_errors.items() if n.startswith("toy_quadratic.")}
+    assert toy and all(0 < v < 1e-3 for v in toy.values())  # 1/rad: 1e-3 would be ~10 mrad at ±π
+    bare = plan_poses(robot, 30, n_candidates=600, seed=0)
+    assert not any(n.startswith("toy_quadratic.") for n in bare.std_errors)
 
 
 def test_the_command_line_offers_the_toy_solver(toys):
