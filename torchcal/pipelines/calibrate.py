@@ -27,7 +27,7 @@ from torchcal.problems.template import candidate_template
 from torchcal.problems.uncertainty import standard_errors
 from torchcal.threads import threads_by_size
 
-__all__ = ["calibrate", "CalibrateOptions", "stage_stats"]
+__all__ = ["calibrate", "CalibrateOptions", "position_stats"]
 
 _SEARCH = {"m": 5e-3, "rad": 0.05}  # default swarm search box around the start (± per unit)
 _BASE = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
@@ -89,7 +89,7 @@ class CalibrateOptions(Options):
     prior: str | None = "auto"
 
 
-def stage_stats(robot, params: Tensor, data: Measurements | None) -> ErrorStats | None:
+def position_stats(robot, params: Tensor, data: Measurements | None) -> ErrorStats | None:
     """Position-error statistics (mm) of ``params (K,)`` on ``data``, overall and per marker."""
     if data is None or len(data) == 0:
         return None
@@ -100,8 +100,8 @@ def stage_stats(robot, params: Tensor, data: Measurements | None) -> ErrorStats 
 def stage(name: str, n_params: int, robot, params: Tensor, train: Measurements,
           test: Measurements | None) -> tuple[Stage, StageErrors]:
     """The :class:`Stage` of ``params (K,)`` on the training and held-out rows, and its errors."""
-    st = Stage(name, n_params, stage_stats(robot, params, train),
-               None if test is None else stage_stats(robot, params, test))
+    st = Stage(name, n_params, position_stats(robot, params, train),
+               None if test is None else position_stats(robot, params, test))
     details = [error_details(robot, params, d) if d is not None and len(d) else None for d in (train, test)]
     return st, StageErrors(*details)
 

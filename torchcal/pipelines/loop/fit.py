@@ -28,6 +28,7 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import fit_identified, implausible_values
 from torchcal.pipelines.loop.selection import effective_params, penalised, rmse_mm, robust_sigma, row_scores
 from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.uncertainty import standard_errors
 
 __all__ = ["Context", "Model", "geometric_start", "observation_model", "observation_errors", "prior_weights",
            "evaluate", "evaluate_prior", "plausible_scale", "fit_params", "fit_noise", "cv_mean_mm", "folds_of",
@@ -245,7 +246,9 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     pf = None if prior is None else prior[full.free_index]
     k = effective_params(J, pf)
     info = dict(info or {})
-    info["se"] = standard_errors(J, pf, full.free_names, noise_sigma_of(ctx, full, effects, k))
+    # how far noise alone moves each value: σ sqrt((JᵀJ + W²)⁻¹_ii) at the fit's robust noise
+    se = standard_errors(J, sigma=noise_sigma_of(ctx, full, effects, k), prior=pf, singular="pinv")
+    info["se"] = dict(zip(full.free_names, se.tolist()))
     scores = torch.zeros(len(ctx.data), dtype=ctx.robot.dtype, device=ctx.robot.device)
     sq = torch.zeros_like(scores)
     fits = []
@@ -319,13 +322,6 @@ def noise_sigma_of(ctx: Context, params: ParamSet, effects: list, k: float) -> f
 def noise_sigma(ctx: Context, m: Model) -> float:
     """Robust per-axis noise estimate (m) from a fitted model's training residuals."""
     return noise_sigma_of(ctx, m.params, m.effects, m.k)
-
-
-def standard_errors(J: Tensor, prior: Tensor | None, names: list[str], sigma: float) -> dict[str, float]:
-    """``name -> σ sqrt((JᵀJ + W²)⁻¹_ii)`` for the free parameters of a fit (its units), with the
-    robust noise ``σ`` (m per axis): how far noise alone moves each value."""
-    from torchcal.problems import uncertainty  # the one covariance (this function's name shadows its own)
-    return dict(zip(names, uncertainty.standard_errors(J, sigma=sigma, prior=prior, singular="pinv").tolist()))
 
 
 # ----------------------------------------------------------------------------- parameters by effect
