@@ -63,7 +63,6 @@ sys.path.insert(0, str(ROOT))
 from torchcal import Robot  # noqa: E402
 from torchcal.problems.identifiability import identifiability  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402
-from torchcal.measure.blocks import PositionResidual  # noqa: E402
 from torchcal.optim import get_solver  # noqa: E402
 from torchcal.problems.calibration import CalibrationProblem  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
@@ -105,7 +104,7 @@ class Case:
         for n in self.report.identifiable:
             ps.free[ps.index(n)] = True
         self.params = ps
-        self.problem = CalibrationProblem(robot, ps, [PositionResidual(robot, data)])
+        self.problem = CalibrationProblem(robot, ps, data)
         self.k, self.m = self.problem.dim, self.problem.m
         self.p_true_test = robot.positions(self.q_test, self.truth)
 

@@ -104,7 +104,6 @@ sys.path.insert(0, str(ROOT))
 
 from torchcal.problems.identifiability import identifiability  # noqa: E402
 from torchcal.measure.data import Measurements  # noqa: E402
-from torchcal.measure.blocks import PositionResidual  # noqa: E402
 from torchcal.optim import get_solver, minimize_runs  # noqa: E402
 from torchcal.problems.calibration import CalibrationProblem  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
@@ -140,7 +139,7 @@ def build(args):
 
 def make_problem(robot, ps, q, positions, compact=True):
     data = Measurements(q.clone(), positions, list(robot.marker_names), list(robot.joint_names))
-    return CalibrationProblem(robot, ps, [PositionResidual(robot, data)], fitness="sum_norm", compact=compact)
+    return CalibrationProblem(robot, ps, data, fitness="sum_norm", compact=compact)
 
 
 def noisy(robot, q, truth, noise_m, seed):

@@ -17,8 +17,8 @@ import torch
 from torchcal import Robot, calibrate
 from torchcal.kinematics.robots import SHIPPED, shipped
 from torchcal.kinematics.transforms import quat_to_matrix
-from torchcal.measure.blocks import PositionResidual
 from torchcal.measure.data import Measurements
+from torchcal.problems.calibration import CalibrationProblem
 from torchcal.sim.serial import SimConfig, random_configs, random_errors, simulate
 
 D = torch.float64
@@ -50,7 +50,7 @@ def small_problem(kr5_dh):
 
 
 def _sse(robot, data, values) -> float:
-    r = PositionResidual(robot, data).residuals(values[None])[0]
+    r = CalibrationProblem(robot, robot.params(), data).residual_vectors(values[None])[0]
     return float((r * r).sum())
 
 

@@ -6,7 +6,6 @@ import torch
 
 from torchcal.kinematics.transforms import matrix_to_quat
 from torchcal.kinematics.fk_compact import PositionKernel
-from torchcal.measure.blocks import PoseResidual, PositionResidual
 from torchcal.measure.data import Measurements
 from torchcal.problems.calibration import CalibrationProblem
 
@@ -66,7 +65,7 @@ def test_problem_fitness_compact_equals_general(kr5, make_q, fitness):
     ps.fix("base.*")
     ps.values[0] = 0.3  # a fixed, non-zero base x: must reach the kernel
     ps.lower, ps.upper = ps.lower.clamp(min=-0.01), ps.upper.clamp(max=0.01)
-    make = lambda c: CalibrationProblem(robot, ps, [PositionResidual(robot, data)], fitness=fitness, compact=c)  # noqa: E731
+    make = lambda c: CalibrationProblem(robot, ps, data, fitness=fitness, compact=c)  # noqa: E731
     fast, slow = make(True), make(False)
     X = fast.lower + (fast.upper - fast.lower) * torch.rand(6, fast.dim, generator=torch.Generator().manual_seed(1),
                                                             dtype=torch.float64)
@@ -85,7 +84,7 @@ def test_problem_fitness_falls_back_for_other_blocks(kr5, make_q):
                         quaternions=matrix_to_quat(T[:, :, :3, :3]))
     ps = robot.params()
     ps.fix("base.*")
-    prob = CalibrationProblem(robot, ps, [PoseResidual(robot, data)], fitness="sse")
+    prob = CalibrationProblem(robot, ps, data, fitness="sse", rot_weight=0.1)
     X = 1e-4 * torch.ones(2, prob.dim, dtype=torch.float64)
     assert prob._kernels() is None
     r = prob.residuals(X)
@@ -100,7 +99,7 @@ def test_problem_fitness_on_partial_axes_takes_the_general_path(kr5, make_q):
     data = Measurements(q, p + 1e-4, list(robot.marker_names), list(robot.joint_names))
     ps = robot.params()
     ps.fix("base.*")
-    fast, slow = (CalibrationProblem(robot, ps, [PositionResidual(robot, data)], fitness="sse", compact=c)
+    fast, slow = (CalibrationProblem(robot, ps, data, fitness="sse", compact=c)
                   for c in (True, False))
     X = 1e-4 * torch.randn(4, fast.dim, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
     torch.testing.assert_close(fast.fitness(X), slow.fitness(X), atol=0, rtol=1e-12)

@@ -23,7 +23,6 @@ from torchcal.pipelines.fleet.run import calibrate_fleet
 from torchcal.pipelines.fleet.identify import decide, explain
 from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.measure.io import save_measurements
-from torchcal.measure.blocks import PositionResidual
 from torchcal.optim import get_solver
 from torchcal.optim.lm_batched import lm_batched
 from torchcal.problems.calibration import CalibrationProblem
@@ -89,13 +88,13 @@ def test_lm_batched_replicates_single_lm(kr5):
     p = kr5.params().only("joint_a2.dx", "joint_a2.dz", "joint_a3.offset", "joint_a5.offset", "smr.dx", "smr.dz")
     data = [simulate(kr5, SimConfig(n=n, seed=70 + n, base_distance=0.0), true_params=_errors(kr5, p, n))[0]
             for n in (12, 20, 31)]  # robot-frame data: the base stays at 0
-    probs = [CalibrationProblem(kr5, p, [PositionResidual(kr5, d)]) for d in data]
+    probs = [CalibrationProblem(kr5, p, d) for d in data]
     singles = [get_solver("lm", tau=1e-6).minimize(pr) for pr in probs]
     m = max(pr.m for pr in probs)
     pad = lambda t, n: torch.cat([t, t.new_zeros(n - t.shape[0], *t.shape[1:])])  # noqa: E731
     res = lm_batched(lambda X, i: torch.stack([pad(probs[k].residuals(X[j:j + 1, p.free_index])[0], m)
                                                for j, k in enumerate(i.tolist())]),
-                     lambda X, i: torch.stack([pad(PositionResidual(kr5, data[k]).jacobian(X[j]), m)
+                     lambda X, i: torch.stack([pad(probs[k].full_jacobian(X[j]), m)
                                                for j, k in enumerate(i.tolist())]),
                      p.values.expand(3, -1), p.free.expand(3, -1), p.lower, p.upper, tau=1e-6)
     for b, s in enumerate(singles):
@@ -111,7 +110,7 @@ def test_batched_identifiability_equals_analyse_jacobian(kr5):
     Js, reps = [], []
     for s, n in enumerate((30, 8, 5)):  # 8 and 5 poses: rank-deficient designs
         d, truth = simulate(kr5, SimConfig(n=n, seed=60 + s))
-        J = PositionResidual(kr5, d).jacobian(truth.values)[:, p.free_index]
+        J = CalibrationProblem(kr5, p, d).full_jacobian(truth.values)[:, p.free_index]
         Js.append(torch.cat([J, J.new_zeros(200 - J.shape[0], J.shape[1])]))  # padded rows, as a fleet pads
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the rank of the short designs is ambiguous: that is the point
@@ -557,7 +556,7 @@ def test_rank_check_needs_no_svd_where_the_factor_decides(mixed):
     robot, data = mixed
     p = candidate_template(robot, data[0].marker_names)
     names = p.free_names
-    Js = [PositionResidual(robot, d).jacobian(p.values)[:, p.free_index] for d in data]
+    Js = [CalibrationProblem(robot, p, d).full_jacobian(p.values)[:, p.free_index] for d in data]
     m = max(j.shape[0] for j in Js)
     J = torch.stack([torch.cat([j, j.new_zeros(m - j.shape[0], j.shape[1])]) for j in Js])
     dec = decide(J, names, robot.marker_names)

@@ -9,7 +9,6 @@ import torch
 from host_syncs import HostSyncs
 
 from torchcal import Robot
-from torchcal.measure.blocks import PositionResidual
 from torchcal.measure.registration import register_base
 from torchcal.optim import lm
 from torchcal.optim.lm import LevenbergMarquardt, note_device_size
@@ -47,7 +46,7 @@ def test_lm_iteration_waits_at_most_three_times():
     ps = register_base(robot, data, ps)
     ps.values[ps.index("joint_a2.droll")] += 1.0  # a start far off, so that some steps are rejected
     ps.values[ps.index("joint_a3.dpitch")] -= 1.0
-    prob = CalibrationProblem(robot, ps, [PositionResidual(robot, data)])
+    prob = CalibrationProblem(robot, ps, data)
     per_step = []
     step = LevenbergMarquardt.step
 

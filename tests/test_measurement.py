@@ -1,5 +1,5 @@
-"""Measurement models (residual blocks, robust losses), Kabsch registration and the measurement
-file round trip.
+"""Measurement models (the residuals of observations in a calibration problem, robust losses),
+Kabsch registration and the measurement file round trip.
 
 Jacobians are checked against ``torch.autograd.functional.jacobian`` of the residuals; under a
 robust loss against the documented IRLS approximation ``sqrt(ρ'(s)) · J``, computed here from
@@ -14,17 +14,19 @@ import pytest
 import torch
 from torch.autograd.functional import jacobian
 
+from torchcal import Robot
 from torchcal.kinematics.transforms import kabsch, so3_exp
-from torchcal.measure.blocks import DistanceResidual, Loss, PoseResidual, PositionResidual
 from torchcal.measure.data import Measurements
 from torchcal.measure.io import load_measurements, save_measurements
+from torchcal.measure.loss import Loss
 from torchcal.measure.registration import register_base
+from torchcal.problems.calibration import CalibrationProblem
 
 D = torch.float64
 
 
 # ---------------------------------------------------------------------------------------------
-# Data for the residual blocks: measurements of a perturbed robot, evaluated at other parameters
+# Data for the residuals: measurements of a perturbed robot, evaluated at other parameters
 # ---------------------------------------------------------------------------------------------
 def _quaternions(R: torch.Tensor) -> torch.Tensor:
     from scipy.spatial.transform import Rotation
@@ -36,7 +38,7 @@ def _quaternions(R: torch.Tensor) -> torch.Tensor:
 def _setup(robot, make_params, make_q, seed: int, n: int = 7, hide: bool = True):
     """(data, params): marker poses of ``robot`` at one random parameter vector, measured with
     small pose errors (so residuals, and rotation residuals, are non-zero), one marker hidden in
-    one row; ``params`` another random vector near the first, where the blocks are evaluated."""
+    one row; ``params`` another random vector near the first, where the residuals are evaluated."""
     true = make_params(robot, seed, scale=0.02)
     q = make_q(robot, n, seed + 1)
     R, t = robot.fk_rt(q, true)
@@ -52,13 +54,36 @@ def _setup(robot, make_params, make_q, seed: int, n: int = 7, hide: bool = True)
     return data, params
 
 
-def _blocks(robot, data, loss):
+def _problem(robot, data, loss=None, **kw) -> CalibrationProblem:
+    """The calibration problem of ``data`` with every parameter free: its free values are the full vector."""
+    return CalibrationProblem(robot, robot.params().unfix("*"), data, loss=loss, **kw)
+
+
+def _with_elbow(robot) -> Robot:
+    """``robot`` with a second marker, on the third link, when it has one: a distance needs two."""
+    if len(robot.markers) > 1:
+        return robot
+    return Robot(robot.name, robot.joints, robot.markers + [f"elbow@{robot.joints[2].child}=0.05,0.02,0.1"])
+
+
+def _distances(robot, data) -> Measurements:
+    """Distances between the first two markers of every row of ``data`` (and nothing else)."""
     n = len(data)
-    pairs = [[i, (i + 3) % n] for i in range(n)]
     dist = 0.5 + 0.1 * torch.arange(n, dtype=D)
-    return {"position": PositionResidual(robot, data, loss=loss),
-            "pose": PoseResidual(robot, data, rot_weight=0.2, loss=loss),
-            "distance": DistanceResidual(robot, data, pairs, dist, marker=robot.marker_names[0], loss=loss)}
+    return Measurements(data.q, torch.full_like(data.positions, float("nan")), data.marker_names,
+                        data.joint_names, distances={(robot.marker_names[0], robot.marker_names[1]): dist})
+
+
+def _block(robot, data, kind: str, loss):
+    """The residuals of one kind of observation of ``data`` (a distance: between the first two markers)."""
+    if kind == "distance":
+        return _problem(robot, _distances(robot, data), loss)
+    return _problem(robot, data, loss, rot_weight=0.2 if kind == "pose" else None)
+
+
+def _robot(request, name: str, kind: str) -> Robot:
+    robot = request.getfixturevalue(name)
+    return _with_elbow(robot) if kind == "distance" else robot
 
 
 def _autograd_jacobian(block, params):
@@ -71,9 +96,9 @@ ROBOTS = ["tree_robot", "kr5"]  # a URDF tree (mimic, prismatic, point marker) a
 @pytest.mark.parametrize("robot_name", ROBOTS)
 @pytest.mark.parametrize("kind", ["position", "pose", "distance"])
 def test_l2_jacobian_equals_autograd(request, make_params, make_q, robot_name, kind):
-    robot = request.getfixturevalue(robot_name)
+    robot = _robot(request, robot_name, kind)
     data, params = _setup(robot, make_params, make_q, seed=11)
-    block = _blocks(robot, data, None)[kind]
+    block = _block(robot, data, kind, None)
     J = block.jacobian(params)
     J_ad = _autograd_jacobian(block, params)
     assert J.shape == J_ad.shape == (block.n_obs * block.obs_dim, robot.n_params)
@@ -97,9 +122,9 @@ def _rho_closed_form(kind: str, s: torch.Tensor):
 @pytest.mark.parametrize("kind", ["position", "pose", "distance"])
 @pytest.mark.parametrize("loss_kind", ["huber", "cauchy"])
 def test_robust_jacobian_is_the_irls_approximation(request, make_params, make_q, robot_name, kind, loss_kind):
-    robot = request.getfixturevalue(robot_name)
+    robot = _robot(request, robot_name, kind)
     data, params = _setup(robot, make_params, make_q, seed=21)
-    plain = _blocks(robot, data, None)[kind]
+    plain = _block(robot, data, kind, None)
     r = plain.residuals(params[None])[0].reshape(plain.n_obs, plain.obs_dim)
     sq = (r * r).sum(-1)
     c = float(sq.sqrt().median())  # half the observations beyond the scale: both Huber branches
@@ -109,7 +134,7 @@ def test_robust_jacobian_is_the_irls_approximation(request, make_params, make_q,
     J_l2 = _autograd_jacobian(plain, params).reshape(plain.n_obs, plain.obs_dim, -1)
     expected = (torch.sqrt(drho)[:, None, None] * J_l2).reshape(plain.n_obs * plain.obs_dim, -1)
 
-    robust = _blocks(robot, data, Loss(loss_kind, c))[kind]
+    robust = _block(robot, data, kind, Loss(loss_kind, c))
     J = robust.jacobian(params)
     err = float((J - expected).abs().max()) / float(expected.abs().max())
     assert err < 1e-8, f"{kind}/{loss_kind}: {err:.2e}"
@@ -124,28 +149,28 @@ def test_robust_jacobian_is_the_irls_approximation(request, make_params, make_q,
 
 def test_position_weights_scale_residuals_and_jacobian(kr5, make_params, make_q):
     data, params = _setup(kr5, make_params, make_q, seed=31)
-    plain = PositionResidual(kr5, data)
+    plain = _problem(kr5, data)
     w = torch.linspace(0.5, 2.0, plain.n_obs, dtype=D)
-    weighted = PositionResidual(kr5, data, weights=w)
+    weighted = _problem(kr5, data, weights=w)
     sw = w.sqrt().repeat_interleave(3)
     torch.testing.assert_close(weighted.residuals(params[None])[0], plain.residuals(params[None])[0] * sw,
                                rtol=1e-14, atol=0)
     torch.testing.assert_close(weighted.jacobian(params), _autograd_jacobian(weighted, params), rtol=1e-8,
                                atol=1e-10)
     with pytest.raises(ValueError, match="one entry per observation"):
-        PositionResidual(kr5, data, weights=w[:-1])
+        _problem(kr5, data, weights=w[:-1])
 
 
 def test_unseen_markers_are_not_observations(tree_robot, make_params, make_q):
     data, params = _setup(tree_robot, make_params, make_q, seed=41)
-    block = PositionResidual(tree_robot, data)
+    block = _problem(tree_robot, data)
     assert block.n_obs == len(data) * len(tree_robot.markers) - 1  # one hidden marker
     assert bool(torch.isfinite(block.residuals(params[None])).all())
     assert bool(torch.isfinite(block.jacobian(params)).all())
-    pose = PoseResidual(tree_robot, data)
+    pose = _problem(tree_robot, data, rot_weight=0.1)
     assert pose.n_obs == block.n_obs
     with pytest.raises(ValueError, match="orientation columns"):
-        PoseResidual(tree_robot, Measurements(data.q, data.positions, data.marker_names, data.joint_names))
+        _problem(tree_robot, Measurements(data.q, data.positions, data.marker_names, data.joint_names), rot_weight=0.1)
 
 
 # ---------------------------------------------------------------------------------------------

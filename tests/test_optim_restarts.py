@@ -5,7 +5,6 @@ import pytest
 import torch
 
 from torchcal.kinematics.robots import shipped
-from torchcal.measure.blocks import PositionResidual
 from torchcal.measure.data import Measurements
 from torchcal.optim import FunctionProblem, get_solver, minimize_runs
 from torchcal.problems.calibration import CalibrationProblem
@@ -36,7 +35,7 @@ def _kr5_problem():
     truth = torch.where(ps.free, (2 * torch.rand(len(ps), generator=g, dtype=D) - 1) * rng, 0 * rng)
     q = 0.8 * (2 * torch.rand(12, robot.dof, generator=g, dtype=D) - 1)
     data = Measurements(q, robot.positions(q, truth), list(robot.marker_names), list(robot.joint_names))
-    return CalibrationProblem(robot, ps, [PositionResidual(robot, data)], fitness="sum_norm")
+    return CalibrationProblem(robot, ps, data, fitness="sum_norm")
 
 
 @pytest.mark.parametrize("method,options", [("pso", dict(pop_size=24, max_iter=15)),

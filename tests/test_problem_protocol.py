@@ -11,7 +11,6 @@ from torchcal.dynamics import scara
 from torchcal.kinematics.robots import shipped
 from torchcal.kinematics.rrru import RRRU
 from torchcal.kinematics.rrru_paths import spiral_trajectory
-from torchcal.measure.blocks import PositionResidual
 from torchcal.measure.laser import Laser, psd_frame
 from torchcal.measure.registration import register_base
 from torchcal.optim import minimize
@@ -44,7 +43,7 @@ def _serial() -> Problem:
     data, _ = simulate(robot, SimConfig(n=30, noise=2e-5, seed=4))
     p = register_base(robot, data)  # the instrument frame from the data, as calibrate starts
     p.only("shoulder_lift*", "elbow*")
-    return _box(CalibrationProblem(robot, p, [PositionResidual(robot, data)]), 2e-3)
+    return _box(CalibrationProblem(robot, p, data), 2e-3)
 
 
 def _psd() -> Problem:

@@ -2,7 +2,8 @@
 
 Robot model -> measurement model -> problem -> solver -> result/report:
 :class:`Robot` (batched, differentiable kinematics with error parameters),
-:mod:`torchcal.measure.blocks` (residual blocks), :class:`torchcal.problems.calibration.CalibrationProblem`,
+:class:`torchcal.measure.observations.Observations` (what was measured, as residuals),
+:class:`torchcal.problems.calibration.CalibrationProblem`,
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
 from torchcal.deploy.correct import Corrector

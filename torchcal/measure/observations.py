@@ -41,7 +41,8 @@ class Observations:
     """Every observation of ``data`` as a residual vector of the model's marker positions.
 
     Order: positions (a marker seen in at least one axis, row-major), plane contacts, distances
-    between markers, distances to fixed points. Attributes: ``rows (n,)`` the row, ``marker
+    between markers, distances to fixed points, orientations: kind by kind, which every
+    :meth:`view` keeps and the residuals are assembled in. Attributes: ``rows (n,)`` the row, ``marker
     (n,)`` the robot's marker index (for distances the marker measured from), ``data_marker (n,)``
     the index into ``data.marker_names``, ``kind (n,)``, ``mask (n, 3)`` the components measured.
 
@@ -119,6 +120,18 @@ class Observations:
         out._meas_R = self._meas_R[where[self._sel[ORIENTATION]]] if self._sel[ORIENTATION].numel() else self._meas_R
         return out
 
+    def as_poses(self) -> "Observations":
+        """The observations as poses (``calibrate(kind="pose")``): each marker seen in all three
+        axes with a measured orientation gives its position and its orientation, nothing else
+        counts. Position ``i`` and orientation ``n/2 + i`` are the same marker in the same row
+        (row-major), so ``cat(r[..., :n/2, :], r[..., n/2:, :], -1)`` holds one 6-component pose
+        residual (m, then ``rot_weight ·`` rad) per observation, on which a loss acts as a whole."""
+        if not self.has_orientation:
+            raise ValueError("no measured orientation: poses need rot_weight and quaternion columns")
+        key = self.rows * (int(self.data_marker.max()) + 1) + self.data_marker
+        full, turn = self.full_positions, self.kind == ORIENTATION
+        return self.view((full | turn) & torch.isin(key, key[full]) & torch.isin(key, key[turn]))
+
     @property
     def has_orientation(self) -> bool:
         """Some observations are orientations: the model must give marker rotations too."""
@@ -160,30 +173,26 @@ class Observations:
         """``p (P, N, M, 3)`` marker positions (instrument frame, m), ``s (P, S)`` set-up values and,
         with orientation observations, ``R (P, N, M, 3, 3)`` marker rotations (instrument frame)
         -> ``(P, n, 3)`` residual vectors (m), zero where nothing was measured."""
-        P = p.shape[0]
-        s = self._setup(s, P, p.dtype, p.device)
-        pa = p[:, self.rows, self.marker]  # (P, n, 3)
-        r = torch.zeros_like(pa)
+        s = self._setup(s, p.shape[0], p.dtype, p.device)
+        parts = []  # one per kind present, in the observations' order (kind by kind)
         i = self._sel[POSITION]
         if i.numel():
-            r[:, i] = (pa[:, i] - self.target[i]) * self.mask[i]
+            parts.append((p[:, self.rows[i], self.marker[i]] - self.target[i]) * self.mask[i])
         i = self._sel[PLANE]
         if i.numel():
             n, d, _ = self.setup.planes_of(s)
             k = self.other[i]
-            r[:, i, 0] = (n[:, k] * pa[:, i]).sum(-1) - d[:, k]
-        i = self._sel[DISTANCE]
-        if i.numel():
-            pb = p[:, self.rows[i], self.other[i]]
-            r[:, i, 0] = (pa[:, i] - pb).norm(dim=-1) - self.target[i, 0]
-        i = self._sel[PIVOT]
-        if i.numel():
-            c = self.setup.centres_of(s)[:, self.other[i]]
-            r[:, i, 0] = (pa[:, i] - c).norm(dim=-1) - self.target[i, 0]
+            parts.append(_first((n[:, k] * p[:, self.rows[i], self.marker[i]]).sum(-1) - d[:, k], -1))
+        for kind in (DISTANCE, PIVOT):
+            i = self._sel[kind]
+            if i.numel():
+                b = (p[:, self.rows[i], self.other[i]] if kind == DISTANCE
+                     else self.setup.centres_of(s)[:, self.other[i]])
+                parts.append(_first((p[:, self.rows[i], self.marker[i]] - b).norm(dim=-1) - self.target[i, 0], -1))
         i = self._sel[ORIENTATION]
         if i.numel():
-            r[:, i] = self.rot_weight * self._rotation_errors(R, i)
-        return r
+            parts.append(self.rot_weight * self._rotation_errors(R, i))
+        return _joined(parts, p.new_zeros(p.shape[0], 0, 3), 1)
 
     def _rotation_errors(self, R: Tensor | None, i: Tensor) -> Tensor:
         """``log(R R_measuredᵀ)`` ``(P, n_i, 3)`` (rad) of the orientation observations ``i``."""
@@ -200,31 +209,32 @@ class Observations:
         ``W (N, M, 3, L)`` the markers' small rotations (rad, instrument frame, ``dR = skew(ω) R``)
         per unit coordinate and ``R (N, M, 3, 3)`` their rotations (None W: they do not turn)."""
         s = self._setup(None if s is None else s[None], 1, p.dtype, p.device)
-        Da = D[self.rows, self.marker]  # (n, 3, L)
-        out = torch.zeros_like(Da)
+        parts = []  # as in residuals: kind by kind
         i = self._sel[POSITION]
         if i.numel():
-            out[i] = Da[i] * self.mask[i, :, None]
+            parts.append(D[self.rows[i], self.marker[i]] * self.mask[i, :, None])
         i = self._sel[PLANE]
         if i.numel():
             n, _, _ = self.setup.planes_of(s)
-            out[i, 0] = (n[0, self.other[i], :, None] * Da[i]).sum(1)
+            parts.append(_first((n[0, self.other[i], :, None] * D[self.rows[i], self.marker[i]]).sum(1), 1))
         for kind in (DISTANCE, PIVOT):
             i = self._sel[kind]
             if not i.numel():
                 continue
-            pa = p[self.rows[i], self.marker[i]]
+            pa, Da = p[self.rows[i], self.marker[i]], D[self.rows[i], self.marker[i]]
             if kind == DISTANCE:
                 pb, Db = p[self.rows[i], self.other[i]], D[self.rows[i], self.other[i]]
             else:
-                pb, Db = self.setup.centres_of(s)[0, self.other[i]], torch.zeros_like(Da[i])
+                pb, Db = self.setup.centres_of(s)[0, self.other[i]], torch.zeros_like(Da)
             u = (pa - pb) / (pa - pb).norm(dim=-1, keepdim=True).clamp(min=1e-300)
-            out[i, 0] = (u[:, :, None] * (Da[i] - Db)).sum(1)
+            parts.append(_first((u[:, :, None] * (Da - Db)).sum(1), 1))
         i = self._sel[ORIENTATION]
         if i.numel() and W is not None:
             Jinv = so3_left_jacobian_inv(self._rotation_errors(R[None], i)[0])
-            out[i] = self.rot_weight * (Jinv @ W[self.rows[i], self.marker[i]])
-        return out
+            parts.append(self.rot_weight * (Jinv @ W[self.rows[i], self.marker[i]]))
+        elif i.numel():
+            parts.append(D.new_zeros(i.numel(), 3, D.shape[-1]))
+        return _joined(parts, D.new_zeros(0, 3, D.shape[-1]), 0)
 
     def setup_jacobian(self, p: Tensor, s: Tensor) -> Tensor:
         """``(n, 3, S)`` derivative of the residuals with respect to the set-up values ``s (S,)``
@@ -255,3 +265,14 @@ class Observations:
         return J
 
 
+def _first(v: Tensor, axis: int) -> Tensor:
+    """A one-component residual ``v`` as the first of three components along ``axis`` (zeros after)."""
+    z = torch.zeros_like(v)
+    return torch.stack([v, z, z], axis)
+
+
+def _joined(parts: list[Tensor], empty: Tensor, axis: int) -> Tensor:
+    """The kinds' parts end to end along the observation ``axis`` (the observations are kind by kind)."""
+    if not parts:
+        return empty
+    return parts[0] if len(parts) == 1 else torch.cat(parts, axis)

@@ -8,10 +8,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.measure.blocks import Loss, PoseResidual, PositionResidual
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.details import error_details
+from torchcal.measure.loss import Loss
+from torchcal.measure.observations import Observations
 from torchcal.measure.records import ErrorStats, Stage, StageErrors
 from torchcal.measure.registration import leave_out_gross, register_base, register_marker_rotations
 from torchcal.measure.stats import errors_by_marker
@@ -93,8 +94,15 @@ def position_stats(robot, params: Tensor, data: Measurements | None) -> ErrorSta
     """Position-error statistics (mm) of ``params (K,)`` on ``data``, overall and per marker."""
     if data is None or len(data) == 0:
         return None
-    blk = PositionResidual(robot, data)
-    return errors_by_marker(blk.errors(params[None])[0], blk.obs_index[:, 1], data.marker_names)
+    e, obs = _position_errors(robot, params, data)
+    return errors_by_marker(e, obs.data_marker, data.marker_names)
+
+
+def _position_errors(robot, params: Tensor, data: Measurements) -> tuple[Tensor, Observations]:
+    """``(n,)`` Euclidean error (m) of every observed marker position (its measured axes) at
+    ``params (K,)``, and the observations they belong to."""
+    obs = Observations(robot, data)
+    return obs.residuals(robot.positions(data.q, params[None], check=False))[0].norm(dim=-1), obs
 
 
 def stage(name: str, n_params: int, robot, params: Tensor, train: Measurements,
@@ -209,7 +217,7 @@ def _prior(fitter: "_Fitter", p: ParamSet, loss_obj: Loss | None,
 
 
 class _Fitter:
-    """The fit of one calibration: its problems (residual blocks, a swarm's search box), its
+    """The fit of one calibration: its problems (the data's observations, a swarm's search box), its
     solver, and the rounds of a robust loss whose scale follows the residuals."""
 
     def __init__(self, robot, data: Measurements, start: ParamSet, opt: CalibrateOptions, plausible: dict):
@@ -220,14 +228,15 @@ class _Fitter:
             # the registered start is close to the solution: little initial damping, fewer Jacobians
             self.solver_options.setdefault("tau", 1e-6)
 
-    def blocks(self, loss: Loss | None) -> list:
-        if self.opt.kind == "pose":
-            return [PoseResidual(self.robot, self.data, rot_weight=self.opt.rot_weight, loss=loss)]
-        return [PositionResidual(self.robot, self.data, loss=loss)]
-
     def problem(self, q: ParamSet, loss: Loss | None) -> CalibrationProblem:
+        """The fit's problem from ``q`` under ``loss`` (a swarm's: in its search box)."""
         box = _search_box(q, self.opt.search_radius or _SEARCH) if self.swarm else q
-        return CalibrationProblem(self.robot, box, self.blocks(loss), fitness=self.opt.fitness)
+        return self.least_squares(box, loss, self.opt.fitness)
+
+    def least_squares(self, q: ParamSet, loss: Loss | None, fitness: str = "sse") -> CalibrationProblem:
+        """The data's observations (poses for ``kind="pose"``) against ``q`` under ``loss``."""
+        return CalibrationProblem(self.robot, q, self.data, fitness=fitness, loss=loss,
+                                  rot_weight=self.opt.rot_weight if self.opt.kind == "pose" else None)
 
     def solve(self, prob) -> Result:
         o = self.opt
@@ -251,7 +260,7 @@ class _Fitter:
         for rnd in range(1 if o.loss == "l2" or o.loss_scale is not None else 12):
             if o.loss != "l2":
                 scale = float(o.loss_scale) if o.loss_scale is not None else max(
-                    2.5 * 1.4826 * float(PositionResidual(self.robot, self.data).errors(p.values[None])[0].median()),
+                    2.5 * 1.4826 * float(_position_errors(self.robot, p.values, self.data)[0].median()),
                     1e-9)
                 if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
                     break
@@ -270,7 +279,7 @@ class _Fitter:
 
     def std_errors(self, p: ParamSet, loss: Loss | None) -> dict[str, float]:
         """Standard errors of the fitted (identifiable) set, σ from the residuals."""
-        prob = CalibrationProblem(self.robot, p, self.blocks(loss), fitness="sse")
+        prob = self.least_squares(p, loss)
         x = p.values[p.free_index]
         se = standard_errors(prob.jacobian(x), prob.residuals(x[None])[0])
         return dict(zip(p.free_names, se.tolist()))

@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchcal.measure.blocks import Loss
 from torchcal.measure.data import Measurements
+from torchcal.measure.loss import Loss
 from torchcal.measure.setup import Setup
 from torchcal.measure.registration import register_base, register_marker_rotations
 from torchcal.params import ParamSet
