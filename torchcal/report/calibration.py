@@ -134,8 +134,8 @@ def write_calibration_report(res, out_dir) -> None:
     ``out_dir``."""
     out = Path(out_dir)
     for split in ("train", "test"):
-        st = [(name, getattr(e, f"{split}_details")) for name, e in res.errors.items()
-              if getattr(e, f"{split}_details") is not None and getattr(e, f"{split}_details").n]
+        details = {name: getattr(e, f"{split}_details") for name, e in res.errors.items()}
+        st = [(name, d) for name, d in details.items() if d is not None and d.n]
         if st:
             error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
                          title=f"{res.robot.name}: position error", split=split)

@@ -41,7 +41,8 @@ from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
 from torchcal.pipelines.loop.fit import Context, cv_mean_mm, duplicate_groups, folds_of, geometric_start, noise_sigma
-from torchcal.pipelines.loop.geometry import GEOMETRIC_SETS, GeometryChoice, choose_geometry, choose_orientation_weight, estimate_noise
+from torchcal.pipelines.loop.geometry import (GEOMETRIC_SETS, GeometryChoice, choose_geometry,
+                                              choose_orientation_weight, estimate_noise)
 from torchcal.pipelines.loop.leftover import leftover
 from torchcal.pipelines.loop.result import LoopResult
 from torchcal.pipelines.loop.stages import StageBook, elm_covariates, residual_matrix
