@@ -465,3 +465,14 @@ def test_calibrate_refuses_bad_plausible_sizes(plausible, what):
     d, _ = simulate(robot, SimConfig(n=12, seed=0))
     with pytest.raises((ValueError, TypeError), match=what):
         calibrate(robot, d, plausible=plausible)
+
+
+def test_nothing_left_to_fit_is_refused_with_the_way_out():
+    """Plausible sizes no data set of 30 poses can meet: every parameter is fixed for imprecision,
+    and the refusal says so and how to loosen them (not that the user fixed every parameter)."""
+    from torchcal.sim.serial import SimConfig, simulate
+    robot = shipped("kuka_kr5_arc")
+    data = simulate(robot, SimConfig(n=30, seed=0))[0]
+    with pytest.raises(ValueError, match=r"nothing left to fit: every identifiable parameter is pinned down worse "
+                                         r"than its plausible size .*loosen the plausible sizes"):
+        calibrate(robot, data, plausible={"m": 1e-5, "rad": 1e-5}, prior=None)

@@ -634,3 +634,19 @@ def test_fleet_waits_for_the_device_as_often_for_twice_the_robots(kr5, ragged):
             calibrate_fleet(kr5, data)
         counts.append(Reads.n)
     assert counts[0] == counts[1] > 0
+
+
+def test_a_robot_with_nothing_precise_keeps_its_start_and_says_why():
+    """Plausible sizes far below what 30 poses can pin down (0.01 mm, 0.01 mrad): every robot's
+    parameters are fixed for imprecision, and the batched LM meets a round with no column to fit.
+    Each robot ends with nothing fitted, one reason per candidate parameter, and a model no worse
+    than its registered start, instead of a crash."""
+    robot = shipped("kuka_kr5_arc")
+    train, _, _ = simulate_fleet(robot, 4, SimConfig(n=30, seed=0), spread=0.2)
+    fr = calibrate_fleet(robot, train, plausible={"m": 1e-5, "rad": 1e-5})
+    for r in fr.results:
+        assert r.params.free_names == [] and r.solver.converged
+        reasons = list(r.unidentifiable.values())
+        assert len(reasons) == len(robot.params().free_names) and all(reasons)  # one per candidate
+        assert sum("more than such an error can plausibly be" in why for why in reasons) > len(reasons) / 2
+        assert not r.problems() and r.stages[-1].train.mean <= r.stages[0].train.mean * (1 + 1e-9)

@@ -92,6 +92,8 @@ def gradient_cosine(ge: Tensor, dA: Tensor, S: Tensor) -> Tensor:
     """MINPACK's scale-free gradient test: the largest cosine between ``r`` and a column of ``J``,
     ``max_i |J_iᵀr| / (|J_i| |r|)``, from the (projected) gradient ``ge (..., k)``, the columns'
     squared norms ``dA (..., k)`` and ``S = |r|² (...)``; 0 where ``S`` is 0."""
+    if ge.shape[-1] == 0:  # no parameter left to fit: no column, no gradient
+        return torch.zeros_like(S)
     den = torch.sqrt(dA.clamp(min=1e-300) * S.clamp(min=1e-300)[..., None])
     return torch.where(S > 0, (ge.abs() / den).amax(-1), torch.zeros_like(S))
 

@@ -174,7 +174,8 @@ class _Batch:
         self.gnorm = gradient_cosine(self.ge, self.dA, self.S)
         self.xnorm = torch.linalg.vector_norm(x * self.free, dim=-1)
         # floor the scaling: a near-zero column would otherwise get no damping (as the single solver)
-        self.Dvec = scaling_floor(self.dA, self.dA.amax(-1, keepdim=True))
+        dmax = self.dA.amax(-1, keepdim=True) if self.dA.shape[-1] else self.dA.new_zeros(self.dA.shape[0], 1)
+        self.Dvec = scaling_floor(self.dA, dmax)
         self.mu = torch.full((x.shape[0],), float(opt.tau), dtype=_F64, device=x.device)
         self.nu = torch.full_like(self.mu, 2.0)
         self.converged = self.gnorm < opt.gtol

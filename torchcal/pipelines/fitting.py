@@ -264,6 +264,8 @@ class _OneProblem:
     def run(self, p: ParamSet):
         """One solve of ``p``'s free entries: (fitted ParamSet, Result, the problem)."""
         opt = self.opt
+        if not p.free_names:
+            raise ValueError(self._nothing_left())
         prob = self.make(p)
         m, k = getattr(prob, "m", None), len(p.free_names)
         if m is not None and m < k:
@@ -274,6 +276,15 @@ class _OneProblem:
         out = p.clone()
         out.values = prob.full(res.x).detach()
         return out, res, prob
+
+    def _nothing_left(self) -> str:
+        """Why no candidate is left to fit, and the way out."""
+        if not self.loose:
+            return "no candidate parameter is identifiable from these rows: measure poses that move every joint"
+        n, why = next(iter(self.loose.items()))
+        fix = advice("plausible={'m': …, 'rad': …}", "--plausible-mm / --plausible-mrad")
+        return (f"nothing left to fit: every identifiable parameter is pinned down worse than its plausible size "
+                f"({len(self.loose)} fixed, e.g. {why}); loosen the plausible sizes ({fix}) or measure more poses")
 
     def reduce(self, p: ParamSet, noise):
         opt = self.opt

@@ -157,14 +157,15 @@ def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra:
     return spread, flags
 
 
-def _mean_mm(stage: dict | None, split: str) -> float | None:
-    d = (stage or {}).get(split) or {}
-    return d.get("mean_mm")
+def _mean_mm(stage, split: str) -> float | None:
+    """The mean error (mm) of a :class:`~torchcal.measure.records.Stage` on ``split`` (None: no such rows)."""
+    st = getattr(stage, split)
+    return None if st is None or not st.n else st.mean
 
 
-def _stat(stage: dict | None, split: str, key: str) -> str:
-    v = ((stage or {}).get(split) or {}).get(key)
-    return "–" if v is None else f"{v:.4f}"
+def _stat(stage, split: str, stat: str) -> str:
+    st = getattr(stage, split)
+    return "–" if st is None or not st.n else f"{st.value(stat):.4f}"
 
 
 def spread_rows(fr) -> list[dict]:
@@ -192,9 +193,9 @@ def fleet_report(fr) -> dict:
     for f in fr.flags:
         flagged.setdefault(f["robot"], []).append(f["parameter"])
     for n, r in zip(fr.names, fr.results):
-        robots.append({"robot": n, "n_train": r.n_train, "n_test": r.n_test, "n_params": r.stages[-1]["n_params"],
-                       "train_mean_mm": {s["name"]: _mean_mm(s, "train") for s in r.stages},
-                       "test_mean_mm": {s["name"]: _mean_mm(s, "test") for s in r.stages} if r.n_test else None,
+        robots.append({"robot": n, "n_train": r.n_train, "n_test": r.n_test, "n_params": r.stages[-1].n_params,
+                       "train_mean_mm": {s.name: _mean_mm(s, "train") for s in r.stages},
+                       "test_mean_mm": {s.name: _mean_mm(s, "test") for s in r.stages} if r.n_test else None,
                        "solver": {"n_iter": r.solver.n_iter, "converged": r.solver.converged,
                                   "message": r.solver.message},
                        "flags": flagged.get(n, [])})
@@ -257,10 +258,10 @@ def fleet_markdown(fr, figure: str | None = None) -> str:
         s0, s1 = r.stages[0], r.stages[-1]
         te = f"{_mean_mm(s0, 'test'):.4f} → {_mean_mm(s1, 'test'):.4f}" if r.n_test else "–"
         cell = lambda split, k: _stat(s1, split, k)  # noqa: E731
-        lines.append(f"| [{n}]({n}/report.md) | {r.n_train} | {s1['n_params']} | {_mean_mm(s0, 'train'):.4f} → "
-                     f"{_mean_mm(s1, 'train'):.4f} | {cell('train', 'rmse_mm')} | {cell('train', 'p95_mm')} | "
-                     f"{cell('train', 'max_mm')} | {te} | {cell('test', 'rmse_mm')} | {cell('test', 'p95_mm')} | "
-                     f"{cell('test', 'max_mm')} | {r.solver.n_iter} it, {r.solver.message} |")
+        lines.append(f"| [{n}]({n}/report.md) | {r.n_train} | {s1.n_params} | {_mean_mm(s0, 'train'):.4f} → "
+                     f"{_mean_mm(s1, 'train'):.4f} | {cell('train', 'rmse')} | {cell('train', 'p95')} | "
+                     f"{cell('train', 'max')} | {te} | {cell('test', 'rmse')} | {cell('test', 'p95')} | "
+                     f"{cell('test', 'max')} | {r.solver.n_iter} it, {r.solver.message} |")
     lines += ["", "## Parameter spread over the fleet", "",
               "| parameter | robots | mean | std | median | robust std | min | max | unit | flag bound | outliers |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
