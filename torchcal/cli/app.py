@@ -87,7 +87,7 @@ def _calibrate(a, argv) -> int:
     print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
     if res.suspects:
         print(f"{len(res.suspects)} gross error(s) left out of the fit, listed in the report (kept in the data and the "
-              "statistics): rows " + ", ".join(str(s["row"]) for s in res.suspects[:10]))
+              "statistics): rows " + ", ".join(str(s.row) for s in res.suspects[:10]))
     return 0
 
 

@@ -6,6 +6,7 @@
   the training and held-out rows.
 - :class:`ErrorDetails`: the per-observation errors behind a stage's statistics, which the figures
   read; :class:`StageErrors` pairs those of the training and held-out rows.
+- :class:`Suspect`: an observation far from the model, listed for a person to check.
 
 They turn into JSON only at the edge (:meth:`to_json`, called by ``report/``), with the keys
 ``report.json`` has always had (``mean_mm``, ``per_marker`` …). Reading a record by those keys
@@ -20,7 +21,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
-__all__ = ["JsonRecord", "ErrorStats", "Stage", "ErrorDetails", "StageErrors", "STAT_NAMES"]
+__all__ = ["JsonRecord", "ErrorStats", "Stage", "ErrorDetails", "StageErrors", "Suspect", "STAT_NAMES"]
 
 # the statistics of a set of errors, in the order tables show them
 STAT_NAMES = ("mean", "std", "max", "rmse", "median", "p95")
@@ -167,4 +168,27 @@ class StageErrors(JsonRecord):
     def _as_dict(self) -> dict:
         out = {"train": self.train, "test": self.test}
         out.update({k: getattr(self, k) for k in ("train_details", "test_details") if getattr(self, k) is not None})
+        return out
+
+
+@dataclass(frozen=True, eq=False)  # equal to any mapping with its keys and values, as the dicts it replaces
+class Suspect(JsonRecord):
+    """An observation far from the model: a gross error left out of a fit (calibrate, the fleet) or
+    a suspect the loop's Huber loss down-weights; listed for a person to check, never dropped.
+
+    Attributes:
+        row: 0-based row of its data file; marker: the marker it measured.
+        error_mm: its error (mm); kind: what it measured (the loop's rows: ``"position"``, ``"plane
+            contact"`` …; None where every observation is a position).
+    """
+    row: int
+    marker: str
+    error_mm: float
+    kind: str | None = None
+
+    def to_json(self) -> dict:
+        out: dict = {"row": self.row, "marker": self.marker}
+        if self.kind is not None:
+            out["kind"] = self.kind
+        out["error_mm"] = self.error_mm
         return out

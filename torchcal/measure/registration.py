@@ -7,6 +7,7 @@ from torch import Tensor
 
 from torchcal.kinematics.transforms import kabsch, matrix_to_rpy, quat_to_matrix, so3_log
 from torchcal.measure.data import Measurements
+from torchcal.measure.records import Suspect
 from torchcal.params import ParamSet
 
 __all__ = ["register_base", "register_marker_rotations", "registration_inliers", "gross_errors", "leave_out_gross",
@@ -119,10 +120,9 @@ def gross_errors(robot, data: Measurements, params: ParamSet | Tensor) -> Tensor
     return out
 
 
-def leave_out_gross(robot, data: Measurements, params: ParamSet | None = None) -> tuple[Measurements, list[dict]]:
+def leave_out_gross(robot, data: Measurements, params: ParamSet | None = None) -> tuple[Measurements, list[Suspect]]:
     """``data`` with its gross errors (:func:`gross_errors` at ``params``, by default the nominal
-    model registered here) marked not seen, for a fit, and the list of them for a report:
-    ``{"row", "marker", "error_mm"}``."""
+    model registered here) marked not seen, for a fit, and the list of them for a report."""
     if params is None:
         params = register_base(robot, data) if int(data.seen.sum()) >= 3 else robot.params()
     gross = gross_errors(robot, data, params)
@@ -130,6 +130,5 @@ def leave_out_gross(robot, data: Measurements, params: ParamSet | None = None) -
         return data, []
     mk = [robot.marker_names.index(m) for m in data.marker_names]
     e = (robot.positions(data.q, params.values, check=False)[:, mk] - data.positions).norm(dim=-1)
-    out = [{"row": i, "marker": data.marker_names[m], "error_mm": 1e3 * float(e[i, m])}
-           for i, m in torch.nonzero(gross).tolist()]
+    out = [Suspect(i, data.marker_names[m], 1e3 * float(e[i, m])) for i, m in torch.nonzero(gross).tolist()]
     return data.hide(gross), out

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchcal.kinematics.transforms import matrix_to_quat, so3_exp
-from torchcal.measure.records import Stage, StageErrors
+from torchcal.measure.records import Stage, StageErrors, Suspect
 from torchcal.measure.trust import stage_problems
 from torchcal.optim import Result
 from torchcal.outputs import staged_dir
@@ -64,7 +64,7 @@ class CalibrationResult:
     implausible: dict = field(default_factory=dict)  # joint errors beyond their plausible size: name -> value
     plausible: dict = field(default_factory=dict)
     held_by_prior: dict = field(default_factory=dict)  # fitted, but tied: the prior's share, and why
-    suspects: list = field(default_factory=list)  # gross errors left out of the fit: {"row", "marker", "error_mm"}
+    suspects: list[Suspect] = field(default_factory=list)  # gross errors left out of the fit
 
     def __repr__(self) -> str:
         last = self.stages[-1]

@@ -78,7 +78,8 @@ def calibration_json(res) -> dict:
                        for n, v, u in zip(res.params.names, res.params.values.tolist(), res.params.units) if n in ident},
         "solver": {"method": s.method, "fun": s.fun, "n_iter": s.n_iter, "n_evals": s.n_evals,
                    "wall_time_s": s.wall_time_s, "converged": s.converged, "message": s.message},
-        "wall_time_s": res.wall_time_s, "problems": res.problems(), "suspects": res.suspects,
+        "wall_time_s": res.wall_time_s, "problems": res.problems(),
+        "suspects": [s.to_json() for s in res.suspects],
         "prior_mm": res.prior_mm, "prior_reason": res.prior_reason, "prior_tried": res.prior_tried,
         "status": {n: st for n, (st, _) in res.statuses().items()},
     }
@@ -119,7 +120,7 @@ def calibration_markdown(res) -> str:
     if getattr(res, "suspects", None):
         lines += ["", "## Gross errors left out of the fit (kept in the statistics)", "",
                   "| row | marker | error at the registered nominal model (mm) |", "|---|---|---|"]
-        lines += [f"| {s['row']} | {s['marker']} | {s['error_mm']:.4g} |" for s in res.suspects]
+        lines += [f"| {s.row} | {s.marker} | {s.error_mm:.4g} |" for s in res.suspects]
     if res.problems():
         lines += ["", "**Not fit to save or deploy:** " + "; ".join(res.problems())]
     s = res.solver

@@ -42,7 +42,8 @@ def loop_json(res) -> dict:
             "noise_sigma_mm": res.noise_sigma_mm, "huber_threshold_mm": res.huber_mm,
             "stages": [s.to_json() for s in res.stages], "effects": [a.to_json() for a in res.accepted],
             "candidates": [c.to_json() for c in res.candidates], "geometric_set": res.geometric,
-            "prior_mm": res.prior_mm, "suspect_rows": res.suspects, "flags": res.flags, "parameters": res.parameters,
+            "prior_mm": res.prior_mm, "suspect_rows": [s.to_json() for s in res.suspects], "flags": res.flags,
+            "parameters": res.parameters,
             "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
             "residual_elm": res.elm is not None, "timings_s": res.timings,
             "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed}

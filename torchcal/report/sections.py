@@ -70,14 +70,14 @@ def leftover_section(left, figure: str | None) -> list[str]:
     return L + [""]
 
 
-def suspects_table(suspects: list[dict], which: str, advice: str) -> list[str]:
+def suspects_table(suspects: list, which: str, advice: str) -> list[str]:
     """The observations farther than 5·√3·σ̂ from the final model, as a table (first 50)."""
     if not suspects:
         return [f"No {which} observation lies farther than 5·√3·σ̂ from the final model."]
     L = [f"{len(suspects)} suspect observation(s) among the {which} rows, farther from the final model than 5·√3·σ̂. "
          f"{advice}", "",
          f"| row (0-based, {which} file order) | marker | measured | error (mm) |", "|---|---|---|---|"]
-    L += [f"| {s['row']} | {s['marker']} | {s.get('kind', 'position')} | {s['error_mm']:.3f} |" for s in suspects[:50]]
+    L += [f"| {s.row} | {s.marker} | {s.kind or 'position'} | {s.error_mm:.3f} |" for s in suspects[:50]]
     if len(suspects) > 50:
         L.append(f"| … | {len(suspects) - 50} more in report.json | | |")
     return L

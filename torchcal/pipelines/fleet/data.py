@@ -11,7 +11,7 @@ from torch import Tensor
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
 from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
-from torchcal.measure.records import ErrorDetails
+from torchcal.measure.records import ErrorDetails, Suspect
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
 
@@ -284,13 +284,12 @@ def register_fleet_robust(robot: Robot, fd: FleetData, X: Tensor, rounds: int = 
     return Xr, gross
 
 
-def gross_lists(fd: FleetData, gross: Tensor, E: Tensor, marker_names: list[str]) -> list[list[dict]]:
-    """Per robot, its gross errors as a report lists them: ``{"row", "marker", "error_mm"}``
-    (one read of the device for the whole fleet)."""
-    out: list[list[dict]] = [[] for _ in range(gross.shape[0])]
+def gross_lists(fd: FleetData, gross: Tensor, E: Tensor, marker_names: list[str]) -> list[list[Suspect]]:
+    """Per robot, its gross errors as a report lists them (one read of the device for the whole fleet)."""
+    out: list[list[Suspect]] = [[] for _ in range(gross.shape[0])]
     idx = torch.nonzero(gross)
     for (r, i, m), e in zip(idx.tolist(), E[gross].tolist()):
-        out[r].append({"row": i, "marker": marker_names[m], "error_mm": 1e3 * e})
+        out[r].append(Suspect(i, marker_names[m], 1e3 * e))
     return out
 
 

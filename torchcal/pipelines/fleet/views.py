@@ -17,7 +17,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from torchcal.measure.records import Stage, StageErrors
+from torchcal.measure.records import Stage, StageErrors, Suspect
 from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import BatchedLMResult
 from torchcal.optim.result import Result
@@ -145,7 +145,7 @@ class FleetResults(Sequence):
         self.n_extra = none if sol.n_extra is None else sol.n_extra
         self._made: dict[int, CalibrationResult] = {}
         self._all_stats: dict | None = None
-        self.suspects: list[list[dict]] = [[] for _ in names]  # per robot, gross errors left out of its fit
+        self.suspects: list[list[Suspect]] = [[] for _ in names]  # per robot, gross errors left out of its fit
 
     def __len__(self) -> int:
         return len(self.names)

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from torchcal.deploy.model import CalibratedModel
-from torchcal.measure.records import Stage, StageErrors
+from torchcal.measure.records import Stage, StageErrors, Suspect
 from torchcal.measure.setup import Setup
 from torchcal.measure.trust import stage_problems
 from torchcal.params import ParamSet
@@ -51,7 +51,7 @@ class LoopResult:
     geometric_fits: dict = field(default_factory=dict)  # set name -> ParamSet fitted on all training rows
     noise_sigma_mm: float | None = None
     huber_mm: float | None = None
-    suspects: list = field(default_factory=list)
+    suspects: list[Suspect] = field(default_factory=list)
     flags: list = field(default_factory=list)
     prior_mm: float | None = None
     parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
@@ -79,7 +79,7 @@ class LoopResult:
                                           self.plausible or PLAUSIBLE))
         return out
 
-    def heldout_suspects(self) -> list[dict]:
+    def heldout_suspects(self) -> list[Suspect]:
         """Held-out observations farther from the final model than the training rows' suspect bound
         (``OUTLIER_K · √dims · σ̂``): row (0-based, held-out file order), marker, error (mm), largest
         first. Empty without held-out rows or a noise estimate."""
@@ -90,9 +90,8 @@ class LoopResult:
             return []
         bound = OUTLIER_K * d.dims.double().sqrt() * self.noise_sigma_mm * 1e-3
         bad = (d.e > bound).nonzero().flatten().tolist()
-        out = [{"row": int(d.row[i]), "marker": self.robot.marker_names[int(d.marker[i])],
-                "error_mm": float(d.e[i]) * 1e3} for i in bad]
-        return sorted(out, key=lambda s: -s["error_mm"])
+        out = [Suspect(int(d.row[i]), self.robot.marker_names[int(d.marker[i])], float(d.e[i]) * 1e3) for i in bad]
+        return sorted(out, key=lambda s: -s.error_mm)
 
     @property
     def rule(self) -> str:
