@@ -155,6 +155,11 @@ class StageErrors(JsonRecord):
     train_details: ErrorDetails | None
     test_details: ErrorDetails | None = None
 
+    def plotted(self, split: str) -> ErrorDetails | None:
+        """The details of ``split`` (``"train"`` or ``"test"``) when it has observations to plot."""
+        d = getattr(self, f"{split}_details")
+        return d if d is not None and d.n else None
+
     @property
     def train(self) -> Tensor:
         """``(n,)`` m: the training observations' errors (empty without details)."""

@@ -135,8 +135,7 @@ def write_calibration_report(res, out_dir) -> None:
     ``out_dir``."""
     out = Path(out_dir)
     for split in ("train", "test"):
-        details = {name: getattr(e, f"{split}_details") for name, e in res.errors.items()}
-        st = [(name, d) for name, d in details.items() if d is not None and d.n]
+        st = [(name, e.plotted(split)) for name, e in res.errors.items() if e.plotted(split) is not None]
         if st:
             error_figure(st, out / ("errors.png" if split == "train" else "errors_test.png"),
                          title=f"{res.robot.name}: position error", split=split)

@@ -32,6 +32,7 @@ from torchcal.params import display_unit
 from torchcal.report.calibration import write_json
 from torchcal.report.figures import fleet_figure
 from torchcal.report.html import write_html
+from torchcal.report.sections import stat_cell
 from torchcal.report.units import shown, with_error
 
 __all__ = ["parameter_spread", "sibling_z", "fleet_report", "fleet_markdown", "save_fleet", "MIN_ROBOTS",
@@ -163,9 +164,6 @@ def _mean_mm(stage, split: str) -> float | None:
     return None if st is None or not st.n else st.mean
 
 
-def _stat(stage, split: str, stat: str) -> str:
-    st = getattr(stage, split)
-    return "–" if st is None or not st.n else f"{st.value(stat):.4f}"
 
 
 def spread_rows(fr) -> list[dict]:
@@ -257,7 +255,7 @@ def fleet_markdown(fr, figure: str | None = None) -> str:
     for n, r in zip(fr.names, fr.results):
         s0, s1 = r.stages[0], r.stages[-1]
         te = f"{_mean_mm(s0, 'test'):.4f} → {_mean_mm(s1, 'test'):.4f}" if r.n_test else "–"
-        cell = lambda split, k: _stat(s1, split, k)  # noqa: E731
+        cell = lambda split, k: stat_cell(getattr(s1, split), k)  # noqa: E731
         lines.append(f"| [{n}]({n}/report.md) | {r.n_train} | {s1.n_params} | {_mean_mm(s0, 'train'):.4f} → "
                      f"{_mean_mm(s1, 'train'):.4f} | {cell('train', 'rmse')} | {cell('train', 'p95')} | "
                      f"{cell('train', 'max')} | {te} | {cell('test', 'rmse')} | {cell('test', 'p95')} | "

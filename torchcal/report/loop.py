@@ -24,8 +24,8 @@ def _histograms(res, path: Path, split: str) -> bool:
     names = list(res.errors)
     pick = list(dict.fromkeys(n for n in (names[0], "geometric", names[-1]) if n in res.errors))
     label = {names[0]: "before (base registration only)", "geometric": "geometric calibration"}
-    details = {n: getattr(res.errors[n], f"{split}_details") for n in pick}
-    stages = [(label.get(n, "full model: " + n.lstrip("+")), d) for n, d in details.items() if d is not None and d.n]
+    details = {n: res.errors[n].plotted(split) for n in pick}
+    stages = [(label.get(n, "full model: " + n.lstrip("+")), d) for n, d in details.items() if d is not None]
     if not stages:
         return False
     error_figure(stages, path, title=f"{res.robot.name}: error before / geometric / full model", split=split,

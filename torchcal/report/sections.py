@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from torchcal.report.units import covariate_value, is_time, shown
 
-__all__ = ["stage_table", "suspects_table", "parameter_section", "flags_section", "candidates_section"]
+__all__ = ["stat_cell", "stage_table", "suspects_table", "parameter_section", "flags_section", "candidates_section"]
 
 _STATS = (("mean", "mean"), ("RMSE", "rmse"), ("p95", "p95"), ("max", "max"))
 
 
-def _cell(st, k: str) -> str:
+def stat_cell(st, k: str) -> str:
     """One statistic ``k`` of an :class:`~torchcal.measure.records.ErrorStats` (or None) in a table cell."""
     return "–" if st is None or not st.n else f"{st.value(k):.4f}"
 
@@ -25,7 +25,7 @@ def stage_table(stages: list) -> list[str]:
     head = [f"{split} {s}" for split in ("train", "test") for s, _ in _STATS]
     L = ["| stage | parameters | " + " | ".join(head) + " |", "|---" * (2 + len(head)) + "|"]
     for s in stages:
-        cells = [_cell(d, k) for d in (s.train, s.test) for _, k in _STATS]
+        cells = [stat_cell(d, k) for d in (s.train, s.test) for _, k in _STATS]
         L.append(f"| {s.name} | {s.n_params} | " + " | ".join(cells) + " |")
     kinds = stages[-1].train.per_kind if stages[-1].train is not None else None
     if kinds:
@@ -35,8 +35,8 @@ def stage_table(stages: list) -> list[str]:
               "Final stage, per kind of observation (mm):", "",
               "| measured | n train | train mean | train RMSE | train p95 | test mean | test RMSE | test p95 |",
               "|---|---|---|---|---|---|---|---|"]
-        L += [f"| {k} | {v.n} | {_cell(v, 'mean')} | {_cell(v, 'rmse')} | {_cell(v, 'p95')} | "
-              f"{_cell(te.get(k), 'mean')} | {_cell(te.get(k), 'rmse')} | {_cell(te.get(k), 'p95')} |"
+        L += [f"| {k} | {v.n} | {stat_cell(v, 'mean')} | {stat_cell(v, 'rmse')} | {stat_cell(v, 'p95')} | "
+              f"{stat_cell(te.get(k), 'mean')} | {stat_cell(te.get(k), 'rmse')} | {stat_cell(te.get(k), 'p95')} |"
               for k, v in kinds.items()]
     return L
 
@@ -50,7 +50,7 @@ def orientation_table(stages: list) -> list[str]:
          "| stage | train mean | train RMSE | train max | test mean | test RMSE | test max |", "|---|---|---|---|---|---|---|"]
     for s in turned:
         tr, te = s.train.orientation, None if s.test is None else s.test.orientation
-        L.append(f"| {s.name} | " + " | ".join(_cell(d, k) for d in (tr, te) for k in ("mean", "rmse", "max")) + " |")
+        L.append(f"| {s.name} | " + " | ".join(stat_cell(d, k) for d in (tr, te) for k in ("mean", "rmse", "max")) + " |")
     return L
 
 
