@@ -56,7 +56,7 @@ gpu_tests() {  # time limit (s): the gpu-marked tests, one JSON line
   local rem t rc summary
   rem=$(left); t=$(( $1 < rem ? $1 : rem ))
   if [ "$t" -lt 15 ]; then error_line pytest_gpu "skipped: the ${BUDGET} s budget is spent"; return; fi
-  timeout -k 5 "$t" $PY -m pytest -m gpu -q -p no:cacheprovider -rs tests/test_gpu.py > "$OUT/pytest_gpu.log" 2>&1
+  timeout -k 5 "$t" $PY -m pytest -m gpu -q -p no:cacheprovider -rs tests/structure/test_gpu_matches_cpu.py > "$OUT/pytest_gpu.log" 2>&1
   rc=$?
   summary=$(grep -E '(passed|failed|skipped|error|no tests ran)' "$OUT/pytest_gpu.log" | tail -n 1 | tr -d '=' | sed 's/^ *//')
   [ "$rc" -eq 124 ] && summary="timed out after ${t} s; $summary"

@@ -25,7 +25,7 @@ from torchcal.pipelines.loop.fit import folds_of
 from torchcal.kinematics.robots import urdf_path
 from torchcal.kinematics.transforms import quat_to_matrix
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 TIAGO = REPO.parent / "shared" / "data" / "tiago_mocap"
 UR5E = str(urdf_path("ur5e"))
 KR5 = str(urdf_path("kuka_kr5_arc"))

@@ -24,7 +24,7 @@ from torchcal.deploy.persist import FORMAT_VERSION, load, save
 from torchcal.kinematics.robots import shipped
 
 torch.set_num_threads(1)
-SHIPPED_MODEL = Path(__file__).resolve().parents[1] / "models" / "kuka_kr5_arc"
+SHIPPED_MODEL = Path(__file__).resolve().parents[2] / "models" / "kuka_kr5_arc"
 
 
 @register_effect

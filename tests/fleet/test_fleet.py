@@ -31,7 +31,7 @@ from torchcal.sim.serial import SimConfig, random_configs, simulate, simulate_fl
 from torchcal.kinematics.transforms import kabsch, so3_exp
 
 MARKERS = ["smr@flange=0,0,0", "b@link6=0.06,0.02,0.03"]
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -382,7 +382,7 @@ def test_bench_device_figures_run_on_cpu():
     lent GPU takes (population × poses kinematics, the fleet solve on the device)."""
     import importlib.util
     from pathlib import Path
-    path = Path(__file__).resolve().parents[1] / "scripts" / "bench_fleet.py"
+    path = Path(__file__).resolve().parents[2] / "scripts" / "bench_fleet.py"
     spec = importlib.util.spec_from_file_location("bench_fleet", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -11,7 +11,7 @@ from pathlib import Path
 from torchcal import Robot
 from torchcal.kinematics.fk_fused import FusedPositions, compile_available
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 ROBOTS = ["kr5", "modified_arm", "scara", "tree_robot"]
 
 
@@ -58,7 +58,7 @@ def test_fused_observation_subset(tree_robot, make_params, make_q):
 def test_fused_compiled_on_cpu(kr5, make_params, make_q):
     """The compiled kernel (inductor's C++ loop) gives the eager numbers for two batch sizes, with
     one compilation (the batch size is symbolic). The population call is compiled and checked on
-    CUDA (tests/test_gpu.py) and by scripts/bench_fk.py: each compilation costs tens of seconds here."""
+    CUDA (tests/structure/test_gpu_matches_cpu.py) and by scripts/bench_fk.py: each compilation costs tens of seconds here."""
     full = make_params(kr5, 7)
     kern = FusedPositions(kr5, full, compile=True)
     assert kern.compiled

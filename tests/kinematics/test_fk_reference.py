@@ -28,7 +28,7 @@ from torchcal.kinematics.robot_data import ROBOTS, get_robot
 from torchcal.kinematics.robots import SHIPPED, dh_table, link_inertials, shipped, urdf_path
 
 N_CONFIGS = 1000
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _yourdfpy(text_or_path) -> yourdfpy.URDF:

@@ -20,7 +20,7 @@ from torchcal.measure.rosbag import read_bag  # noqa: E402
 from torchcal.measure.still import still_windows  # noqa: E402
 from torchcal.sim.bag import write_bag  # noqa: E402
 
-URDF = str(Path(__file__).resolve().parents[1] / "urdf" / "ur5e.urdf")
+URDF = str(Path(__file__).resolve().parents[2] / "urdf" / "ur5e.urdf")
 K, NOISE = 5, 5e-5  # still poses; marker noise per axis (m)
 
 

@@ -15,7 +15,7 @@ from torchcal.optim.lm import LevenbergMarquardt, note_device_size
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.sim.serial import SimConfig, simulate
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _waits(counts) -> int:

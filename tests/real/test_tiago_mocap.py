@@ -6,7 +6,7 @@ import torch
 
 from torchcal import Robot, load_measurements, run_loop
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tiago_mocap"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tiago_mocap"
 POINTS = [f"hand_{c}" for c in ("BL", "BR", "TR", "TL")]
 
 

@@ -31,7 +31,7 @@ from torchcal.report.sections import flags_section
 from torchcal.report.units import shown, with_error
 from torchcal.sim.serial import SimConfig, simulate_fleet
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 UR5E, KR5 = str(urdf_path("ur5e")), str(urdf_path("kuka_kr5_arc"))
 MOVED = (3, 17)  # held-out rows moved by 8 mm
 
@@ -279,7 +279,7 @@ def test_error_figure_shows_every_axis_before_and_after(tmp_path):
 def test_evidence_panels_in_joint_order(tmp_path):
     """Panels follow the robot's joints whatever order the modes come in; a mode without an
     independent signature says so (the loop's own evidence without inertials:
-    test_integrator.py::test_figures_and_evidence_without_inertials)."""
+    cli/test_integrator_workflow.py::test_figures_and_evidence_without_inertials)."""
     robot = Robot.from_urdf(KR5, markers=["flange"])
     order = [jt.name for jt in robot.joints]
     x = np.linspace(-2, 2, 40)

@@ -23,7 +23,7 @@ from torchcal.sim.physsim import PhysicalRobot, warmup_temperature
 from torchcal.sim.sample import Sample
 from torchcal.sim.humanoid import humanoid_urdf
 
-UR5E = Path(__file__).resolve().parents[1] / "urdf" / "ur5e.urdf"
+UR5E = Path(__file__).resolve().parents[2] / "urdf" / "ur5e.urdf"
 G = np.array([0.0, 0.0, -9.81])
 PAYLOAD = dict(payload_kg=3.0, payload_com_m=(0.02, -0.01, 0.06), payload_link="flange")
 
@@ -306,7 +306,7 @@ def test_many_poses_are_fast():
 
 
 # ---------------------------------------------------------------- joint-space terms, covariates, poses
-IIWA = Path(__file__).resolve().parents[1] / "urdf" / "kuka_iiwa14.urdf"
+IIWA = Path(__file__).resolve().parents[2] / "urdf" / "kuka_iiwa14.urdf"
 TOOL = ["tool@flange=0.06,0.0,0.08"]
 
 

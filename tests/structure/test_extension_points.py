@@ -24,7 +24,7 @@ from torchcal.pipelines.calibrate import calibrate
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.sim.serial import SimConfig, random_configs, random_errors
 
-TOYS = Path(__file__).parent / "toys"
+TOYS = Path(__file__).resolve().parents[1] / "toys"
 NOISE = 0.02e-3  # m per axis
 QUAD = {"shoulder_lift_joint": 4e-3, "elbow_joint": -3e-3}  # 1/rad: up to ~10 mrad at the joint limits
 

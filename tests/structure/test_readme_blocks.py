@@ -32,7 +32,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 README = REPO / "README.md"
 ILLUSTRATION = re.compile(r"^\*\(illustration, not run by the README test: (?P<why>.+)")
 RUN = ("bash", "python")
@@ -80,7 +80,7 @@ def readme_blocks(text: str) -> list[Block]:
 def test_every_runnable_block_is_bash_or_python():
     blocks = readme_blocks(README.read_text())
     odd = [(b.line, b.lang) for b in blocks if b.lang in REFUSED]
-    assert not odd, f"README.md blocks {odd}: write ```bash or ```python so that tests/test_readme.py runs them"
+    assert not odd, f"README.md blocks {odd}: write ```bash or ```python so that tests/structure/test_readme_blocks.py runs them"
     run = [b for b in blocks if b.lang in RUN and b.illustration is None]
     assert len(run) >= 4, f"only {len(run)} README blocks run; the README test would prove little"
     for b in blocks:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-PKG = Path(__file__).resolve().parents[1] / "torchcal"
+PKG = Path(__file__).resolve().parents[2] / "torchcal"
 MAX_FUNCTION_LINES = 100
 MAX_PUBLIC_PARAMS = 10
 MAX_MODULE_LINES = 400

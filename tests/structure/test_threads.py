@@ -16,7 +16,7 @@ from torchcal.kinematics.robots import urdf_path
 from torchcal.sim.serial import SimConfig, simulate
 from torchcal.threads import SMALL_ROWS, set_threads, threads_by_size
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture

@@ -1,7 +1,7 @@
 """A toy effect, in one file: a quadratic encoder error ``Δq_j = a_j q_j²`` (``a_j`` in 1/rad).
 
 Registering it is all torchcal asks: the loop then tries it, a pose plan plans for it (it reads
-nothing but the commanded angles) and a saved model loads it. Loaded by ``tests/test_extension_points.py``.
+nothing but the commanded angles) and a saved model loads it. Loaded by ``tests/structure/test_extension_points.py``.
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """A toy solver, in one file: steepest descent on the sum of squares with a backtracking line
 search. Registering it is all torchcal asks: ``calibrate(method="toy_descent")`` and the command
-line's ``--method`` then take it. Loaded by ``tests/test_extension_points.py``."""
+line's ``--method`` then take it. Loaded by ``tests/structure/test_extension_points.py``."""
 from __future__ import annotations
 
 from types import SimpleNamespace
