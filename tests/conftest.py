@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from torchcal import Robot
+from torchcal.problems.calibration import CalibrationProblem
 from torchcal.kinematics.robot_data import get_robot
 
 # The tests run many small ops: one intra-op thread is faster, and on a shared 2-core machine a
@@ -188,3 +189,38 @@ def random_q(robot: Robot, n: int, seed: int) -> torch.Tensor:
     hi = torch.where(torch.isfinite(hi), hi, torch.full_like(hi, math.pi))
     u = torch.rand(n, robot.dof, generator=g, dtype=torch.float64).to(robot.dtype)
     return lo + (hi - lo) * u
+
+
+# ---------------------------------------------------------------------------------- shared helpers
+# Imported by test files as ``from conftest import ...`` (pytest puts tests/ on sys.path).
+
+class Recorder:
+    """Wraps a batched fitness and keeps every batch it is given (copies: a solver may reuse its
+    buffers)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.batches: list[torch.Tensor] = []
+
+    def __call__(self, X):
+        self.batches.append(X.detach().clone())
+        return self.fn(X)
+
+    @property
+    def points(self) -> torch.Tensor:
+        return torch.cat(self.batches, 0)
+
+    @property
+    def n_points(self) -> int:
+        return sum(b.shape[0] for b in self.batches)
+
+
+def rank_margin(robot: Robot, template, d, rtol: float = 1e-9) -> float:
+    """How many decades every singular value of the robot's column-scaled candidate Jacobian (at the
+    nominal ``template``, on measurements ``d``) stands from the rank tolerance ``rtol``: a rank
+    decision with a margin of several decades cannot flip by rounding, so tests may compare such
+    decisions exactly across batch shapes."""
+    J = CalibrationProblem(robot, template, d).full_jacobian(template.values)[:, template.free_index]
+    J = J / J.norm(dim=0).clamp(min=1e-300)
+    s = torch.linalg.svdvals(J)
+    return float((torch.log10(s / s[0]).clamp(min=-300) - math.log10(rtol)).abs().min())

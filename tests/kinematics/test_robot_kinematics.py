@@ -59,7 +59,9 @@ def test_param_jacobian_matches_autograd_and_fd(robot, make_params, make_q):
     J_pose = robot.param_jacobian(q, p, kind="pose")
     N, M, K = q.shape[0], len(robot.marker_names), robot.n_params
     assert J_pos.shape == (N, M, 3, K) and J_pose.shape == (N, M, 6, K)
-    assert torch.equal(J_pose[..., :3, :], J_pos)
+    # the pose Jacobian's position rows are the position Jacobian, computed in a wider batch of
+    # products: equal to the rounding of those products
+    torch.testing.assert_close(J_pose[..., :3, :], J_pos, rtol=0, atol=1e-14 * float(J_pos.abs().max()))
 
     R, _ = robot.fk_rt(q, p)
     dR_fd, dt_fd = _fd_params(robot, q, p)

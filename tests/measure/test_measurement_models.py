@@ -184,8 +184,9 @@ def test_loss_rho_and_derivative_closed_forms(kind):
     loss = Loss(kind, 2e-4)
     rho, drho = loss.rho(S)
     rho_ref, drho_ref = _rho_closed_form(kind, S)
-    torch.testing.assert_close(rho, rho_ref, rtol=1e-15, atol=0)
-    torch.testing.assert_close(drho, drho_ref, rtol=1e-15, atol=0)
+    # the same functions written another way (log1p, a clamp): a few ulps apart, no more
+    torch.testing.assert_close(rho, rho_ref, rtol=1e-14, atol=0)
+    torch.testing.assert_close(drho, drho_ref, rtol=1e-14, atol=0)
     # ρ' is the derivative of ρ (autograd on the closed form away from Huber's kink at s = 1)
     s = S[S != 1.0].clone().requires_grad_(True)
     (g,) = torch.autograd.grad(loss.rho(s)[0].sum(), s)
@@ -197,7 +198,7 @@ def test_loss_rho_and_derivative_closed_forms(kind):
 def test_loss_specific_values():
     assert float(Loss("huber").rho(torch.tensor([4.0], dtype=D))[0]) == 3.0  # 2 * 2 - 1
     assert float(Loss("huber").rho(torch.tensor([4.0], dtype=D))[1]) == 0.5
-    assert float(Loss("cauchy").rho(torch.tensor([math.e - 1], dtype=D))[0]) == pytest.approx(1.0, rel=1e-15)
+    assert float(Loss("cauchy").rho(torch.tensor([math.e - 1], dtype=D))[0]) == pytest.approx(1.0, rel=1e-14)
     # Huber is continuous with a continuous slope at s = 1
     a, b = Loss("huber").rho(torch.tensor([1 - 1e-9, 1 + 1e-9], dtype=D))
     assert float(a[1] - a[0]) == pytest.approx(2e-9, rel=1e-5) and float(b[1] - b[0]) == pytest.approx(0, abs=1e-8)
@@ -215,7 +216,7 @@ def test_robustified_sum_of_squares(kind):
     robust = r * r_fac[:, None]
     target = c ** 2 * rho.sum() if kind != "l2" else sq.sum()
     assert float((robust * robust).sum()) == pytest.approx(float(target), rel=1e-12)
-    torch.testing.assert_close(j_fac, torch.sqrt(drho), rtol=1e-15, atol=0)
+    torch.testing.assert_close(j_fac, torch.sqrt(drho), rtol=1e-14, atol=0)  # a few ulps
     # a zero residual stays zero, with a finite factor
     zf, zj = loss.scales(torch.zeros(1, dtype=D))
     assert bool(torch.isfinite(zf).all()) and float(zj) == 1.0

@@ -12,6 +12,7 @@ from torchcal import Robot
 from torchcal.measure.registration import register_base
 from torchcal.optim import lm
 from torchcal.optim.lm import LevenbergMarquardt, note_device_size
+from torchcal.problems.base import LeastSquaresProblem
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.sim.serial import SimConfig, simulate
 
@@ -35,18 +36,9 @@ def test_counter_sees_reads_data_dependent_sizes_and_copies():
     assert h.total == 7
 
 
-def test_lm_iteration_waits_at_most_three_times():
-    """An accepted step reads the Cholesky status, the step's scalars and the new gradient test;
-    a rejected one the first two. The Jacobian, the residuals and the parameter bookkeeping read
-    nothing and copy no index list to the device."""
-    robot = Robot.from_urdf(REPO / "urdf" / "kuka_kr5_arc.urdf", markers=["smr@flange=0,0,0"])
-    data = simulate(robot, SimConfig(n=40, seed=3))[0]
-    ps = robot.params()
-    ps.fix("smr.droll", "smr.dpitch", "smr.dyaw", "joint_a1.*", "joint_a6.d*", "smr.dz")
-    ps = register_base(robot, data, ps)
-    ps.values[ps.index("joint_a2.droll")] += 1.0  # a start far off, so that some steps are rejected
-    ps.values[ps.index("joint_a3.dpitch")] -= 1.0
-    prob = CalibrationProblem(robot, ps, data)
+def _count_per_step(solver: LevenbergMarquardt, prob):
+    """Run ``solver`` on ``prob``, counting the host waits of each trial step: ``(result,
+    waits per step, waits of the whole run)``."""
     per_step = []
     step = LevenbergMarquardt.step
 
@@ -56,14 +48,48 @@ def test_lm_iteration_waits_at_most_three_times():
         per_step.append(_waits(h.counts))
         return out
 
-    solver = LevenbergMarquardt(mu0=1e-9, scaling="identity")
     solver.step = counted.__get__(solver)
     with HostSyncs() as whole:
         res = solver.minimize(prob)
-    rejected = res.extra["n_rejected"]
-    assert res.n_iter == len(per_step) >= 3 and 0 < rejected < res.n_iter
-    assert max(per_step) <= 3 and sum(per_step) == 3 * (res.n_iter - rejected) + 2 * rejected
-    assert _waits(whole.counts) <= sum(per_step) + 4  # the start and the history read once at the end
+    return res, per_step, _waits(whole.counts)
+
+
+def _rosenbrock() -> LeastSquaresProblem:
+    """Rosenbrock's residuals ``(1 - x1, 10 (x2 - x1²))`` from ``(-1.2, 1)``. The Gauss-Newton step
+    from there solves the linear residual exactly and the quadratic one along its tangent, landing
+    at ``(1, -3.84)``: a sum of squares of 2343 against 24.2 at the start. With a damping of 1e-9
+    the first step is that step, so it is rejected by a factor of 100, whatever the rounding."""
+    def res(X):
+        return torch.stack([1 - X[:, 0], 10 * (X[:, 1] - X[:, 0] ** 2)], -1)
+
+    def jac(x):
+        return torch.stack([torch.stack([-torch.ones_like(x[0]), torch.zeros_like(x[0])]),
+                            torch.stack([-20 * x[0], 10 * torch.ones_like(x[0])])])
+
+    lim = torch.full((2,), 10.0, dtype=torch.float64)
+    return LeastSquaresProblem(res, -lim, lim, x0=torch.tensor([-1.2, 1.0], dtype=torch.float64), jacobian_fn=jac)
+
+
+def test_lm_iteration_waits_at_most_three_times():
+    """An accepted step reads the Cholesky status, the step's scalars and the new gradient test;
+    a rejected one the first two. On a calibration problem: the Jacobian, the residuals and the
+    parameter bookkeeping read nothing and copy no index list to the device. On Rosenbrock's
+    residuals with a tiny initial damping: steps that are rejected (by construction, see
+    :func:`_rosenbrock`) read two."""
+    robot = Robot.from_urdf(REPO / "urdf" / "kuka_kr5_arc.urdf", markers=["smr@flange=0,0,0"])
+    data = simulate(robot, SimConfig(n=40, seed=3))[0]
+    ps = robot.params()
+    ps.fix("smr.droll", "smr.dpitch", "smr.dyaw", "joint_a1.*", "joint_a6.d*", "smr.dz")
+    ps = register_base(robot, data, ps)
+    ps.values[ps.index("joint_a2.droll")] += 1.0  # a start far off: several steps
+    ps.values[ps.index("joint_a3.dpitch")] -= 1.0
+    for prob in (CalibrationProblem(robot, ps, data), _rosenbrock()):
+        res, per_step, whole = _count_per_step(LevenbergMarquardt(mu0=1e-9, scaling="identity"), prob)
+        rejected = res.extra["n_rejected"]
+        assert res.converged and res.n_iter == len(per_step) >= 3
+        assert max(per_step) <= 3 and sum(per_step) == 3 * (res.n_iter - rejected) + 2 * rejected
+        assert whole <= sum(per_step) + 4  # the start and the history read once at the end
+    assert rejected > 0 and float(res.x.sub(1).abs().max()) < 1e-6  # Rosenbrock's: rejections, then (1, 1)
 
 
 def test_small_problem_on_a_gpu_is_said_once(monkeypatch, caplog):

@@ -70,14 +70,20 @@ def test_population_solve_equals_loop(splits):
         f = prob.fitness(pop)
         W, b = prob.decode(pop)
         Vp = fit_population(prob.Xt, prob.Yt, W, b, ridge=ridge)
-        assert torch.equal(prob.encode(W, b), pop)
+        assert torch.equal(prob.encode(W, b), pop)  # reshapes and a concatenation: no arithmetic
         for i in range(P):
             e = ELM(12, ridge=ridge, input_weights=W[i], biases=b[i]).fit(X, Y)
-            # the same LAPACK call per matrix, batched or not: bit for bit
-            assert torch.equal(Vp[i], e.V_)
+            # The batched solve and the single fit are the same LAPACK routine on other batch shapes
+            # (MKL may take other kernels), so the fits agree to rounding amplified by the condition
+            # of the hidden-layer matrix. Compared: the fitted training outputs H V, which a least-
+            # squares solution pins down (V itself is free along H's near-null directions).
+            H = hidden_layer(prob.Xt, W[i], b[i])
+            tol = 100 * torch.finfo(H.dtype).eps * float(torch.linalg.cond(H)) * float(prob.Yt.abs().max())
+            torch.testing.assert_close(H @ Vp[i], H @ e.V_, rtol=0, atol=tol)
             pv = (e.predict(Xv) - e.y_mean_) / e.y_scale_
             fi = torch.sqrt(((pv - prob.Yv) ** 2).mean())
-            assert abs(float(fi - f[i])) <= 1e-12 * float(fi)
+            # the validation error, which the swarm minimises: to the same conditioned rounding
+            assert abs(float(fi - f[i])) <= max(1e-12 * float(fi), tol)
 
 
 def test_solve_output_weights_shapes_and_hidden_layer():
