@@ -224,3 +224,17 @@ def rank_margin(robot: Robot, template, d, rtol: float = 1e-9) -> float:
     J = J / J.norm(dim=0).clamp(min=1e-300)
     s = torch.linalg.svdvals(J)
     return float((torch.log10(s / s[0]).clamp(min=-300) - math.log10(rtol)).abs().min())
+
+
+def same_run(batched, alone, rtol: float = 1e-9) -> None:
+    """A run of a batch of independent runs is the run alone: the point and its fitness (to
+    ``rtol``: the batch evaluates the fitness on other shapes than the run alone, so the last bits
+    may differ), the history of the best fitness, and the counts and the reason to stop, exactly
+    (the tests pick problems whose counts no rounding decides: a fixed iteration budget, or a
+    fitness in steps). Used by the restart tests on the CPU and on CUDA."""
+    torch.testing.assert_close(batched.x, alone.x, rtol=rtol, atol=rtol * float(alone.x.abs().max()))
+    assert batched.fun == pytest.approx(alone.fun, rel=rtol)
+    assert batched.history == pytest.approx(alone.history, rel=rtol)
+    assert (batched.n_evals, batched.n_iter, batched.converged, batched.message) == \
+        (alone.n_evals, alone.n_iter, alone.converged, alone.message)
+    assert batched.extra == alone.extra  # the population schedule: counts, set before the run

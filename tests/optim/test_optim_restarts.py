@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from conftest import same_run
 from torchcal.kinematics.robots import shipped
 from torchcal.measure.data import Measurements
 from torchcal.optim import FunctionProblem, get_solver, minimize_runs
@@ -11,19 +12,6 @@ from torchcal.problems.calibration import CalibrationProblem
 
 D = torch.float64
 SEEDS = [0, 7, 3]
-
-
-def _same(batched, alone, rtol: float = 1e-9):
-    """The same run: the point and its fitness (to ``rtol``: the batch evaluates the fitness on
-    other shapes than the run alone, so the last bits may differ), the history of the best
-    fitness, and the counts and the reason to stop, exactly (the tests pick problems whose counts
-    no rounding decides: a fixed iteration budget, or a fitness in steps)."""
-    torch.testing.assert_close(batched.x, alone.x, rtol=rtol, atol=rtol * float(alone.x.abs().max()))
-    assert batched.fun == pytest.approx(alone.fun, rel=rtol)
-    assert batched.history == pytest.approx(alone.history, rel=rtol)
-    assert (batched.n_evals, batched.n_iter, batched.converged, batched.message) == \
-        (alone.n_evals, alone.n_iter, alone.converged, alone.message)
-    assert batched.extra == alone.extra  # the population schedule: counts, set before the run
 
 
 def _kr5_problem():
@@ -51,7 +39,7 @@ def test_batched_runs_equal_runs_alone(method, options):
     for r, seed in zip(runs, SEEDS):
         alone = get_solver(method, seed=seed, **options).minimize(prob)
         assert alone.n_iter == options["max_iter"]  # the budget, not a tolerance, ends these runs
-        _same(r, alone)
+        same_run(r, alone)
     assert len({r.fun for r in runs}) == len(SEEDS)  # different seeds really gave different runs
 
 
@@ -77,7 +65,7 @@ def test_each_run_stops_on_its_own_and_leaves_the_batch():
     for r, seed in zip(runs, seeds):
         calls_before = len(calls)
         alone = get_solver("pso", seed=seed, **opts).minimize(prob)
-        _same(r, alone)
+        same_run(r, alone)
         assert len(calls) - calls_before == alone.n_iter + 1
     stops = sorted(r.n_iter for r in runs)
     assert len(set(stops)) > 1 and stops[-1] < 60  # they stop apart, and every one before max_iter

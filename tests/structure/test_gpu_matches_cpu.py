@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import same_run
 from torchcal import Robot, calibrate
 from torchcal.kinematics.fk_fused import FusedPositions, compile_available
 from torchcal.kinematics.robots import shipped
@@ -73,7 +74,7 @@ def test_batched_restarts_on_cuda_equal_runs_alone():
     runs = minimize_runs(prob, "ldpso-bt", seeds=[0, 5, 9], n_max=30, n_min=8, max_iter=40)
     for r, seed in zip(runs, [0, 5, 9]):
         alone = get_solver("ldpso-bt", seed=seed, n_max=30, n_min=8, max_iter=40).minimize(prob)
-        assert torch.equal(r.x, alone.x) and r.history == alone.history
+        same_run(r, alone)  # other batch shapes, other CUDA kernels: to rounding
 
 
 def test_small_loop_on_cuda_makes_the_cpu_decisions():
