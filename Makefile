@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean
+.PHONY: setup demo check test rounding bench clean
 
 setup: $(STAMP)
 
@@ -21,9 +21,19 @@ $(STAMP): pyproject.toml Makefile
 demo: setup
 	$(BIN)/python scripts/demo.py --out out/demo
 
-# two processes, one test file each at a time (module fixtures stay in one process): CI has two cores
+# the fast lane, on every change: unit and contract tests, no test marked slow (<= 90 s on 2 cores)
+check: setup
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
+
+# everything (what CI runs): two processes, one test file each at a time (module fixtures stay in
+# one process): CI has two cores
 test: setup
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+
+# the rounding-sensitive files under MKL's AVX2 and COMPATIBLE modes, torch's AVX2 kernels, and
+# one and two threads (issue 34): no test may depend on which kernel rounds last
+rounding: setup
+	PYTHON=$(BIN)/python scripts/rounding_check.sh
 
 bench: setup
 	$(BIN)/python scripts/bench_fk.py
