@@ -246,7 +246,7 @@ def test_effect_names_are_checked_before_fitting(files):
     with pytest.raises(ValueError, match=r"unknown effect\(s\) \['thermal'\]"):
         run_loop(robot, data, candidates=["joint_compliance", "thermal"], log=None)
     with pytest.raises(SystemExit):
-        cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--candidates", "thermal"])
+        cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--effect", "thermal"])
 
 
 def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):

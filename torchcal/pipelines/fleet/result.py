@@ -65,7 +65,8 @@ class FleetResult:
         """The fleet report as Markdown (``fleet.md``)."""
         return fleet_markdown(self)
 
-    def save(self, out_dir, figures: bool = True) -> Path:
+    def save(self, out_dir, figures: bool = True, on_robot=None) -> Path:
         """Write ``<robot>/calibrated.urdf``, ``report.md``, ``report.json`` (and error histograms
-        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``."""
-        return save_fleet(self, out_dir, figures)
+        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``;
+        ``on_robot(id)`` after each robot."""
+        return save_fleet(self, out_dir, figures, on_robot)
