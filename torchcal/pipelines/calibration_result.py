@@ -65,6 +65,7 @@ class CalibrationResult:
     plausible: dict = field(default_factory=dict)
     held_by_prior: dict = field(default_factory=dict)  # fitted, but tied: the prior's share, and why
     suspects: list[Suspect] = field(default_factory=list)  # gross errors left out of the fit
+    not_converged: str | None = None  # a population method's best short of the optimum beside it: why
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -75,9 +76,12 @@ class CalibrationResult:
     def problems(self) -> list[str]:
         """Reasons not to trust this calibration, in words (empty when none): worse than the
         nominal model on its own training rows, held-out rows that do not fit this robot, or joints
-        moved or turned by more than a plausible error."""
+        moved or turned by more than a plausible error, or a population method that stopped short
+        of the optimum."""
         out = stage_problems(self.stages)
-        if self.implausible:
+        if self.not_converged:  # implausible values then say nothing about the data: the search stopped short
+            out.append(self.not_converged)
+        elif self.implausible:
             out.append(implausible_reason(self.implausible, dict(zip(self.params.names, self.params.units)),
                                           self.plausible or PLAUSIBLE))
         return out
