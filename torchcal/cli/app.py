@@ -81,7 +81,7 @@ def _calibrate(a, argv) -> int:
     logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
     if res.problems():
         return _refuse("calibrate", res.problems())
-    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument,
+    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument, with_markers=a.with_markers,
                    extra=lambda d: run_record(a, d, _inputs(a), argv))
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
     _print_stages(res.stages, test is not None)
@@ -120,7 +120,9 @@ def _loop(a, argv) -> int:
                 f"{e.name} ({', '.join(lab for lab, _ in e.modes())})" for e in res.effects) +
                 ". Those act through the saved model (torchcal.load('model'), torchcal correct), not through "
                 "this URDF")
-        robot.export_calibration(geo, d, with_instrument=a.with_instrument, note=note)
+        se = {p["name"]: p.get("std_error") for p in res.parameters if p.get("std_error") is not None}
+        robot.export_calibration(geo, d, with_instrument=a.with_instrument, note=note, with_markers=a.with_markers,
+                                 std_errors=se)
         write_instrument(robot, geo, d / "instrument.json")
         prov = run_record(a, d, _inputs(a), argv)
         model = res.model()
@@ -170,6 +172,9 @@ def _data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--with-instrument", action="store_true",
                    help="calibrated URDF rooted in the instrument frame (default: the robot's own root; the "
                         "registration goes to instrument.json)")
+    p.add_argument("--with-markers", action="store_true",
+                   help="add a fixed link marker_<name> per measured point to the calibrated URDF (without it the "
+                        "URDF differs from the input only in the joint origins the calibration changed)")
     p.add_argument("--plausible-mm", type=positive_float, default=10.0,
                    help="largest plausible shift of a joint origin (mm); a model needing more is refused")
     p.add_argument("--plausible-mrad", type=positive_float, default=10.0,
