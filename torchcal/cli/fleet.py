@@ -124,6 +124,8 @@ def add_fleet_parser(sub) -> argparse.ArgumentParser:
                                                    "(pip install torchcal[ray])")
     f.add_argument("--shards", type=int_at_least(1), help="with --ray: how many tasks the fleet is cut into")
     f.add_argument("--no-figures", action="store_true", help="skip the error histograms per robot")
+    f.add_argument("--with-markers", action="store_true",
+                   help="add a fixed link marker_<name> per measured point to each robot's calibrated URDF")
     f.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
     f.add_argument("--plausible-mm", type=positive_float, default=10.0,
                    help="largest plausible shift of a joint origin (mm): a robot's parameter its data pin down worse "
@@ -158,7 +160,7 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     logger.info(f"calibrated {len(fr)} robots in {fr.wall_time_s:.2f} s; writing each robot's report"
                 + (" and figures" if not a.no_figures else "") + " …")
     with staged_dir(a.out, a.force) as d, _robot_bar(progress_on(a), len(fr)) as tick:
-        fr.save(d, figures=not a.no_figures, on_robot=tick)
+        fr.save(d, figures=not a.no_figures, on_robot=tick, with_markers=a.with_markers)
         run_record(a, d, inputs, list(argv or []))
     out = Path(a.out)
     print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s (all told "
