@@ -93,3 +93,9 @@ def test_each_method_is_listed_once_and_an_alias_still_works(capsys):
     assert sorted(method.choices) == sorted(solvers()), "the choices are the solvers, each once"
     assert COMMANDS["calibrate"].parse_args(["--method", "Levenberg-Marquardt", "--robot", "r", "--data", "d",
                                              "--out", "o"]).method == "lm"
+
+
+def test_no_effect_goes_with_no_other(tmp_path, capsys):
+    assert main(["loop", "--effect", "none", "--effect", "backlash", "--robot", "r.urdf", "--data", "d.csv",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "--effect none (the geometry alone) cannot go with other effects ['backlash']" in capsys.readouterr().err

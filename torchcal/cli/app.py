@@ -98,6 +98,9 @@ def _plausible(a) -> dict:
 
 
 def _loop(a, argv) -> int:
+    if a.effect and "none" in a.effect and len(set(a.effect)) > 1:
+        others = sorted(set(a.effect) - {"none"})
+        raise ValueError(f"--effect none (the geometry alone) cannot go with other effects {others}; give either")
     check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     robot, train, test = robot_and_data(a)

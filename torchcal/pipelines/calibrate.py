@@ -45,7 +45,8 @@ class CalibrateOptions(Options):
         params: the start (default: the robot's nominal parameters with its free flags).
         options: the solver's own settings (``{"max_iter": 200}``).
         seed, progress: the solver's seed and progress bar.
-        register: register the base by Kabsch first (when the base parameters are free).
+        register: register the base by Kabsch first (when the base parameters are free); for a
+            population method, also fit the base and the marker points by LM before the search.
         reduce: reduce the free set to an identifiable subset (column-pivoted QR of the Jacobian).
         prefer: parameter names kept first when the reduction must choose among tied ones.
         rot_weight: m/rad: how an orientation error counts against a position error (``kind="pose"``).
@@ -138,8 +139,8 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None,
     start = _start(robot, data, opt)
     # a gross error (a glitch metres off) is left out of the fit and listed; the statistics keep it
     fit_data, suspects = leave_out_gross(robot, data, start)
-    fitter = _Fitter(robot, fit_data, _register_points(robot, fit_data, start) if is_population(opt.method) else start,
-                     opt, plausible)
+    swarm_start = is_population(opt.method) and opt.register
+    fitter = _Fitter(robot, fit_data, _register_points(robot, fit_data, start) if swarm_start else start, opt, plausible)
     p, s, report, loss_obj = fitter.rounds()
     unident = {n: report.reasons.get(n, "not identifiable") for n in report.dropped} if report else {}
     std_errors = fitter.std_errors(p, loss_obj)
