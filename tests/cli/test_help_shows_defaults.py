@@ -99,3 +99,10 @@ def test_no_effect_goes_with_no_other(tmp_path, capsys):
     assert main(["loop", "--effect", "none", "--effect", "backlash", "--robot", "r.urdf", "--data", "d.csv",
                  "--out", str(tmp_path / "o")]) == 2
     assert "--effect none (the geometry alone) cannot go with other effects ['backlash']" in capsys.readouterr().err
+
+
+def test_a_config_file_with_a_renamed_key_is_told_the_new_name(tmp_path, capsys):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("noise-mm: 0.03\n")
+    assert main(["loop", "--config", str(cfg), "--robot", "r.urdf", "--data", "d.csv", "--out", "o"]) == 2
+    assert "option 'noise-mm': --noise-mm is now --noise-floor-mm" in capsys.readouterr().err

@@ -207,6 +207,10 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
         dest = str(key).replace("-", "_")
         a = actions.get(dest)
         where = f"torchcal {argv[0]}: error: {path}: option {key!r}"
+        old = next((x.renamed for x in sub[argv[0]]._actions if f"--{key}" in x.option_strings
+                    and hasattr(x, "renamed")), None)
+        if old is not None:
+            raise SystemExit(f"{where}: {old}")
         if a is None:
             known = sorted(k.replace("_", "-") for k in actions)
             raise SystemExit(f"torchcal {argv[0]}: error: {path}: unknown option {key!r}; options are {known}")

@@ -28,8 +28,10 @@ def renamed(parser: argparse.ArgumentParser, old: str, new: str, why: str, nargs
     the old spelling stops at once rather than meaning something else."""
 
     class Renamed(argparse.Action):
+        renamed = f"{old} is now {new}: {why}"  # also what a --config file's old key is told
+
         def __call__(self, p, namespace, values, option_string=None):
-            p.error(f"{old} is now {new}: {why}")
+            p.error(self.renamed)
 
     parser.add_argument(old, nargs=nargs, action=Renamed, help=argparse.SUPPRESS, dest=f"_renamed_{old[2:]}")
 
