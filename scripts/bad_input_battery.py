@@ -146,7 +146,7 @@ def fleet_dir(root: Path, name=lambda i: f"r{i}.csv", rows=lambda i, t: t) -> Pa
 
 
 def loop(d: Path, *extra, data=None, test=None, out=None, marker=SMR, cwd=None):
-    args = ["loop", "--robot", UR5E, "--data", data or d / "train.csv", "--candidates", "--no-elm", "--folds", 2,
+    args = ["loop", "--robot", UR5E, "--data", data or d / "train.csv", "--effect", "none", "--no-elm", "--folds", 2,
             "--out", out or d.parent / "out"]
     if marker:
         args += ["--marker", marker]
@@ -234,7 +234,7 @@ def _two_at_once(args: list, root: Path) -> tuple[bool, str]:
 @case
 def two_loops_one_out(root):
     d = data_dir(root)
-    return _two_at_once(["loop", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv", "--candidates",
+    return _two_at_once(["loop", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv", "--effect", "none",
                          "--no-elm", "--folds", 2, "--out", root / "o"], root)
 
 
@@ -502,7 +502,7 @@ def disk_full_loop(root):
 
     def limit():
         resource.setrlimit(resource.RLIMIT_FSIZE, (30000, 30000))
-    p = sub("loop", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv", "--candidates", "--no-elm",
+    p = sub("loop", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv", "--effect", "none", "--no-elm",
             "--folds", 2, "--out", root / "o", cwd=root, preexec_fn=limit)
     ok = p.returncode == 2 and "Traceback" not in p.stderr
     left = [x.name for x in root.iterdir() if x.name != "data"]
@@ -732,7 +732,7 @@ def covariate_missing_in_test(root):
         return h + ["temperature"], np.c_[M, 20 + np.arange(len(M)) * 0.05]
     f = edited(d / "train.csv", root / "t.csv", temp)
     rc, _, err = cli("loop", "--robot", UR5E, "--marker", SMR, "--data", f, "--test", d / "test.csv",
-                     "--candidates", "thermal_drift", "--no-elm", "--folds", 2, "--out", root / "o")
+                     "--effect", "thermal_drift", "--no-elm", "--folds", 2, "--out", root / "o")
     ok, why = refused(rc, err, "temperature", "test.csv")
     return ok and "stage geometric" not in err and "noise estimate" not in err, why
 

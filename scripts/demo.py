@@ -104,8 +104,9 @@ def main() -> None:
     # leaves pure instrument noise, the floor no calibration can beat
     truth = json.loads((out / "truth.json").read_text())
     floor = (real.reach(test.q) - test.positions).norm(dim=-1).mean() * 1e3
-    print(f"noise floor (the true robot on the held-out poses): mean {floor:.4f} mm; truth read from "
-          f"{out}/truth.json only now ({len(truth['names'])} entries)")
+    print(f"the loop above knew no noise floor (its data give none: no repeated poses, no --noise-floor-mm); the "
+          f"demo, scoring with the truth the loop never saw ({out}/truth.json, {len(truth['names'])} entries, read "
+          f"only now), finds the true robot {floor:.4f} mm (mean) from the held-out measurements: the noise floor")
     print(f"report: {out}/report.md; model: {out}/model (torchcal.load); CLI: torchcal correct --model {out}/model ...")
 
 

@@ -99,7 +99,7 @@ def _calibrate(data: Path, out: Path, *extra, train: Path | None = None, marker:
 
 
 def _loop(data: Path, out: Path, *extra, train: Path | None = None, marker: str = SMR) -> list:
-    return ["loop", "--robot", UR5E, "--marker", marker, "--data", train or data / "train.csv", "--candidates",
+    return ["loop", "--robot", UR5E, "--marker", marker, "--data", train or data / "train.csv", "--effect", "none",
             "--no-elm", "--folds", "2", "--out", out, *extra]
 
 

@@ -312,7 +312,7 @@ def test_a_contact_row_with_one_position_axis_is_refused(partial, tmp_path):
 
 
 def _loop(args: list[str], out: Path, capsys) -> tuple[int, str]:
-    return _cli(["loop", "--robot", KR5, "--marker", "flange", "--candidates", "--no-elm", "--folds", "2", "--quiet",
+    return _cli(["loop", "--robot", KR5, "--marker", "flange", "--effect", "none", "--no-elm", "--folds", "2", "--quiet",
                  "--out", str(out), *args], capsys)
 
 

@@ -291,7 +291,7 @@ def test_report_shape_and_saved_files(tmp_path):
     assert all("test" not in st for st in rep_no["stages"])
     assert [st["name"] for st in rep_no["stages"]] == ["nominal", "geometric"]
 
-    out = res.save(tmp_path / "out")
+    out = res.save(tmp_path / "out", with_markers=True)
     for f in ("calibrated.urdf", "params.json", "report.json", "report.md", "errors.png"):
         assert (out / f).is_file() and (out / f).stat().st_size > 0, f
     assert (out / "errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -308,18 +308,19 @@ def test_report_shape_and_saved_files(tmp_path):
     assert back.joint_names == robot.joint_names and back.root == robot.root
     q = torch.cat([data.q, test.q])
     p_back = back.positions(q)[:, 0]
-    p_cal = robot.positions(q, res.params.values, base=False)[:, 0]
+    held = robot.significant(res.params.values, res.std_errors)  # joints changed beyond their standard errors
+    p_cal = robot.positions(q, held, base=False)[:, 0]
     assert float((p_back - p_cal).abs().max()) < 1e-9
     inst = json.loads((out / "instrument.json").read_text())
     R = quat_to_matrix(torch.tensor(inst["quaternion_wxyz"], dtype=torch.float64))
     p_inst = p_back @ R.T + torch.tensor(inst["translation_m"], dtype=torch.float64)
-    assert float((p_inst - robot.positions(q, res.params.values)[:, 0]).abs().max()) < 1e-9
+    assert float((p_inst - robot.positions(q, held)[:, 0]).abs().max()) < 1e-9
     with pytest.raises(FileExistsError, match="not empty"):
         res.save(tmp_path / "out")  # nothing is overwritten without force
-    res.save(tmp_path / "out", force=True, with_instrument=True)
+    res.save(tmp_path / "out", force=True, with_instrument=True, with_markers=True)
     back = Robot.from_urdf(out / "calibrated.urdf", markers=["marker_flange"])
     assert back.root == "instrument"
-    assert float((back.positions(q)[:, 0] - robot.positions(q, res.params.values)[:, 0]).abs().max()) < 1e-9
+    assert float((back.positions(q)[:, 0] - robot.positions(q, held)[:, 0]).abs().max()) < 1e-9
 
 
 # ---------------------------------------------------------------------------------------------

@@ -246,7 +246,7 @@ def test_effect_names_are_checked_before_fitting(files):
     with pytest.raises(ValueError, match=r"unknown effect\(s\) \['thermal'\]"):
         run_loop(robot, data, candidates=["joint_compliance", "thermal"], log=None)
     with pytest.raises(SystemExit):
-        cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--candidates", "thermal"])
+        cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--effect", "thermal"])
 
 
 def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
@@ -264,13 +264,13 @@ def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     rep = json.loads((looped / "report.json").read_text())
     assert [e["name"] for e in rep["effects"]] == ["joint_compliance"]
     assert "<!-- geometric part only: the calibrated model also applies joint_compliance" in text
-    back = Robot.from_urdf(looped / "calibrated.urdf", markers=["marker_flange"])
+    back = Robot.from_urdf(looped / "calibrated.urdf", markers=["flange"])
     assert back.root == Robot.from_urdf(UR5E, markers=["flange"]).root  # the robot's own root
     inst = json.loads((looped / "instrument.json").read_text())
     assert abs(float(torch.tensor(inst["quaternion_wxyz"], dtype=torch.float64).norm()) - 1) < 1e-12
     assert 2.0 < float(torch.tensor(inst["translation_m"]).norm()) < 4.0  # the tracker 3 m away
     run = yaml.safe_load((looped / "run.yaml").read_text())
-    assert run["data"] == str((files / "train.csv").resolve()) and run["holdout"] == 0.25
+    assert (looped / run["data"]).resolve() == (files / "train.csv").resolve() and run["holdout"] == 0.25
     prov = json.loads((looped / "provenance.json").read_text())
     assert prov["torchcal"] == torchcal.__version__ and prov["torch"] == torch.__version__
     from torchcal.outputs import sha256_file
@@ -283,7 +283,7 @@ def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
 def test_with_instrument_roots_the_urdf_in_the_instrument_frame(files, tmp_path):
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--with-instrument",
                 "--out", str(tmp_path / "c")]) == 0
-    assert Robot.from_urdf(tmp_path / "c" / "calibrated.urdf", markers=["marker_flange"]).root == "instrument"
+    assert Robot.from_urdf(tmp_path / "c" / "calibrated.urdf", markers=["flange"]).root == "instrument"
 
 
 def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys):

@@ -15,7 +15,7 @@ TIAGO_MARKERS = ["hand_BL@wrist_ft_tool_link=0.05,0.03,0.1", "hand_BR@wrist_ft_t
 
 
 def _reload_and_compare(robot: Robot, params: torch.Tensor, q: torch.Tensor, path) -> Robot:
-    xml = robot.export_urdf(params, path, with_instrument=True)
+    xml = robot.export_urdf(params, path, with_instrument=True, with_markers=True)
     assert path.read_text() == xml
     back = Robot.from_urdf(path, markers=[f"marker_{m}" for m in robot.marker_names])
     assert sorted(back.joint_names) == sorted(robot.joint_names)
@@ -137,7 +137,7 @@ def test_export_refuses_existing_marker_link(tree_urdf, tmp_path):
         "</robot>", '  <joint name="mt" type="fixed"><parent link="tool"/><child link="marker_tool"/></joint>\n</robot>')
     robot = Robot.from_urdf(xml, markers=["tool"])
     with pytest.raises(ValueError, match="marker_tool.*already exists"):
-        robot.export_urdf(None, tmp_path / "x.urdf")
+        robot.export_urdf(None, tmp_path / "x.urdf", with_markers=True)
     assert not (tmp_path / "x.urdf").exists()
 
 
@@ -147,8 +147,8 @@ def test_export_refuses_existing_base_link(tree_urdf, make_params, tmp_path):
     robot = Robot.from_urdf(xml, markers=["tool"])
     p = make_params(robot, seed=71)
     with pytest.raises(ValueError, match="'instrument' already exists.*base_link="):
-        robot.export_urdf(p, tmp_path / "x.urdf", with_instrument=True)
-    robot.export_urdf(p, tmp_path / "y.urdf", base_link="mocap", with_instrument=True)
+        robot.export_urdf(p, tmp_path / "x.urdf", with_instrument=True, with_markers=True)
+    robot.export_urdf(p, tmp_path / "y.urdf", base_link="mocap", with_instrument=True, with_markers=True)
     back = Robot.from_urdf(tmp_path / "y.urdf", markers=["marker_tool"])
     assert back.root == "mocap"
 
@@ -182,7 +182,7 @@ def test_export_keeps_the_robots_root_by_default(tree_urdf, make_params, make_q,
     p = make_params(robot, seed=37)
     assert float(p[:6].abs().max()) > 0.1  # a real instrument frame
     q = make_q(robot, 6, seed=38)
-    xml = robot.export_urdf(p, tmp_path / "own_root.urdf", note="geometric part only")
+    xml = robot.export_urdf(p, tmp_path / "own_root.urdf", note="geometric part only", with_markers=True)
     assert "<!-- geometric part only -->" in xml
     back = Robot.from_urdf(tmp_path / "own_root.urdf", markers=[f"marker_{m}" for m in robot.marker_names])
     assert back.root == robot.root

@@ -159,7 +159,7 @@ def test_unchanged_joints_stay_byte_for_byte(name, path, markers, tmp_path):
 def test_every_tag_comment_and_transmission_joint_is_kept(tmp_path):
     robot = Robot.from_urdf(FULL_URDF, markers=["tool"])
     p = _random_on(robot, ["j1", "j2", "j3", "tool_joint"], seed=5)
-    exported = robot.export_urdf(p, tmp_path / "full.urdf", note="geometric part only")
+    exported = robot.export_urdf(p, tmp_path / "full.urdf", note="geometric part only", with_markers=True)
     _check_only_changed_origins(FULL_URDF, exported, {"j1", "j2", "j3", "tool_joint"})
     for tag in ("<!-- a description", "<!-- the first axis", "<inertial>", "<visual>", "<collision>", "<mesh ",
                 "<transmission", "<gazebo", "<plugin", "<dynamics", "<safety_controller", "<material"):
@@ -247,7 +247,7 @@ def test_exported_fk_equals_the_calibrated_model(name, path, markers, make_q, tm
     robot = Robot.from_urdf(path, markers=markers)
     p = _random_on(robot, [jt.name for jt in robot.joints], seed=11, scale=0.01)
     q = make_q(robot, 20, seed=12)
-    exported = robot.export_urdf(p, tmp_path / "cal.urdf")
+    exported = robot.export_urdf(p, tmp_path / "cal.urdf", with_markers=True)
     want = robot.positions(q, p, base=False)[:, 0]
     back = Robot.from_urdf(tmp_path / "cal.urdf", markers=[f"marker_{robot.marker_names[0]}"])
     cols = [robot.joint_names.index(n) for n in back.joint_names]

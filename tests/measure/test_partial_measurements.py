@@ -253,7 +253,7 @@ def test_planes_and_a_ball_bar_through_the_cli(kr5_planes, tmp_path):
     save_measurements(csv, rows)
     out = tmp_path / "run"
     rc = main(["loop", "--robot", str(robots.urdf_path("kuka_kr5_arc")), "--marker", "flange", "--data", str(csv),
-               "--holdout", "0.2", "--candidates", "--no-elm", "--folds", "3", "--out", str(out), "--quiet"])
+               "--holdout", "0.2", "--effect", "none", "--no-elm", "--folds", "3", "--out", str(out), "--quiet"])
     assert rc == 0
     rep = json.loads((out / "report.json").read_text())
     assert set(rep["setup"]["planes"]) == {"A", "B", "C"} and "pivot" in rep["setup"]["fixed_points"]

@@ -63,7 +63,7 @@ def looped(data, tmp_path_factory):
     d, _ = data
     out = tmp_path_factory.mktemp("reports_runs") / "loop"
     r = subprocess.run([sys.executable, "-m", "torchcal", "loop", "--robot", UR5E, "--data", str(d / "train.csv"),
-                        "--test", str(d / "test.csv"), "--no-elm", "--candidates", "joint_compliance", "--out", str(out)],
+                        "--test", str(d / "test.csv"), "--no-elm", "--effect", "joint_compliance", "--out", str(out)],
                        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert r.returncode == 0, r.stderr
     return out
@@ -187,8 +187,8 @@ def test_noise_floor_from_repeated_commands():
     assert noise_floor(d, 0.03)[0] == pytest.approx(v)
     once = d.subset(torch.arange(40))
     assert noise_floor(once) == (None, None)
-    assert noise_floor(once, 0.03) == (0.03, "given by the caller (noise_mm, --noise-mm: the instrument's "
-                                             "specification)")
+    assert noise_floor(once, 0.03) == (0.03, "given by the caller (noise_mm, --noise-floor-mm: from the "
+                                             "instrument's specification)")
 
 
 def test_a_finding_is_stated_only_when_significant():

@@ -24,6 +24,8 @@ from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of,
                                  positive_float,
                                  nonnegative_float, parse_markers, report_failure, robot_and_data, run_record,
                                  setup_logging)
+from torchcal.cli.conventions import (DefaultsFormatter, add_progress, method_choice, method_help, progress_on,
+                                      renamed)
 from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
@@ -32,7 +34,7 @@ from torchcal.effects import EFFECTS
 from torchcal.kinematics.robot import Robot
 from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
 from torchcal.measure.records import Stage
-from torchcal.optim import available, is_population
+from torchcal.optim import is_population, solvers
 from torchcal.pipelines.calibrate import calibrate
 from torchcal.pipelines.calibration_result import write_instrument
 from torchcal.pipelines.loop.run import run_loop
@@ -72,15 +74,14 @@ def _calibrate(a, argv) -> int:
     torch.set_num_threads(a.threads)
     t0 = time.perf_counter()
     robot, train, test = robot_and_data(a)
-    progress = a.progress if a.progress is not None else (is_population(a.method) and sys.stderr.isatty()
-                                                          and not a.quiet)
+    progress = a.progress if a.progress is not None else (is_population(a.method) and progress_on(a))
     res = calibrate(robot, train, test=test, method=a.method, kind=a.kind, loss=a.loss, seed=a.seed,
                     progress=progress, polish=a.polish, free=a.free or None, plausible=_plausible(a),
                     prior=None if a.prior == "none" else a.prior)
     logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
     if res.problems():
         return _refuse("calibrate", res.problems())
-    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument,
+    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument, with_markers=a.with_markers,
                    extra=lambda d: run_record(a, d, _inputs(a), argv))
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
     _print_stages(res.stages, test is not None)
@@ -97,13 +98,16 @@ def _plausible(a) -> dict:
 
 
 def _loop(a, argv) -> int:
+    if a.effect and "none" in a.effect and len(set(a.effect)) > 1:
+        others = sorted(set(a.effect) - {"none"})
+        raise ValueError(f"--effect none (the geometry alone) cannot go with other effects {others}; give either")
     check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
     robot, train, test = robot_and_data(a)
-    progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
-    res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
-                   noise_mm=a.noise_mm, orientation_weight=a.orientation_weight, soft=not a.no_soft,
-                   plausible=_plausible(a), progress=progress, log=None)
+    effects = None if a.effect is None else [e for e in a.effect if e != "none"]
+    res = run_loop(robot, train, test, candidates=effects, folds=a.folds, seed=a.seed, elm=not a.no_elm,
+                   noise_mm=a.noise_floor_mm, orientation_weight=a.orientation_weight, soft=not a.no_soft,
+                   plausible=_plausible(a), progress=progress_on(a), log=None)
     for k, v in res.timings.items():
         logger.info(f"stage {k}: {v:.1f} s")
     if res.problems():
@@ -119,7 +123,9 @@ def _loop(a, argv) -> int:
                 f"{e.name} ({', '.join(lab for lab, _ in e.modes())})" for e in res.effects) +
                 ". Those act through the saved model (torchcal.load('model'), torchcal correct), not through "
                 "this URDF")
-        robot.export_calibration(geo, d, with_instrument=a.with_instrument, note=note)
+        se = {p["name"]: p.get("std_error") for p in res.parameters if p.get("std_error") is not None}
+        robot.export_calibration(geo, d, with_instrument=a.with_instrument, note=note, with_markers=a.with_markers,
+                                 std_errors=se)
         write_instrument(robot, geo, d / "instrument.json")
         prov = run_record(a, d, _inputs(a), argv)
         model = res.model()
@@ -164,32 +170,41 @@ def _data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--holdout", type=fraction, default=0.0, help="without --test: fraction of rows held out")
     p.add_argument("--marker", action="append", help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. "
                                                      "Default: the marker columns of --data that are link names")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seeds every random choice (the --holdout split, the solver, "
+                                                        "the folds): the same seed gives the same result")
     p.add_argument("--with-instrument", action="store_true",
                    help="calibrated URDF rooted in the instrument frame (default: the robot's own root; the "
                         "registration goes to instrument.json)")
-    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar (default: on in a terminal)")
+    p.add_argument("--with-markers", action="store_true",
+                   help="add a fixed link marker_<name> per measured point to the calibrated URDF (without it the "
+                        "URDF differs from the input only in the joint origins the calibration changed)")
     p.add_argument("--plausible-mm", type=positive_float, default=10.0,
-                   help="largest plausible shift of a joint origin (mm); a model needing more is refused (default 10)")
+                   help="largest plausible shift of a joint origin (mm); a model needing more is refused")
     p.add_argument("--plausible-mrad", type=positive_float, default=10.0,
-                   help="largest plausible turn of a joint origin or zero offset (mrad; default 10)")
+                   help="largest plausible turn of a joint origin or zero offset (mrad)")
     p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
     add_common(p)
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict]:
-    ap = argparse.ArgumentParser(prog="torchcal", description="Robot calibration on torch tensors.")
+    ap = argparse.ArgumentParser(prog="torchcal", description="Robot calibration on torch tensors.",
+                                 formatter_class=DefaultsFormatter)
     ap.add_argument("--version", action="version", version=f"torchcal {__version__} (torch {torch.__version__})")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     c = sub.add_parser("calibrate", help="identify geometric errors from a measurement CSV")
-    c.add_argument("--method", default="lm", choices=available(),
-                   help="solver (every registered one; the population ones search a box around the start)")
-    c.add_argument("--kind", default="position", choices=["position", "pose"])
-    c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"])
+    c.add_argument("--method", default="lm", choices=list(solvers()), type=method_choice(solvers()), metavar="METHOD",
+                   help=method_help(solvers(), list(solvers(population=True))))
+    c.add_argument("--kind", default="position", choices=["position", "pose"],
+                   help="what is fitted: marker positions only, or positions and orientations (the data's "
+                        "<marker>.qw/.qx/.qy/.qz columns)")
+    c.add_argument("--loss", default="l2", choices=["l2", "huber", "cauchy"],
+                   help="l2: least squares; huber, cauchy: robust losses whose scale follows the residuals (outliers "
+                        "pull less)")
     c.add_argument("--free", action="append", help="glob pattern of parameters to identify (repeatable)")
-    c.add_argument("--polish", action="store_true", help="after a swarm method, polish with LM")
+    c.add_argument("--polish", action="store_true",
+                   help="after a population method, polish its best with LM (the result is then named e.g. pso+lm)")
+    add_progress(c, "the iterations of a population method (LM's few iterations show none)")
     c.add_argument("--prior", default="auto", choices=["auto", "cv", "none"],
                    help="Gaussian prior on the geometric errors, its scale chosen by cross-validation: 'auto' on "
                         "small data (< 10 values per parameter) or when a joint would move implausibly; 'cv' always; "
@@ -198,10 +213,19 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     c.set_defaults(func=_calibrate)
 
     lp = sub.add_parser("loop", help="calibrate, trace the residual to the effect the model lacks, add it, report")
-    lp.add_argument("--candidates", nargs="*", choices=sorted(EFFECTS), metavar="EFFECT",
-                    help=f"effects to consider (default: all the data allows): {', '.join(sorted(EFFECTS))}")
+    lp.add_argument("--effect", action="append", choices=sorted(EFFECTS) + ["none"], metavar="EFFECT",
+                    help="an effect to consider (repeatable; 'none': the geometry only). Without it: every effect the "
+                         f"data allows: {', '.join(sorted(EFFECTS))}")
+    renamed(lp, "--candidates", "--effect", "give each effect as --effect NAME (repeatable), as plan and fleet take "
+            "them; '--effect none' for the geometry only", nargs="*")
     lp.add_argument("--folds", type=int_at_least(2), default=5, help="cross-validation folds (≥ 2)")
-    lp.add_argument("--noise-mm", type=nonnegative_float, help="instrument noise for the report (mean error, mm)")
+    add_progress(lp, "the candidate effects of each round")
+    lp.add_argument("--noise-floor-mm", type=nonnegative_float,
+                    help="the mean Euclidean error a perfect model would leave (mm; for an instrument of per-axis "
+                         "standard deviation s, about 1.596 s), to judge what is left. Default: from rows that repeat a "
+                         "command, or a marker_std_mm column; else none is known")
+    renamed(lp, "--noise-mm", "--noise-floor-mm", "in loop it meant the mean error a perfect model leaves; --noise-mm "
+            "now means a per-axis standard deviation everywhere (simulate, plan)")
     lp.add_argument("--no-elm", action="store_true", help="skip the residual ELM stage")
     lp.add_argument("--orientation-weight", type=nonnegative_float,
                     help="m/rad: how a measured orientation error counts against a position error (σ_position / "
@@ -215,16 +239,20 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     lp.set_defaults(func=_loop)
 
     s = sub.add_parser("simulate", help="simulate laser-tracker measurements with geometric errors")
-    s.add_argument("--robot", required=True)
-    s.add_argument("--marker", action="append")
-    s.add_argument("--poses", type=int_at_least(1), default=100)
-    s.add_argument("--noise-mm", type=nonnegative_float, default=0.02)
-    s.add_argument("--length-error-mm", type=nonnegative_float, default=0.5)
-    s.add_argument("--angle-error-mrad", type=nonnegative_float, default=1.0)
+    s.add_argument("--robot", required=True, help="URDF file of the nominal robot")
+    s.add_argument("--marker", action="append", help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. "
+                                                     "Default: every leaf link")
+    s.add_argument("--poses", type=int_at_least(1), default=100, help="measured poses (rows), drawn in the joint limits")
+    s.add_argument("--noise-mm", type=nonnegative_float, default=0.02,
+                   help="instrument noise: standard deviation per axis (mm)")
+    s.add_argument("--length-error-mm", type=nonnegative_float, default=0.5,
+                   help="standard deviation of the simulated joint-origin shifts (mm)")
+    s.add_argument("--angle-error-mrad", type=nonnegative_float, default=1.0,
+                   help="standard deviation of the simulated joint-origin turns and zero offsets (mrad)")
     s.add_argument("--base-distance", type=nonnegative_float, default=3.0, help="instrument distance from the base (m)")
     s.add_argument("--effect", action="append", default=[], help="physical effect to simulate (repeatable): "
                    "joint_compliance, backlash, cyclic_joint_error, joint_scale, thermal_drift")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="seeds the robot's errors, the poses and the noise")
     s.add_argument("--out", required=True, help="CSV path; the truth goes beside it as .truth.json")
     add_common(s, units=False)
     s.set_defaults(func=_simulate)
@@ -233,6 +261,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     add_plan_parser(sub)
     add_fleet_parser(sub)
     add_bag_parser(sub)
+    for p in sub.choices.values():  # every command's --help shows every default
+        p.formatter_class = DefaultsFormatter
     return ap, sub.choices
 
 

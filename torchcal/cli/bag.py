@@ -13,6 +13,7 @@ import sys
 
 import torch
 
+from torchcal.cli.conventions import add_progress, progress_on
 from torchcal.cli.common import add_common, int_at_least, nonnegative_float, positive_float
 from torchcal.kinematics.robot import Robot
 from torchcal.measure.io import save_measurements
@@ -37,7 +38,7 @@ def add_bag_parser(sub) -> argparse.ArgumentParser:
                                    "averaged row per still pose.")
     p.add_argument("bag", help="ROS 1 .bag file, ROS 2 bag directory, or a ROS 2 .db3 / .mcap file")
     p.add_argument("--robot", required=True, help="URDF; the joint columns take its joint names")
-    p.add_argument("--joints", default="/joint_states", help="sensor_msgs/JointState topic (default /joint_states)")
+    p.add_argument("--joints", default="/joint_states", help="sensor_msgs/JointState topic")
     p.add_argument("--marker", action="append", required=True, type=_source,
                    metavar="NAME=/topic | NAME=tf:PARENT,CHILD",
                    help="a marker and where it is measured: a geometry_msgs Point, Pose or Transform topic "
@@ -45,19 +46,18 @@ def add_bag_parser(sub) -> argparse.ArgumentParser:
                         "any chain of /tf and /tf_static edges). Repeatable")
     p.add_argument("--out", required=True, help="measurement CSV to write (refused if it exists; see --force)")
     p.add_argument("--still-s", type=positive_float, default=0.5,
-                   help="least time the joints stand still for a row (s, default 0.5)")
+                   help="least time the joints stand still for a row (s)")
     p.add_argument("--still-tol", type=positive_float, default=5e-5,
-                   help="how far each joint may move (max - min) and still count as still (rad or m, default 5e-5)")
+                   help="how far each joint may move (max - min) and still count as still (rad or m)")
     p.add_argument("--settle-s", type=nonnegative_float, default=0.0,
                    help="leave out marker samples in the first SETTLE_S seconds of each still window (vibration "
-                        "after a stop; default 0)")
+                        "after a stop)")
     p.add_argument("--min-samples", type=int_at_least(1), default=3,
-                   help="least marker samples in a still window for the marker to count as seen (default 3)")
+                   help="least marker samples in a still window for the marker to count as seen")
     p.add_argument("--stamps", choices=("header", "bag"), default="header",
-                   help="time of each message: its header stamp (default; bag time where it has none) or the "
-                        "bag's receive time")
-    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
-                   help="progress bar over the messages (default: on in a terminal)")
+                   help="time of each message: its header stamp (bag time where it has none) or the bag's receive "
+                        "time")
+    add_progress(p, "the bag's messages")
     add_common(p, units=False)
     p.set_defaults(func=bag_main)
     return p
@@ -68,7 +68,7 @@ def bag_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     out = check_out_file(a.out, a.force, inputs=(a.bag,))
     torch.set_num_threads(a.threads)
     robot = Robot.from_urdf(a.robot)
-    progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
+    progress = progress_on(a)
     try:
         res = read_bag(a.bag, robot, a.marker, joints=a.joints, still_s=a.still_s, still_tol=a.still_tol,
                        settle_s=a.settle_s, min_samples=a.min_samples, stamps=a.stamps, progress=progress)

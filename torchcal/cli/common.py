@@ -9,6 +9,7 @@ import glob
 import json
 import logging
 import math
+import os
 import re
 import sys
 import traceback
@@ -189,6 +190,7 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
     if cfg is None:
         return argv
     path = Path(cfg)
+    _need_new_out(argv, path)
     if not path.is_file():
         raise SystemExit(f"torchcal {argv[0]}: error: config file not found: {path}")
     try:
@@ -205,6 +207,10 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
         dest = str(key).replace("-", "_")
         a = actions.get(dest)
         where = f"torchcal {argv[0]}: error: {path}: option {key!r}"
+        old = next((x.renamed for x in sub[argv[0]]._actions if f"--{key}" in x.option_strings
+                    and hasattr(x, "renamed")), None)
+        if old is not None:
+            raise SystemExit(f"{where}: {old}")
         if a is None:
             known = sorted(k.replace("_", "-") for k in actions)
             raise SystemExit(f"torchcal {argv[0]}: error: {path}: unknown option {key!r}; options are {known}")
@@ -287,20 +293,31 @@ def setup_logging(a: argparse.Namespace) -> None:
     warnings.showwarning = show
 
 
+def _need_new_out(argv: list[str], path: Path) -> None:
+    """A ``run.yaml`` that a run wrote (its folder holds ``provenance.json``) repeats that run,
+    whose output is its own folder: without a new ``--out`` say so, in one line."""
+    if (path.parent / "provenance.json").is_file() and not any(t == "--out" or t.startswith("--out=") for t in argv):
+        raise SystemExit(f"torchcal {argv[0]}: error: {path} repeats the run that wrote {path.parent}; give the repeat "
+                         f"its own output: --out {path.parent.name}-repeat (or another new path)")
+
+
 def run_record(a: argparse.Namespace, out: Path, files: dict, argv: list[str]) -> dict:
-    """Write ``run.yaml`` (the exact options, absolute paths: ``--config run.yaml`` repeats the
-    run) and ``provenance.json`` into ``out``; return the provenance."""
-    skip = {"func", "config", "cmd", "command", "force"}
+    """Write ``run.yaml`` (the exact options, paths relative to the output folder it lies in, no
+    ``out``: ``--config OUT/run.yaml --out NEW`` repeats the run into NEW) and
+    ``provenance.json`` into ``out``; return the provenance."""
+    skip = {"func", "config", "cmd", "command", "force", "out"}
+    home = Path(a.out).resolve() if getattr(a, "out", None) else Path(out).resolve()
     opts = {}
     for k, v in sorted(vars(a).items()):
-        if k in skip or v is None or v == [] or v is False:
+        if k in skip or k.startswith("_") or v is None or v == [] or v is False:
             continue
         if k in PATH_OPTIONS:
-            v = str(Path(v).resolve())
+            v = os.path.relpath(Path(v).resolve(), home)
         opts[k.replace("_", "-")] = v
     prov = provenance(files, ["torchcal", *argv])
-    atomic_write_text(out / "run.yaml", "# torchcal " + a.cmd + ": the exact options of this run; "
-                      "`torchcal " + a.cmd + " --config run.yaml` repeats it\n" + yaml.safe_dump(opts, sort_keys=True))
+    atomic_write_text(out / "run.yaml", f"# torchcal {a.cmd}: the exact options of this run, paths relative to this "
+                      f"folder; `torchcal {a.cmd} --config {Path(a.out).name}/run.yaml --out NEW` repeats it into "
+                      "NEW\n" + yaml.safe_dump(opts, sort_keys=True))
 
     atomic_write_text(out / "provenance.json", json.dumps(prov, indent=2) + "\n")
     return prov

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import argparse
 import glob
+import logging
 import os
+import time
 from pathlib import Path
 
 import torch
 
+from torchcal.cli.conventions import add_progress, progress_on
 from torchcal.cli.common import (add_common, inputs_of, int_at_least, positive_float, probability, robot_for,
                                  run_record)
 from torchcal.pipelines.fleet.run import calibrate_fleet
@@ -22,6 +25,8 @@ from torchcal.outputs import check_out_dir, staged_dir
 from torchcal.kinematics.urdf import load_joints
 
 __all__ = ["add_fleet_parser", "fleet_main", "fleet_files"]
+
+logger = logging.getLogger("torchcal")
 
 
 def fleet_files(spec: str) -> list[Path]:
@@ -69,6 +74,32 @@ def _load_all(files: list[Path], robot, units: list[str]) -> dict:
     return out
 
 
+class _robot_bar:
+    """A context giving ``tick(robot_id)``: a tqdm bar over the robots written (with ``on``),
+    else a log line at each tenth of the fleet, so that a long write shows it is moving."""
+
+    def __init__(self, on: bool, n: int):
+        self.on, self.n, self.i, self.bar = on, n, 0, None
+
+    def __enter__(self):
+        if self.on:
+            from tqdm.auto import tqdm
+            self.bar = tqdm(total=self.n, desc="fleet: writing robots", unit="robot")
+        return self.tick
+
+    def tick(self, name: str) -> None:
+        self.i += 1
+        if self.bar is not None:
+            self.bar.set_postfix_str(name, refresh=False)
+            self.bar.update(1)
+        elif self.i == self.n or self.i % max(1, self.n // 10) == 0:
+            logger.info(f"  wrote {self.i}/{self.n} robots (last: {name})")
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def add_fleet_parser(sub) -> argparse.ArgumentParser:
     """Add the ``fleet`` sub-command to an ``argparse`` sub-parser set."""
     f = sub.add_parser("fleet", help="calibrate many robots of one model in one batched solve",
@@ -84,21 +115,24 @@ def add_fleet_parser(sub) -> argparse.ArgumentParser:
     f.add_argument("--payload", choices=["shared", "per_robot"], default="shared",
                    help="with --effect: one unknown payload for the fleet, or one per robot")
     f.add_argument("--z", type=positive_float, default=5.0,
-                   help="flag a robot's parameter this many standard deviations from its siblings (default 5)")
+                   help="flag a robot's parameter this many standard deviations from its siblings")
     f.add_argument("--false-alarm", type=probability, default=FALSE_ALARM,
-                   help="chance that a fleet of healthy robots raises any flag (default 0.05); with few robots it "
-                        "raises the bound above --z")
+                   help="chance that a fleet of healthy robots raises any flag; with few robots it raises the bound "
+                        "above --z")
     f.add_argument("--min-rows", type=int_at_least(1), default=3, help="refuse robots with fewer rows")
     f.add_argument("--ray", metavar="ADDRESS", help="run on Ray: 'local' (in-process), 'auto' or ray://host:port "
                                                    "(pip install torchcal[ray])")
     f.add_argument("--shards", type=int_at_least(1), help="with --ray: how many tasks the fleet is cut into")
     f.add_argument("--no-figures", action="store_true", help="skip the error histograms per robot")
+    f.add_argument("--with-markers", action="store_true",
+                   help="add a fixed link marker_<name> per measured point to each robot's calibrated URDF")
     f.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
     f.add_argument("--plausible-mm", type=positive_float, default=10.0,
-                   help="largest plausible shift of a joint origin (mm; default 10): a robot's parameter its data pin "
-                        "down worse than this is fixed")
+                   help="largest plausible shift of a joint origin (mm): a robot's parameter its data pin down worse "
+                        "than this is fixed")
     f.add_argument("--plausible-mrad", type=positive_float, default=10.0,
-                   help="largest plausible turn of a joint origin or zero offset (mrad; default 10)")
+                   help="largest plausible turn of a joint origin or zero offset (mrad)")
+    add_progress(f, "the robots (their reports and figures written after the batched solve)")
     add_common(f)
     f.set_defaults(func=fleet_main)
     return f
@@ -108,6 +142,7 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     """Run ``torchcal fleet`` with parsed arguments (see :func:`add_fleet_parser`)."""
     check_out_dir(a.out, a.force, inputs_of(a))
     torch.set_num_threads(a.threads)
+    t0 = time.perf_counter()
     units = list(a.units or [])
     files = fleet_files(a.data)
     _same_joints(files, a.robot)
@@ -115,15 +150,21 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     data = _load_all(files, robot, units)
     test_files = fleet_files(a.test) if a.test else []
     test = _load_all(test_files, robot, units) or None
+    logger.info(f"read {len(data)} robots ({sum(len(d) for d in data.values())} rows"
+                + (f", {len(test)} held-out files" if test else "") + f") in {time.perf_counter() - t0:.1f} s; "
+                "calibrating them in one batched solve" + (f" on Ray ({a.ray})" if a.ray else "") + " …")
     fr = calibrate_fleet(robot, data, test=test, prior=a.prior, effects=a.effect, payload=a.payload,
                          z_threshold=a.z, false_alarm=a.false_alarm, min_rows=a.min_rows, ray=a.ray,
                          ray_shards=a.shards, plausible={"m": a.plausible_mm * 1e-3, "rad": a.plausible_mrad * 1e-3})
     inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}
-    with staged_dir(a.out, a.force) as d:
-        fr.save(d, figures=not a.no_figures)
+    logger.info(f"calibrated {len(fr)} robots in {fr.wall_time_s:.2f} s; writing each robot's report"
+                + (" and figures" if not a.no_figures else "") + " …")
+    with staged_dir(a.out, a.force) as d, _robot_bar(progress_on(a), len(fr)) as tick:
+        fr.save(d, figures=not a.no_figures, on_robot=tick, with_markers=a.with_markers)
         run_record(a, d, inputs, list(argv or []))
     out = Path(a.out)
-    print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s; wrote {out}{os.sep}<robot>/ and "
+    print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s (all told "
+          f"{time.perf_counter() - t0:.1f} s, reports included); wrote {out}{os.sep}<robot>/ and "
           f"{out / 'fleet.md'}")
     gross = {n: len(r.suspects) for n, r in zip(fr.names, fr.results) if r.suspects}
     if gross:

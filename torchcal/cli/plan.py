@@ -4,7 +4,7 @@ Writes the plan as a CSV of joint columns (rad / m, the joint columns of a measu
 in the URDF's names; ``dir.<joint>`` columns when backlash is planned) and, beside it,
 ``<stem>.plan.json`` and ``<stem>.plan.md``: the criterion, the condition number, the expected
 standard error of every parameter, which parameters no pose can identify and why, and what the
-self-collision check covers. Nothing is overwritten (``--force``).
+self-collision check covers, with the figure ``<stem>.plan.png`` (the poses' coverage). Nothing is overwritten (``--force``).
 """
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import argparse
 
 import torch
 
+from torchcal.cli.conventions import add_progress, progress_on
 from torchcal.cli.common import (add_common, inputs_of, int_at_least, nonnegative_float, parse_markers,
                                  positive_float)
 from torchcal.outputs import check_out_file, provenance
@@ -56,10 +57,10 @@ def add_plan_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--robot", required=True, help="URDF file")
     p.add_argument("--marker", action="append",
                    help="measured frame: LINK or NAME@LINK[=x,y,z] (m); repeatable. Default: every leaf link")
-    p.add_argument("--candidates", type=int_at_least(1), default=5000, help="candidate poses drawn (default 5000)")
-    p.add_argument("--select", type=int_at_least(1), default=30, help="poses in the plan (default 30)")
+    p.add_argument("--candidates", type=int_at_least(1), default=5000, help="candidate poses drawn")
+    p.add_argument("--select", type=int_at_least(1), default=30, help="poses in the plan")
     p.add_argument("--criterion", choices=CRITERIA, default="D",
-                   help="D: log det of the information matrix (default); O1, O4: observability indices")
+                   help="D: log det of the information matrix; O1, O4: observability indices")
     p.add_argument("--effect", action="append", default=[], type=_effect, metavar="EFFECT",
                    help="also plan for this effect (repeatable): " + ", ".join(plannable_effects()))
     p.add_argument("--reachable", type=_box, metavar="BOX",
@@ -67,12 +68,14 @@ def add_plan_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--collision-margin-mm", type=nonnegative_float,
                    help="check self-collision on the URDF's collision shapes with this clearance (mm)")
     p.add_argument("--margin", type=_margin, default=0.1,
-                   help="fraction of each joint range left out at both ends (default 0.1)")
+                   help="fraction of each joint range left out at both ends")
     p.add_argument("--noise-mm", type=positive_float, default=0.02,
-                   help="instrument noise per axis (mm), for the expected standard errors (default 0.02)")
+                   help="instrument noise: standard deviation per axis (mm), for the expected standard errors")
     p.add_argument("--refine-steps", type=int_at_least(0), default=100, help="gradient refinement steps (0: none)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, help="plan CSV; the report goes beside it (.plan.json, .plan.md)")
+    p.add_argument("--seed", type=int, default=0, help="seeds the candidate draw and the random reference subsets")
+    p.add_argument("--out", required=True,
+                   help="plan CSV; the report and its figure go beside it (.plan.json, .plan.md, .plan.png)")
+    add_progress(p, "the plan's stages (candidates checked, poses selected, refinement steps)")
     add_common(p, units=False)
     p.set_defaults(func=plan_main)
     return p
@@ -91,7 +94,7 @@ def plan_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     margin = None if a.collision_margin_mm is None else a.collision_margin_mm * 1e-3
     plan = plan_poses(robot, a.select, n_candidates=a.candidates, criterion=a.criterion, effects=a.effect,
                       reachable=a.reachable, collision_margin=margin, urdf_path=a.robot, noise=a.noise_mm * 1e-3,
-                      margin=a.margin, refine_steps=a.refine_steps, seed=a.seed)
+                      margin=a.margin, refine_steps=a.refine_steps, seed=a.seed, progress=progress_on(a))
     plan.save(a.out, force=a.force, meta={"provenance": provenance({"urdf": a.robot}, ["torchcal", *(argv or [])])})
     f = plan.feasibility
     print(f"{robot.name}: {plan.q.shape[0]} poses from {f['clear']} feasible candidates ({f['drawn']} drawn); "

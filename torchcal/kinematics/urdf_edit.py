@@ -14,10 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["rpy_near", "format_values", "edit_origins", "origin_text", "OriginEdit"]
+__all__ = ["rpy_near", "format_values", "format_number", "edit_origins", "origin_text", "OriginEdit", "ZERO"]
 
 _TAG = re.compile(rb"<(?P<name>[\w:.-]+)(?P<attrs>(?:\s+[\w:.-]+\s*=\s*(?:\"[^\"]*\"|'[^']*'))*)\s*(?P<end>/?)>")
 _ATTR = re.compile(rb"([\w:.-]+)\s*=\s*(?:\"([^\"]*)\"|'([^']*)')")
+# a number below this (m or rad) is float64 rounding of zero (a sum of products of cosines and sines
+# that cancel): written 0, never as -2.198e-20
+ZERO = 1e-15
 # |cos pitch| below this: the rotation is at gimbal lock to within what float64 rpy can say
 _LOCK = 1e-12
 
@@ -69,20 +72,27 @@ def rpy_near(R: np.ndarray, rpy0) -> np.ndarray:
     return best[1] + 0.0  # + 0.0: no -0.0 in the text
 
 
+def format_number(v) -> float:
+    """``v`` as a float, with rounding noise about zero (``|v| <`` :data:`ZERO`) and ``-0.0`` as ``0.0``."""
+    v = float(v)
+    return 0.0 if abs(v) < ZERO else v + 0.0
+
+
 def format_values(new, old_text: str | None) -> str:
     """Space-separated values for an attribute: each number the old text already states exactly
     keeps its old spelling (``0`` stays ``0``); the others are written with the shortest repr
-    that reads back to the same float."""
+    that reads back to the same float, rounding noise about zero as ``0``
+    (:func:`format_number`)."""
     old = old_text.split() if old_text else []
     out = []
     for i, v in enumerate(new):
-        v = float(v) + 0.0
+        v = format_number(v)
         tok = old[i] if i < len(old) else None
         try:
             same = tok is not None and float(tok) == v
         except ValueError:
             same = False
-        out.append(tok if same else repr(v))
+        out.append(tok if same else "0" if v == 0.0 else repr(v))
     return " ".join(out)
 
 

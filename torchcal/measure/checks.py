@@ -231,15 +231,18 @@ def warn_limits(robot: Robot, sets: list[tuple[Measurements, str]]) -> None:
 
 
 def _warn_repeated(train: Measurements, test: Measurements) -> None:
-    same = (test.source is not None and train.source is not None
-            and os.path.realpath(str(test.source)) == os.path.realpath(str(train.source)))
-    if not same and len(train) and len(test):
+    # rows split from one file (--holdout, Measurements.split) share its source but not its rows:
+    # only the rows themselves tell a repeat
+    same = False
+    if len(train) and len(test):
         rows = torch.cat([train.q, test.q], 0)
         _, inv = torch.unique(rows, dim=0, return_inverse=True)
         shared = int(torch.isin(inv[len(train):], inv[: len(train)]).sum())
         same = shared > len(test) // 2
     if same:
-        what = (f"the held-out file is the training file ({test.source})" if test.source == train.source else
+        one_file = (test.source is not None and train.source is not None and len(test) == len(train)
+                    and os.path.realpath(str(test.source)) == os.path.realpath(str(train.source)))
+        what = (f"the held-out file is the training file ({test.source})" if one_file else
                 f"the held-out rows ({test.source or 'test'}) are the same rows as the training rows")
         warnings.warn(f"{what}: the held-out figures are training figures, not a test. Hold out rows the fit does "
                       f"not see (another file, or {advice('Measurements.split', '--holdout')})", stacklevel=3)

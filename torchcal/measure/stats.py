@@ -84,7 +84,7 @@ def noise_floor(data, given_mm: float | None = None) -> tuple[float | None, str 
 
     In order: the pure error of rows that repeat a command (their pooled per-axis spread, which
     holds the robot's repeatability too, as the mean norm of 3-D noise of that σ); ``given_mm``
-    (the caller's, e.g. ``--noise-mm``, the instrument's specification); the median of a
+    (the caller's, e.g. ``--noise-floor-mm``, from the instrument's specification); the median of a
     ``marker_std_mm`` covariate (each pose's measured spread, as ``torchcal import-bag`` writes it;
     divided by √``marker_samples`` when the rows are means of that many samples). ``(None, None)``
     when none applies."""
@@ -92,7 +92,7 @@ def noise_floor(data, given_mm: float | None = None) -> tuple[float | None, str 
     if pure is not None:
         return pure
     if given_mm is not None:
-        return float(given_mm), "given by the caller (noise_mm, --noise-mm: the instrument's specification)"
+        return float(given_mm), "given by the caller (noise_mm, --noise-floor-mm: from the instrument's specification)"
     if "marker_std_mm" in data.covariates:
         med = float(torch.quantile(data.covariates["marker_std_mm"].double(), 0.5))  # the mean of the two middle
         if "marker_samples" in data.covariates:

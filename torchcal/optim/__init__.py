@@ -7,10 +7,10 @@ iterative solver; each solver module supplies its start and its step. Nothing he
 robots.
 """
 from torchcal.optim import cpso, ga, gradient, hybrid, lm, mayfly, mma, pso  # noqa: F401  (registers solvers)
-from torchcal.optim.base import Solver, available, get_solver, is_population, minimize, register
+from torchcal.optim.base import Solver, available, get_solver, is_population, minimize, register, solvers
 from torchcal.optim.engine import IterativeSolver, minimize_runs
 from torchcal.optim.result import Result
 from torchcal.problems.base import FunctionProblem, LeastSquaresProblem, Problem
 
 __all__ = ["Problem", "LeastSquaresProblem", "FunctionProblem", "Result", "Solver", "IterativeSolver",
-           "register", "get_solver", "available", "is_population", "minimize", "minimize_runs"]
+           "register", "get_solver", "available", "solvers", "is_population", "minimize", "minimize_runs"]

@@ -62,6 +62,15 @@ def available(population: bool | None = None) -> list[str]:
     return sorted(k for k, c in _REGISTRY.items() if population is None or c.population == population)
 
 
+def solvers(population: bool | None = None) -> dict[str, tuple[str, ...]]:
+    """Each registered solver once: its name -> its aliases (``population`` as in :func:`available`)."""
+    out = {}
+    for c in _REGISTRY.values():
+        if population is None or c.population == population:
+            out[c.name.lower()] = tuple(a.lower() for a in getattr(c, "aliases", ()))
+    return dict(sorted(out.items()))
+
+
 def is_population(method: str) -> bool:
     """Whether the solver registered as ``method`` searches with a population (it needs a box)."""
     return bool(getattr(_REGISTRY.get(method.lower()), "population", False))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcal.advice import advice
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.details import error_details
@@ -44,7 +45,8 @@ class CalibrateOptions(Options):
         params: the start (default: the robot's nominal parameters with its free flags).
         options: the solver's own settings (``{"max_iter": 200}``).
         seed, progress: the solver's seed and progress bar.
-        register: register the base by Kabsch first (when the base parameters are free).
+        register: register the base by Kabsch first (when the base parameters are free); for a
+            population method, also fit the base and the marker points by LM before the search.
         reduce: reduce the free set to an identifiable subset (column-pivoted QR of the Jacobian).
         prefer: parameter names kept first when the reduction must choose among tied ones.
         rot_weight: m/rad: how an orientation error counts against a position error (``kind="pose"``).
@@ -137,10 +139,12 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None,
     start = _start(robot, data, opt)
     # a gross error (a glitch metres off) is left out of the fit and listed; the statistics keep it
     fit_data, suspects = leave_out_gross(robot, data, start)
-    fitter = _Fitter(robot, fit_data, start, opt, plausible)
+    swarm_start = is_population(opt.method) and opt.register
+    fitter = _Fitter(robot, fit_data, _register_points(robot, fit_data, start) if swarm_start else start, opt, plausible)
     p, s, report, loss_obj = fitter.rounds()
     unident = {n: report.reasons.get(n, "not identifiable") for n in report.dropped} if report else {}
     std_errors = fitter.std_errors(p, loss_obj)
+    short = fitter.short_of_optimum(p, loss_obj)
     choice, why = _prior(fitter, p, loss_obj, data)
     held = {}
     if choice is not None and choice.prior_mm is not None:
@@ -158,7 +162,7 @@ def calibrate(robot, data: Measurements, *, test: Measurements | None = None,
                              suspects=suspects, prior_mm=None if choice is None else choice.prior_mm,
                              prior_reason=why, prior_tried=[] if choice is None else choice.tried,
                              implausible=implausible_values(p, robot, plausible), plausible=plausible,
-                             held_by_prior=held)
+                             held_by_prior=held, not_converged=short)
 
 
 def _check(robot, data: Measurements, test: Measurements | None, opt: CalibrateOptions) -> dict:
@@ -193,6 +197,24 @@ def _start(robot, data: Measurements, opt: CalibrateOptions) -> ParamSet:
         # started from the mean measured rotation
         p = register_marker_rotations(robot, data, p)
     return p
+
+
+def _register_points(robot, data: Measurements, p: ParamSet) -> ParamSet:
+    """A population method's start: the instrument frame and the marker points fitted by LM with
+    every robot error held at its start. They say where the instrument and the reflector sit,
+    not what is wrong with the robot, and a reflector centimetres from its guess lies outside
+    any box a swarm can search well (:data:`_SEARCH`); the swarm then searches the robot's
+    errors around them."""
+    own = [n for n in p.free_names if n.startswith("base.") or n.split(".", 1)[0] in robot.marker_names]
+    if not own:
+        return p
+    reg = p.clone()
+    reg.free[:] = False
+    reg.free[[reg.index(n) for n in own]] = True
+    prob = CalibrationProblem(robot, reg, data)
+    out = p.clone()
+    out.values = prob.full(get_solver("lm").minimize(prob).x).detach()
+    return out
 
 
 def _prior(fitter: "_Fitter", p: ParamSet, loss_obj: Loss | None,
@@ -283,6 +305,28 @@ class _Fitter:
         x = p.values[p.free_index]
         se = standard_errors(prob.jacobian(x), prob.residuals(x[None])[0])
         return dict(zip(p.free_names, se.tolist()))
+
+    def short_of_optimum(self, p: ParamSet, loss: Loss | None) -> str | None:
+        """For a population method, why its best is not the least-squares optimum beside it, or
+        None when it is. One Gauss-Newton step from the best is taken on the real residuals: when
+        it lowers the sum of squares by more than σ̂² (the residual variance), the best lies more
+        than one standard error, in the metric of the parameters' own covariance, from that
+        optimum, and the search stopped short of it. LM polishes to the optimum (``polish``)."""
+        if not self.swarm:
+            return None
+        prob = self.least_squares(p, loss)
+        x = p.values[p.free_index]
+        r, J = prob.residuals(x[None])[0], prob.jacobian(x)
+        step = -(torch.linalg.pinv(J) @ r)
+        sse, after = float(r.square().sum()), float(prob.residuals((x + step)[None])[0].square().sum())
+        var = min(sse, after) / max(r.numel() - x.numel(), 1)
+        if not sse - after > var:
+            return None
+        return (f"{self.opt.method} did not converge: its best lies {((sse - after) / var) ** 0.5:.3g} standard errors "
+                f"from the least-squares optimum beside it (one Gauss-Newton step from it lowers the sum of squares by "
+                f"{100 * (sse - after) / sse:.2g} %). That is the search's shortfall, not the data's: polish its best with LM ("
+                + advice("polish=True", "--polish") + ") or use " + advice('method="lm"', "--method lm")
+                + ", which reaches that optimum")
 
     def held_by_prior(self, p: ParamSet, loss: Loss | None) -> tuple[dict[str, str], dict[str, str]]:
         """What the data alone cannot tell apart, the prior holds: tied, fitted to the prior's

@@ -65,6 +65,7 @@ class CalibrationResult:
     plausible: dict = field(default_factory=dict)
     held_by_prior: dict = field(default_factory=dict)  # fitted, but tied: the prior's share, and why
     suspects: list[Suspect] = field(default_factory=list)  # gross errors left out of the fit
+    not_converged: str | None = None  # a population method's best short of the optimum beside it: why
 
     def __repr__(self) -> str:
         last = self.stages[-1]
@@ -75,9 +76,12 @@ class CalibrationResult:
     def problems(self) -> list[str]:
         """Reasons not to trust this calibration, in words (empty when none): worse than the
         nominal model on its own training rows, held-out rows that do not fit this robot, or joints
-        moved or turned by more than a plausible error."""
+        moved or turned by more than a plausible error, or a population method that stopped short
+        of the optimum."""
         out = stage_problems(self.stages)
-        if self.implausible:
+        if self.not_converged:  # implausible values then say nothing about the data: the search stopped short
+            out.append(self.not_converged)
+        elif self.implausible:
             out.append(implausible_reason(self.implausible, dict(zip(self.params.names, self.params.units)),
                                           self.plausible or PLAUSIBLE))
         return out
@@ -102,9 +106,11 @@ class CalibrationResult:
         """``report.md`` (:func:`~torchcal.report.calibration.calibration_markdown`)."""
         return calibration_markdown(self)
 
-    def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
+    def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, with_markers: bool = False,
+             extra=None) -> Path:
         """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
-        instrument frame as its root) and ``calibration.yaml``, ``instrument.json``, ``params.json``,
+        instrument frame as its root; ``with_markers``: a link per marker; the joints whose change
+        exceeds its standard error) and ``calibration.yaml``, ``instrument.json``, ``params.json``,
         ``report.json``, ``report.md``, ``report.html`` and the error figures into ``out_dir``, built
         under a temporary name.
         Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
@@ -112,7 +118,8 @@ class CalibrationResult:
         if self.problems():
             raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
         with staged_dir(out_dir, force) as out:
-            self.robot.export_calibration(self.params, out, with_instrument=with_instrument)
+            self.robot.export_calibration(self.params, out, with_instrument=with_instrument, with_markers=with_markers,
+                                          std_errors=self.std_errors)
             write_instrument(self.robot, self.params, out / "instrument.json")
             write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
                                              "values": self.params.values.tolist(),

@@ -24,6 +24,7 @@ import json
 import math
 import re
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from scipy import stats
@@ -281,18 +282,23 @@ def _bound(fr) -> float | None:
 _SAFE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
-def save_fleet(fr, out_dir, figures: bool = True) -> Path:
-    """Write every robot's calibration (``<out>/<robot>/``) and the fleet report."""
+def save_fleet(fr, out_dir, figures: bool = True, on_robot: Callable[[str], None] | None = None,
+               with_markers: bool = False) -> Path:
+    """Write every robot's calibration (``<out>/<robot>/``; ``with_markers``: a link per marker in
+    its URDF) and the fleet report; ``on_robot(id)`` is called after each robot's folder is
+    written (a progress bar's tick)."""
     out = Path(out_dir)
     bad = [n for n in fr.names if not _SAFE.match(n) or n in (".", "..")]
     if bad:
         raise ValueError(f"robot ids {bad[:5]} cannot name folders; use letters, digits, '_', '-' and '.'")
     out.mkdir(parents=True, exist_ok=True)
     for b, (n, r) in enumerate(zip(fr.names, fr.results)):
-        d = r.save(out / n) if figures else dataclasses.replace(r, errors={}).save(out / n)
+        d = (r if figures else dataclasses.replace(r, errors={})).save(out / n, with_markers=with_markers)
         if fr.effects:
             _add_effects(d, fr.effects, b)
             write_html(d, "report.md", title=f"Calibration of {fr.robot.name}: robot {n}")
+        if on_robot is not None:
+            on_robot(n)
     write_json(out / "fleet.json", fr.report())
     fig = None
     if figures and fleet_figure(spread_rows(fr), out / SPREAD_FIGURE, fr.z_threshold,

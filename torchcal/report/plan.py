@@ -7,13 +7,18 @@ from pathlib import Path
 from torchcal.outputs import check_out_file
 from torchcal.report.figures import plan_figure
 
-__all__ = ["write_plan_figure"]
+__all__ = ["write_plan_figure", "plan_figure_path"]
+
+
+def plan_figure_path(csv_path) -> Path:
+    """Where a plan's figure goes: ``<stem>.plan.png`` beside its CSV."""
+    return Path(csv_path).with_suffix(".plan.png")
 
 
 def write_plan_figure(plan, csv_path, force: bool = False) -> str:
     """Draw ``plan`` (a :class:`~torchcal.pipelines.plan.run.Plan`) to ``<stem>.plan.png`` beside
     ``csv_path`` (refused when it exists, unless ``force``) and return the Markdown that shows it."""
-    path = Path(csv_path).with_suffix(".plan.png")
+    path = plan_figure_path(csv_path)
     check_out_file(path, force)
     robot = plan.robot
     lo, hi = (x.detach().cpu().numpy() for x in robot.joint_limits)

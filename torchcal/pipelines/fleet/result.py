@@ -65,7 +65,8 @@ class FleetResult:
         """The fleet report as Markdown (``fleet.md``)."""
         return fleet_markdown(self)
 
-    def save(self, out_dir, figures: bool = True) -> Path:
-        """Write ``<robot>/calibrated.urdf``, ``report.md``, ``report.json`` (and error histograms
-        with ``figures``) per robot, and ``fleet.md``, ``fleet.json`` in ``out_dir``."""
-        return save_fleet(self, out_dir, figures)
+    def save(self, out_dir, figures: bool = True, on_robot=None, with_markers: bool = False) -> Path:
+        """Write ``<robot>/calibrated.urdf`` (``with_markers``: a link per marker), ``report.md``,
+        ``report.json`` (and error histograms with ``figures``) per robot, and ``fleet.md``,
+        ``fleet.json`` in ``out_dir``; ``on_robot(id)`` after each robot."""
+        return save_fleet(self, out_dir, figures, on_robot, with_markers)

@@ -109,6 +109,9 @@ def _try_round(d: Diagnosis, pool: list[str], rnd: int, tabu: dict, say, bar) ->
     """Every candidate of the pool against the current model: the catalogued effects, then the
     general families only when none of those passes (they take what the catalogue leaves)."""
     trials: list[Trial] = []
+    if bar is not None:  # at most every candidate of the pool; the general families only when needed
+        bar.reset(total=len(pool))
+        bar.set_description(f"round {rnd}")
     for tier in ([n for n in pool if not EFFECTS[n].fallback], [n for n in pool if EFFECTS[n].fallback]):
         if any(t.ok for t in trials):
             break

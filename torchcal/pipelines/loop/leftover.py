@@ -4,7 +4,7 @@ follows.
 
 **The noise a perfect model would leave** (:func:`~torchcal.measure.stats.noise_floor`): rows with
 identical commands (a pose measured again) differ by the noise alone, and their spread, the *pure
-error*, estimates it with no model at all. Without repeats it comes from ``--noise-mm`` (the
+error*, estimates it with no model at all. Without repeats it comes from ``--noise-floor-mm`` (the
 instrument's specification) or, failing that, from a ``marker_std_mm`` column.
 
 **Associations.** Each candidate signal (each joint's angle, its sine and cosine, each numeric
@@ -58,7 +58,7 @@ class Leftover:
 
     def words(self) -> list[str]:
         if self.floor_mm is None:
-            return ["no noise floor is known (no repeated commands, no --noise-mm, no marker_std_mm column): "
+            return ["no noise floor is known (no repeated commands, no --noise-floor-mm, no marker_std_mm column): "
                     "what is left cannot be told from noise"]
         out = [f"noise floor {self.floor_mm:.4f} mm ({self.floor_source}); the final model's cross-validated mean "
                f"error is {self.cv_mean_mm:.4f} mm, {self.ratio:.2f}× the floor"]

@@ -43,9 +43,10 @@ def parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
 
 
 def progress_bar(progress: bool):
+    """The diagnosis's bar over the candidate effects (its total set each round, so that tqdm
+    estimates the time the round has left), or None."""
     if not progress:
         return None
-
     return tqdm(desc="diagnosis", unit="candidate")
 
 

@@ -14,17 +14,18 @@ from torch import Tensor
 
 from torchcal.outputs import atomic_write_text, check_out_file
 from torchcal.params import display_unit
-from torchcal.report.plan import write_plan_figure
+from torchcal.report.plan import plan_figure_path, write_plan_figure
 
 __all__ = ["Plan", "plan_paths", "RANDOM_SUBSETS"]
 
 RANDOM_SUBSETS = 20  # random subsets the plan's criterion is compared with
 
 
-def plan_paths(out) -> tuple[Path, Path, Path]:
-    """The files a plan is written to: the CSV and its report beside it (``.plan.json``, ``.plan.md``)."""
+def plan_paths(out) -> tuple[Path, Path, Path, Path]:
+    """The files a plan is written to: the CSV and, beside it, its report (``.plan.json``,
+    ``.plan.md``) and the report's figure (``.plan.png``)."""
     p = Path(out)
-    return p, p.with_suffix(".plan.json"), p.with_suffix(".plan.md")
+    return p, p.with_suffix(".plan.json"), p.with_suffix(".plan.md"), plan_figure_path(p)
 
 
 @dataclass
@@ -136,7 +137,7 @@ class Plan:
     def save(self, out, *, force: bool = False, meta: dict | None = None) -> list[Path]:
         """Write the CSV, ``<stem>.plan.json`` (with ``meta`` merged in), ``<stem>.plan.md`` and its
         figure ``<stem>.plan.png`` (refused when one exists, unless ``force``); each is written under
-        a temporary name and renamed."""
+        a temporary name and renamed. Returns the four paths (:func:`plan_paths`)."""
         paths = plan_paths(out)
         for p in paths:
             check_out_file(p, force)

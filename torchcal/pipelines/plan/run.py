@@ -72,6 +72,7 @@ class PlanOptions(Options):
         refine_steps: gradient steps of the refinement (0: none); ``exchange_passes``: sweeps of
             the exchange pass.
         seed: seeds the candidate draw and the random reference subsets.
+        progress: a progress bar (tqdm) over the plan's stages, with the time left.
     """
 
     criterion: str = "D"
@@ -84,6 +85,7 @@ class PlanOptions(Options):
     refine_steps: int = 100
     exchange_passes: int = 3
     seed: int = 0
+    progress: bool = False
 
 
 def check_plannable(effects: Sequence[str]) -> None:
@@ -234,6 +236,26 @@ def _select(A: Tensor, n_select: int, opt: PlanOptions, flip: Tensor, dof: int) 
     return sel, D, {"greedy": v_greedy, "exchange": v_exchange}
 
 
+class _Stages:
+    """A tqdm bar over the plan's stages, each weighted by its work (a selected pose, a refinement
+    step, a pass over the candidates), so that the time left is an estimate."""
+
+    def __init__(self, on: bool, n_select: int, refine_steps: int):
+        self.bar = None
+        if on:
+            from tqdm.auto import tqdm
+            self.bar = tqdm(total=2 + n_select + refine_steps, desc="plan: drawing candidates", unit="step")
+
+    def done(self, what: str, n: int) -> None:
+        if self.bar is not None:
+            self.bar.set_description(f"plan: {what}")
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _random_median(A: Tensor, n_select: int, crit: str, flip: Tensor, dof: int, g: torch.Generator) -> float:
     """Median criterion of :data:`RANDOM_SUBSETS` random subsets of the candidates ``A (N, r, k)``,
     each pose approached in random directions."""
@@ -297,16 +319,22 @@ def plan_poses(robot, n_select: int = 30, *, n_candidates: int = 5000, candidate
     p, geo = _linearised_at(robot, params, free)
     cols = DesignColumns(robot, p, geo, [build_effect(e, robot, geometry=p) for e in effects])
     g = torch.Generator().manual_seed(int(opt.seed))
+    bar = _Stages(opt.progress, n_select, opt.refine_steps)
     qc, lo, hi = _draw_candidates(robot, n_candidates, opt.margin, candidates, g)
     qc, feas, feasible = _feasible_candidates(robot, qc, p, opt, n_select)
+    bar.done("candidates checked", 1)
     A, scale, keep, flip, rep = _scaled_columns(robot, cols, qc, g, n_select)
+    bar.done("information of each candidate", 1)
 
     sel, D, stages = _select(A, n_select, opt, flip, robot.dof)
+    bar.done(f"{n_select} poses selected", n_select)
     planned = bool((flip >= 0).any())
     q, hist = qc[sel], []
     if opt.refine_steps > 0:
         q, hist = refine_poses(cols, q, D if planned else None, keep, scale, (lo.to(**dt), hi.to(**dt)),
                                opt.criterion, feasible, steps=opt.refine_steps)
+    bar.done("poses refined", opt.refine_steps)
+    bar.close()
     with torch.no_grad():
         A_plan = cols(q, D if planned else None)[:, :, keep]
     stages["refined"] = float(criterion_value(information(A_plan / scale), n_select * A.shape[1], opt.criterion))
