@@ -56,17 +56,18 @@ def lock_path(p: Path, home: Path) -> Path:
     return home / f".{str(p.relative_to(home)).replace(os.sep, '%')}.torchcal-lock"
 
 
-def _stale(lock: Path) -> str | None:
-    """Why the lock at ``lock`` is stale, or None when a live run holds it (or is writing it)."""
+def _stale(lock: Path) -> tuple[int | None, str | None]:
+    """The process id in ``lock`` and why the lock is stale (None when a live run holds it, or is
+    writing it this instant)."""
     try:
         pid = int(lock.read_text().split()[0])
     except (OSError, ValueError, IndexError):
-        return None  # being written this instant: a live claim
+        return None, None  # being written this instant: a live claim
     if pid == os.getpid():
-        return None if str(lock) in _HELD else f"it holds this run's own process id {pid} (a restarted container)"
+        return pid, None if str(lock) in _HELD else f"it holds this run's own process id {pid} (a restarted container)"
     if not alive(pid):
-        return f"its process {pid} is no longer running"
-    return None
+        return pid, f"its process {pid} is no longer running"
+    return pid, None
 
 
 @contextmanager
@@ -78,13 +79,13 @@ def claim(path, home: Path) -> Iterator[Path]:
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
-            why = _stale(lock)
+            pid, why = _stale(lock)
             if why is not None:
                 lock.unlink(missing_ok=True)
                 logger.warning(f"torchcal: removed a stale lock of {p} ({why}): {lock}")
                 continue
-            raise OutputBusy(f"another torchcal run is writing {p} (its lock {lock} names a live process); wait for it "
-                             f"to finish, or choose another output (if no run is left, delete {lock})") from None
+            raise OutputBusy(f"another torchcal run{'' if pid is None else f' (process {pid})'} is writing {p}; wait "
+                             f"for it to finish, or choose another output (if no run is left, delete {lock})") from None
         try:
             os.write(fd, f"{os.getpid()}\n".encode())
         except OSError:

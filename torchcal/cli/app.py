@@ -266,8 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if e.errno == errno.EPIPE else EXIT_IOERR
     except KeyboardInterrupt as e:
         how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
-        print(f"torchcal {a.cmd}: {how}; nothing was written (its temporary files and lock were removed)",
-              file=sys.stderr)
+        print(f"torchcal {a.cmd}: {how}; nothing was written", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
     except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
         return report_failure(a.cmd, e, getattr(a, "verbose", False), getattr(a, "out", None))

@@ -92,6 +92,10 @@ def report_failure(cmd: str, e: Exception, verbose: bool, out=None) -> int:
         print(f"torchcal {cmd}: error: could not write {name}: {e.strerror or e}; {fix}, and run again (nothing was "
               "written)", file=sys.stderr)
         return EXIT_REFUSED
+    if isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and "can't allocate memory" in str(e)):
+        print(f"torchcal {cmd}: error: ran out of memory ({str(e)[:120] or 'MemoryError'}); use fewer rows, or run "
+              "where there is more memory (nothing was written)", file=sys.stderr)
+        return EXIT_REFUSED
     if is_refusal(e):
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
         print(f"torchcal {cmd}: error: {msg}", file=sys.stderr)

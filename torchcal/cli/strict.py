@@ -80,8 +80,9 @@ def check_command_line(argv: list[str], a: argparse.Namespace, parser: argparse.
         if _not_default(a, parser, x) and _not_default(a, parser, y):
             return f"--{x.replace('_', '-')} and --{y.replace('_', '-')} were both given: {why}"
     seed = getattr(a, "seed", None)
-    if isinstance(seed, int) and not 0 <= seed <= SEED_MAX:
-        return f"--seed {seed} is outside 0 … 2**63 - 1 (the random generators take 64 bits); give a smaller seed"
+    if isinstance(seed, int) and not -SEED_MAX <= seed <= SEED_MAX:
+        return (f"--seed {seed} is beyond ±(2**63 - 1) (the random generators take 64 bits); give a seed of at most "
+                "18 digits")
     return _paths_utf8(a)
 
 
