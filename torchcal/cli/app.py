@@ -32,6 +32,7 @@ from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
+from torchcal.environment import NOTES
 from torchcal.kinematics.robot import Robot
 from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
 from torchcal.measure.records import Stage
@@ -256,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchcal {a.cmd}: error: {problem}", file=sys.stderr)
         return 2
     setup_logging(a)
+    for note in NOTES:
+        logger.warning(f"torchcal {a.cmd}: warning: {note}")
     # each command sets torch's threads from --threads; the library's own choice would override it
     threads, choice = torch.get_num_threads(), set_threads("caller")
     try:

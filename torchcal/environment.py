@@ -1,0 +1,48 @@
+"""Environment variables of other programs that must not break ``import torchcal``.
+
+``MPLBACKEND`` is read by matplotlib when it is imported (pytorch_kinematics imports
+``matplotlib.pyplot`` on import), and a value matplotlib does not know, a notebook's
+``module://matplotlib_inline.backend_inline`` exported into a terminal for instance, makes that
+import raise: ``import torchcal`` would fail with matplotlib's traceback. torchcal draws its own
+figures with Agg (:mod:`torchcal.report.plotting`), so an unusable backend is dropped from this
+process's environment before matplotlib is imported, and :data:`NOTES` says so (the command line
+prints it; a warning at import would itself fail under ``PYTHONWARNINGS=error``).
+"""
+from __future__ import annotations
+
+import importlib.util
+import os
+
+__all__ = ["NOTES", "guard_matplotlib_backend"]
+
+NOTES: list[str] = []
+# matplotlib's built-in backends (matplotlib.backends.registry; the names are case-insensitive)
+_BUILTIN = {"gtk3agg", "gtk3cairo", "gtk4agg", "gtk4cairo", "macosx", "nbagg", "notebook", "qtagg", "qtcairo",
+            "qt5agg", "qt5cairo", "tkagg", "tkcairo", "webagg", "wx", "wxagg", "wxcairo", "agg", "cairo", "pdf",
+            "pgf", "ps", "svg", "template", "inline", "ipympl", "widget"}
+
+
+def _usable(name: str) -> bool:
+    if name.lower() in _BUILTIN:
+        return True
+    if name.startswith("module://"):
+        module = name[len("module://"):]
+        try:
+            return bool(module) and importlib.util.find_spec(module) is not None
+        except (ImportError, ValueError):
+            return False
+    return False
+
+
+def guard_matplotlib_backend() -> None:
+    """Drop an ``MPLBACKEND`` matplotlib could not load, before matplotlib is imported (see the
+    module docstring)."""
+    name = os.environ.get("MPLBACKEND")
+    if name is None or "matplotlib" in __import__("sys").modules or _usable(name.strip()):
+        return
+    del os.environ["MPLBACKEND"]
+    NOTES.append(f"MPLBACKEND={name!r} is not a matplotlib backend this Python can load (a notebook's setting?); "
+                 "it was ignored, and torchcal draws its figures with Agg. Unset it, or set it to e.g. 'agg'")
+
+
+guard_matplotlib_backend()
