@@ -7,13 +7,17 @@ import raise: ``import torchcal`` would fail with matplotlib's traceback. torchc
 figures with Agg (:mod:`torchcal.report.plotting`), so an unusable backend is dropped from this
 process's environment before matplotlib is imported, and :data:`NOTES` says so (the command line
 prints it; a warning at import would itself fail under ``PYTHONWARNINGS=error``).
+
+A ``torchcal`` command also answers SIGTERM from its first moment (:func:`early_sigterm`).
 """
 from __future__ import annotations
 
 import importlib.util
 import os
+import signal
+import sys
 
-__all__ = ["NOTES", "guard_matplotlib_backend"]
+__all__ = ["NOTES", "guard_matplotlib_backend", "early_sigterm"]
 
 NOTES: list[str] = []
 # matplotlib's built-in backends (matplotlib.backends.registry; the names are case-insensitive)
@@ -45,4 +49,26 @@ def guard_matplotlib_backend() -> None:
                  "it was ignored, and torchcal draws its figures with Agg. Unset it, or set it to e.g. 'agg'")
 
 
+def _started_as_command() -> bool:
+    """Whether this process is the ``torchcal`` command (``python -m torchcal`` or the script)."""
+    argv = list(getattr(sys, "orig_argv", []))
+    if "-m" in argv[:-1] and argv[argv.index("-m") + 1] == "torchcal":
+        return True
+    return len(argv) > 1 and os.path.basename(argv[1]) == "torchcal"
+
+
+def _terminated_early(signum, frame) -> None:
+    sys.stderr.write("torchcal: terminated (SIGTERM) while starting; nothing was written\n")
+    os._exit(143)
+
+
+def early_sigterm() -> None:
+    """While the command imports its libraries (seconds), SIGTERM ends it with one line instead of
+    silently; the command's own handler (:mod:`torchcal.cli.runtime`) takes over when it runs. A
+    library import (a notebook, a script) installs nothing."""
+    if _started_as_command() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, _terminated_early)
+
+
 guard_matplotlib_backend()
+early_sigterm()
