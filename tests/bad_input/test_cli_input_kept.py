@@ -77,3 +77,11 @@ def test_the_environment_gives_refusals_or_works(tmp_path, ur5e_csv):
     assert (tmp_path / "b" / "errors.png").is_file()
     r = _sub(_base(ur5e_csv, tmp_path / "c"), PYTHONWARNINGS="error")
     assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+
+
+def test_an_option_that_would_be_ignored_is_refused(tmp_path, torchcal_cli, ur5e_csv):
+    rc, _, err = torchcal_cli(*_base(ur5e_csv, tmp_path / "o"), "--polish")
+    _refused(rc, err, "--polish", "not a swarm method", "ignored")
+    rc, _, err = torchcal_cli("fleet", "--robot", UR5E, "--marker", SMR, "--data", tmp_path, "--out", tmp_path / "f",
+                              "--shards", "3")
+    _refused(rc, err, "--shards without --ray")

@@ -13,6 +13,7 @@ import argparse
 
 import yaml
 
+from torchcal.optim import is_population
 from torchcal.threads import env_problem
 
 __all__ = ["strict_parsers", "check_command_line", "UniqueKeyLoader", "SEED_MAX"]
@@ -22,6 +23,9 @@ SEED_MAX = 2**63 - 1  # torch and numpy take seeds up to 64 bits; beyond, they o
 # (option, option, why they exclude each other); a pair is refused when both are set (not default)
 _CONFLICTS = (("test", "holdout", "--holdout splits --data when no --test is given; with --test it would be ignored. "
                                   "Give --test or --holdout, not both"),)
+# (option, the option it needs, why); refused when the first is set without the second
+_REQUIRES = (("shards", "ray", "--shards cuts the fleet into Ray tasks; without --ray it would be ignored. Add --ray "
+              "local (or an address), or leave --shards out"),)
 
 
 def strict_parsers(ap: argparse.ArgumentParser, sub: dict) -> None:
@@ -79,6 +83,12 @@ def check_command_line(argv: list[str], a: argparse.Namespace, parser: argparse.
     for x, y, why in _CONFLICTS:
         if _not_default(a, parser, x) and _not_default(a, parser, y):
             return f"--{x.replace('_', '-')} and --{y.replace('_', '-')} were both given: {why}"
+    for x, y, why in _REQUIRES:
+        if _not_default(a, parser, x) and not _not_default(a, parser, y):
+            return f"--{x.replace('_', '-')} without --{y.replace('_', '-')}: {why}"
+    if getattr(a, "polish", False) and not is_population(a.method):
+        return (f"--polish polishes a swarm method's result with LM, and --method {a.method} is not a swarm method, so "
+                "it would be ignored; leave --polish out, or pick a swarm method (e.g. --method pso)")
     seed = getattr(a, "seed", None)
     if isinstance(seed, int) and not -SEED_MAX <= seed <= SEED_MAX:
         return (f"--seed {seed} is beyond ±(2**63 - 1) (the random generators take 64 bits); give a seed of at most "
