@@ -154,8 +154,8 @@ def check_enough(robot: Robot, data: Measurements, who: str = "training") -> Non
         src = f" ({data.source})" if data.source else ""
         same = "" if poses == len(data) else f", only {poses} different poses (the others repeat a joint command)"
         raise ValueError(f"too few rows: the {who} data{src} have {len(data)} rows ({data.n_values} measured values"
-                         f"{same}); {why}: measure at least {rows} different poses (a geometric calibration wants "
-                         "several times more)")
+                         f"{same}); {why}: measure at least {rows} poses, each a different joint command (a geometric "
+                         "calibration wants several times more)")
 
 
 def _spread(x: np.ndarray) -> float:
