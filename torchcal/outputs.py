@@ -38,7 +38,7 @@ import torch
 from torchcal.advice import advice
 from torchcal.outputs_lock import OutputBusy, clean_leftovers
 from torchcal.outputs_lock import claim as _claim
-from torchcal.outputs_manifest import public_modes, read_manifest, swap_in, umask, write_manifest
+from torchcal.outputs_manifest import all_files, public_modes, read_manifest, swap_in, umask, write_manifest
 from torchcal.version import __version__
 
 __all__ = ["check_out_dir", "check_out_file", "staged_dir", "atomic_write_text", "atomic_write_bytes",
@@ -228,10 +228,21 @@ def staged_dir(path, force: bool = False) -> Iterator[Path]:
         if p.exists() and not p.is_dir():
             raise FileExistsError(f"{p} became a file while the run worked; the result was not written: choose "
                                   "another output directory")
-        swap_in(tmp, p, read_manifest(p) if p.exists() and written_by_torchcal(p) else None)
+        swap_in(tmp, p, _owned(p))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _owned(p: Path) -> set[str] | None:
+    """The files of ``p`` torchcal wrote: its manifest; everything, for a torchcal result written
+    before manifests; None (nothing) for a folder someone else made."""
+    if not p.exists():
+        return None
+    ours = read_manifest(p)
+    if ours is None and written_by_torchcal(p):
+        ours = all_files(p)
+    return ours
 
 
 def atomic_write_bytes(path, data: bytes) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from torchcal.version import __version__
 
-__all__ = ["MANIFEST", "write_manifest", "read_manifest", "swap_in", "umask", "public_modes"]
+__all__ = ["MANIFEST", "write_manifest", "read_manifest", "all_files", "swap_in", "umask", "public_modes"]
 
 MANIFEST = ".torchcal-manifest.json"
 logger = logging.getLogger("torchcal")
@@ -62,6 +62,11 @@ def write_manifest(root: Path) -> None:
     """Record every file under ``root`` as written by this torchcal run."""
     rec = {"torchcal": __version__, "files": _files(root)}
     (root / MANIFEST).write_text(json.dumps(rec, indent=1) + "\n")
+
+
+def all_files(root: Path) -> set[str]:
+    """Every file under ``root``: what a torchcal result written before manifests counts as its own."""
+    return set(_files(root))
 
 
 def read_manifest(root: Path) -> set[str] | None:

@@ -85,3 +85,9 @@ def test_an_option_that_would_be_ignored_is_refused(tmp_path, torchcal_cli, ur5e
     rc, _, err = torchcal_cli("fleet", "--robot", UR5E, "--marker", SMR, "--data", tmp_path, "--out", tmp_path / "f",
                               "--shards", "3")
     _refused(rc, err, "--shards without --ray")
+
+
+def test_a_list_option_given_twice_is_refused(tmp_path, torchcal_cli, ur5e_csv):
+    rc, _, err = torchcal_cli("loop", "--robot", UR5E, "--marker", SMR, "--data", ur5e_csv, "--out", tmp_path / "o",
+                              "--candidates", "backlash", "--candidates", "joint_compliance")
+    _refused(rc, err, "--candidates takes its values at once")

@@ -102,3 +102,13 @@ def test_results_follow_the_umask(tmp_path, torchcal_cli, ur5e_csv, mask, folder
     for f in ("run.yaml", "provenance.json", "calibrated.urdf"):
         assert stat.S_IMODE((out / f).stat().st_mode) == file, f
     assert stat.S_IMODE((tmp_path / "s.csv").stat().st_mode) == file
+
+
+def test_a_result_written_before_manifests_is_replaced_whole(tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "provenance.json").write_text(json.dumps({"torchcal": "0.0.1"}))
+    (out / "old.txt").write_text("an earlier torchcal's file")
+    with staged_dir(out, force=True) as d:
+        (d / "new.txt").write_text("new")
+    assert sorted(p.name for p in out.iterdir() if p.name != MANIFEST) == ["new.txt", "provenance.json"]

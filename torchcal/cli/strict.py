@@ -35,8 +35,9 @@ def strict_parsers(ap: argparse.ArgumentParser, sub: dict) -> None:
 
 
 def _single(a: argparse.Action) -> bool:
-    return bool(a.option_strings) and isinstance(a, (argparse._StoreAction, argparse.BooleanOptionalAction)) \
-        and a.nargs in (None, "?", 1)
+    """Whether a second ``a`` replaces the first (a value, or a list given at once as ``--opt A B``);
+    ``append`` options add up and switches repeat harmlessly."""
+    return bool(a.option_strings) and isinstance(a, (argparse._StoreAction, argparse.BooleanOptionalAction))
 
 
 def _repeated(argv: list[str], parser: argparse.ArgumentParser) -> str | None:
@@ -47,8 +48,9 @@ def _repeated(argv: list[str], parser: argparse.ArgumentParser) -> str | None:
         flags = set(a.option_strings)
         seen = [t.split("=", 1)[0] for t in argv if t.split("=", 1)[0] in flags]
         if len(seen) > 1:
-            return (f"{' '.join(seen)}: {a.option_strings[-1]} takes one value and was given {len(seen)} times; "
-                    "only one would be used. Give it once")
+            what = "one value" if a.nargs in (None, "?", 1) else "its values at once (--opt A B)"
+            return (f"{' '.join(seen)}: {a.option_strings[-1]} takes {what} and was given {len(seen)} times; only the "
+                    "last would be used. Give it once")
     return None
 
 
