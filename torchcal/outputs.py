@@ -64,10 +64,11 @@ def _refuse_special(p: Path, what: str = "output") -> None:
     replace the system's /dev/null)."""
     try:
         st = os.lstat(p)
-    except FileNotFoundError:
-        return
     except OSError as e:
-        raise NotADirectoryError(f"{p}: {e.strerror}; give another {what} path") from None
+        if e.errno == errno.ELOOP:
+            raise NotADirectoryError(f"{p}: a symbolic link on this path loops; remove or fix the link, or give "
+                                     f"another {what} path") from None
+        return  # missing, or a file where a folder should be: the checks after this one say which
     if stat.S_ISLNK(st.st_mode):
         try:
             target = os.readlink(p)

@@ -1,6 +1,6 @@
 """Saving and loading :class:`~torchcal.deploy.model.CalibratedModel` directories.
 
-A model directory holds three files:
+A model directory holds three files (and the manifest by which a later ``force`` knows what torchcal wrote):
 
 * ``model.json``: metadata: format name and version, torchcal version, the robot (name, SHA-256
   of its URDF text, joint and marker names, markers, dtype), parameter names and units, the
