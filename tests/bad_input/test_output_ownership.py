@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.outputs import claim, staged_dir
+from torchcal.outputs import atomic_write_text, claim, staged_dir
 from torchcal.outputs_manifest import MANIFEST
 
 REPO = Path(__file__).resolve().parents[2]
@@ -27,6 +27,7 @@ def _hidden(folder: Path) -> list[str]:
                   or p.name.endswith("-lock"))
 
 
+@pytest.mark.slow
 def test_force_replaces_only_what_torchcal_wrote(tmp_path, torchcal_cli, ur5e_csv):
     out = tmp_path / "o"
     assert _calibrate(torchcal_cli, ur5e_csv, out)[0] == 0
@@ -89,19 +90,22 @@ def test_leftovers_of_a_killed_run_and_stale_locks_are_cleaned_and_said(tmp_path
 
 
 @pytest.mark.parametrize("mask, folder, file", [(0o022, 0o755, 0o644), (0o077, 0o700, 0o600), (0o002, 0o775, 0o664)])
-def test_results_follow_the_umask(tmp_path, torchcal_cli, ur5e_csv, mask, folder, file):
+def test_results_follow_the_umask(tmp_path, torchcal_cli, mask, folder, file):
     old = os.umask(mask)
     try:
         out = tmp_path / "o"
-        assert _calibrate(torchcal_cli, ur5e_csv, out)[0] == 0
+        with staged_dir(out) as d:  # a result folder, as calibrate, loop and save write it
+            atomic_write_text(d / "run.yaml", "a: 1\n")
+            (d / "model").mkdir()
+            (d / "model" / "model.json").write_text("{}")
         rc, _, err = torchcal_cli("simulate", "--robot", UR5E, "--marker", SMR, "--poses", 5, "--out", tmp_path / "s.csv")
         assert rc == 0, err
     finally:
         os.umask(old)
-    assert stat.S_IMODE(out.stat().st_mode) == folder
-    for f in ("run.yaml", "provenance.json", "calibrated.urdf"):
-        assert stat.S_IMODE((out / f).stat().st_mode) == file, f
-    assert stat.S_IMODE((tmp_path / "s.csv").stat().st_mode) == file
+    for d in (out, out / "model"):
+        assert stat.S_IMODE(d.stat().st_mode) == folder, d
+    for f in (out / "run.yaml", out / "provenance.json", out / "model" / "model.json", tmp_path / "s.csv"):
+        assert stat.S_IMODE(f.stat().st_mode) == file, f
 
 
 def test_a_result_written_before_manifests_is_replaced_whole(tmp_path):
