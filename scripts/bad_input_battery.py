@@ -1061,6 +1061,168 @@ def refused_run_makes_no_folders(root):
     return ok and not (root / "new").exists(), why
 
 
+# ============================================================================ issue 36: the third round
+# one case per class (faults, data, environment, messages) and one per item of the ten worst; the
+# names start with r3_ (run them alone with -k r3_)
+@case
+def r3_mimic_multiplier_zero(root):
+    from torchcal import Robot
+
+    urdf = (REPO / "tests" / "conftest.py").read_text().split('TREE_URDF = """', 1)[1].split('"""', 1)[0]
+    tip = "tip@finger_b=0,0.05,0.02"
+    r = Robot.from_urdf(urdf.replace('multiplier="-1.5"', 'multiplier="0"'), markers=[tip])
+    q = torch.zeros(2, r.dof, dtype=torch.float64)
+    q[1, r.joint_names.index("finger_a_joint")] = 0.8
+    gap = float((r.positions(q)[0] - r.positions(q)[1]).norm())
+    return gap < 1e-12, f"the marker moved {gap * 1e3:.3f} mm with a mimic multiplier of 0"
+
+
+@case
+def r3_model_json_edited(root):
+    d = data_dir(root)
+    out = root / "cell"
+    loop(d, out=out)
+    f = out / "model" / "model.json"
+    meta = json.loads(f.read_text())
+    meta["robot"]["markers"][0]["xyz"][2] += 0.1
+    f.write_text(json.dumps(meta))
+    t = root / "targets.csv"
+    t.write_text("x,y,z\n0.3,0.2,0.5\n")
+    rc, _, err = cli("correct", "--model", out / "model", "--targets", t, "--out", root / "cmd.csv")
+    ok, why = refused(rc, err, "checksum", "save the model again|restore")
+    return ok and not (root / "cmd.csv").exists(), why
+
+
+@case
+def r3_mirrored_target(root):
+    from torchcal import Robot
+    from torchcal.kinematics.ik import target_frames
+
+    r = Robot.from_urdf(UR5E, markers=[SMR])
+    T = torch.eye(4, dtype=torch.float64)[None].clone()
+    T[0, :3, 3] = torch.tensor([0.3, 0.2, 0.5])
+    T[0, :3, 1] *= -1
+    e, _ = api(lambda: target_frames(r, T))
+    return isinstance(e, ValueError) and "mirrored" in str(e), repr(e)
+
+
+@case
+def r3_force_keeps_user_file(root):
+    d = data_dir(root)
+    out = root / "o"
+    calibrate(d, out=out)
+    (out / "notes.txt").write_text("mine")
+    rc, _, err = calibrate(d, "--force", out=out)
+    kept = (out / "notes.txt").exists() and (out / "notes.txt").read_text() == "mine"
+    return rc == 0 and kept and "notes.txt" in err and not hidden_left(root), f"rc={rc} kept={kept} {err[-300:]}"
+
+
+@case
+def r3_urdf_axis_nan(root):
+    d = data_dir(root)
+    bad = root / "bad.urdf"
+    bad.write_text(Path(UR5E).read_text().replace('<axis xyz="0.0 0.0 1.0"/>', '<axis xyz="nan 1 0"/>', 1))
+    rc, _, err = cli("calibrate", "--robot", bad, "--marker", SMR, "--data", d / "train.csv", "--out", root / "o")
+    return refused(rc, err, r"bad\.urdf, line \d+", "axis", "finite")
+
+
+@case
+def r3_urdf_bom(root):
+    d = data_dir(root)
+    bom = root / "bom.urdf"
+    bom.write_bytes(b"\xef\xbb\xbf" + Path(UR5E).read_bytes())
+    rc, _, err = cli("calibrate", "--robot", bom, "--marker", SMR, "--data", d / "train.csv", "--out", root / "o")
+    return rc == 0 and "File name too long" not in err, f"rc={rc} {err[-300:]}"
+
+
+@case
+def r3_one_pose_repeated(root):
+    d = data_dir(root)
+    lines = (d / "train.csv").read_text().splitlines()
+    f = root / "same.csv"
+    f.write_text("\n".join([lines[0]] + [lines[1]] * 100) + "\n")
+    rc, _, err = calibrate(d, "--prior", "none", data=f)
+    return refused(rc, err, "never moved")
+
+
+@case
+def r3_data_and_holdout_conflict(root):
+    d = data_dir(root)
+    rc, _, err = calibrate(d, "--holdout", "0.3", test=d / "test.csv")
+    return refused(rc, err, "--test and --holdout")
+
+
+@case
+def r3_repeated_data_option(root):
+    d = data_dir(root)
+    rc, _, err = calibrate(d, "--data", d / "test.csv")
+    return refused(rc, err, "--data takes one value")
+
+
+@case
+def r3_sigterm_leaves_no_lock(root):
+    d = data_dir(root)
+    p = subprocess.Popen([PY, "-m", "torchcal", "loop", "--robot", UR5E, "--marker", SMR, "--data", d / "all.csv",
+                          "--out", root / "o"], cwd=root, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    time.sleep(6.0)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    left = [x.name for x in root.iterdir() if x.name != "data"]
+    return p.returncode == 143 and "terminated" in err and not left, f"rc={p.returncode} left={left} {err[-300:]}"
+
+
+@case
+def r3_force_on_a_fifo(root):
+    fifo = root / "pipe"
+    os.mkfifo(fifo)
+    rc, _, err = cli("simulate", "--robot", UR5E, "--marker", SMR, "--poses", 5, "--out", fifo, "--force")
+    ok, why = refused(rc, err, "FIFO")
+    return ok and fifo.is_fifo(), why
+
+
+@case
+def r3_faults_stdout_full(root):
+    d = data_dir(root)
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([PY, "-m", "torchcal", "calibrate", "--robot", UR5E, "--marker", SMR, "--data",
+                            d / "train.csv", "--out", root / "o"], cwd=root, env=ENV, stdout=full,
+                           stderr=subprocess.PIPE, text=True, timeout=300)
+    ok = "nothing was written" not in p.stderr and "complete" in p.stderr and (root / "o" / "calibrated.urdf").exists()
+    return ok and p.returncode not in (0, 70) and "Traceback" not in p.stderr, f"rc={p.returncode} {p.stderr[-300:]}"
+
+
+@case
+def r3_data_blank_lines_keep_line_numbers(root):
+    d = data_dir(root)
+    lines = (d / "train.csv").read_text().splitlines()
+    bad = lines[:3] + ["", ""] + lines[3:]
+    bad[7] = "x," + bad[7].split(",", 1)[1]  # line 8 of the file
+    f = root / "blank.csv"
+    f.write_text("\n".join(bad) + "\n")
+    rc, _, err = calibrate(d, data=f)
+    return refused(rc, err, "line 8")
+
+
+@case
+def r3_environment_threads_zero_and_backend(root):
+    d = data_dir(root)
+    args = [PY, "-m", "torchcal", "calibrate", "--robot", UR5E, "--marker", SMR, "--data", d / "train.csv"]
+    a = subprocess.run(args + ["--out", root / "a"], env={**ENV, "TORCHCAL_THREADS": "0"}, capture_output=True,
+                       text=True, timeout=300)
+    b = subprocess.run(args + ["--out", root / "b"], env={**ENV, "MPLBACKEND": "module://nowhere.backend"},
+                       capture_output=True, text=True, timeout=300)
+    ok = a.returncode == 2 and "TORCHCAL_THREADS" in a.stderr and b.returncode == 0
+    return ok and "Traceback" not in a.stderr + b.stderr, f"{a.returncode} {b.returncode} {(a.stderr + b.stderr)[-300:]}"
+
+
+@case
+def r3_messages_name_too_long_is_not_the_disk(root):
+    d = data_dir(root)
+    rc, _, err = calibrate(d, out=root / ("x" * 300))
+    return refused(rc, err, "too long|shorter") if "free some space" not in err else (False, err[-300:])
+
+
 # ----------------------------------------------------------------------------- main
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -238,3 +238,42 @@ def same_run(batched, alone, rtol: float = 1e-9) -> None:
     assert (batched.n_evals, batched.n_iter, batched.converged, batched.message) == \
         (alone.n_evals, alone.n_iter, alone.converged, alone.message)
     assert batched.extra == alone.extra  # the population schedule: counts, set before the run
+
+
+@pytest.fixture
+def torchcal_cli(capsys):
+    """``torchcal ARGS`` in-process: ``run(*args, cwd=None) -> (exit status, stdout, stderr)``."""
+    from torchcal.cli.app import main
+
+    def run(*args, cwd=None) -> tuple[int, str, str]:
+        old = os.getcwd()
+        capsys.readouterr()
+        try:
+            if cwd is not None:
+                os.chdir(cwd)
+            try:
+                rc = main([str(a) for a in args])
+            except SystemExit as e:  # argparse's own refusals
+                rc = e.code if isinstance(e.code, int) else 2
+        finally:
+            os.chdir(old)
+        got = capsys.readouterr()
+        return rc, got.out, got.err
+    return run
+
+
+UR5E_URDF = REPO / "urdf" / "ur5e.urdf"
+UR5E_SMR = "smr@flange=0,0,0.05"
+
+
+@pytest.fixture(scope="session")
+def ur5e_csv(tmp_path_factory) -> Path:
+    """60 simulated UR5e poses of one SMR on the flange (``UR5E_SMR``), as a measurement CSV."""
+    from torchcal.measure.io import save_measurements
+    from torchcal.sim.serial import SimConfig, simulate
+
+    robot = Robot.from_urdf(str(UR5E_URDF), markers=[UR5E_SMR])
+    data, _ = simulate(robot, SimConfig(n=60, seed=1))
+    out = tmp_path_factory.mktemp("ur5e") / "train.csv"
+    save_measurements(out, data)
+    return out

@@ -6,6 +6,7 @@ Robot model -> measurement model -> problem -> solver -> result/report:
 :class:`torchcal.problems.calibration.CalibrationProblem`,
 :mod:`torchcal.optim` (one interface for gradient and swarm solvers), :func:`calibrate`.
 """
+from torchcal import environment as _environment  # first: it checks MPLBACKEND before matplotlib is imported
 from torchcal.deploy.correct import Corrector
 from torchcal.elm import ELM, tune_elm
 from torchcal.deploy.model import CalibratedModel

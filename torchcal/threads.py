@@ -35,7 +35,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["set_threads", "get_threads", "threads_by_size", "SMALL_ROWS"]
+__all__ = ["set_threads", "get_threads", "env_problem", "threads_by_size", "SMALL_ROWS"]
 
 SMALL_ROWS = 20_000  # rows (poses, candidates, targets) up to which one torch thread is used
 
@@ -54,23 +54,34 @@ def _checked(n) -> int | str:
                      f"alone) or a whole number ≥ 1, got {n!r}")
 
 
-def _from_env() -> int | str:
+def _from_env() -> tuple[int | str, str | None]:
+    """The choice in ``TORCHCAL_THREADS`` and, when it is not one, what is wrong with it. A bad
+    value must not break ``import torchcal`` (a notebook could not even read the message): it is
+    refused when an entry point runs, by :func:`env_problem`."""
     text = os.environ.get("TORCHCAL_THREADS", _AUTO).strip().lower() or _AUTO
     try:
-        return _checked(text)
+        return _checked(text), None
     except ValueError as e:
-        raise ValueError(f"environment variable TORCHCAL_THREADS: {e}") from None
+        return _AUTO, (f"environment variable TORCHCAL_THREADS={os.environ.get('TORCHCAL_THREADS')!r}: {e}; set it "
+                       "to auto, caller or a number ≥ 1, or unset it")
 
 
-_setting: int | str = _from_env()
+_setting, _env_problem = _from_env()
+
+
+def env_problem() -> str | None:
+    """What is wrong with ``TORCHCAL_THREADS`` (None when it is fine, or when :func:`set_threads`
+    has chosen since)."""
+    return _env_problem
 
 
 def set_threads(n: int | str = _AUTO) -> int | str:
     """Choose how torchcal's entry points set torch's threads: ``"auto"`` (one thread when the
     work is at most :data:`SMALL_ROWS` rows, the caller's setting otherwise), ``"caller"`` (never
     change it) or a number of threads for all of them. Returns the previous choice."""
-    global _setting
+    global _setting, _env_problem
     before, _setting = _setting, _checked(n)
+    _env_problem = None  # an explicit choice overrides the environment's
     return before
 
 
@@ -104,6 +115,8 @@ def threads_by_size(*names: str):
 
         @functools.wraps(fn)
         def run(*args, **kwargs):
+            if _env_problem is not None:
+                raise ValueError(_env_problem)
             if getattr(_state, "inside", False) or _setting == _CALLER:
                 return fn(*args, **kwargs)
             n = _setting

@@ -482,7 +482,9 @@ def test_paths_one_level_off_and_files_in_another_encoding(data, tmp_path, capsy
     latin = tmp_path / "latin.urdf"
     latin.write_bytes(Path(UR5E).read_text().replace('<robot name="ur5e"', '<!-- Gerät -->\n<robot name="ur5e"', 1)
                       .encode("latin-1"))
-    rc, _, err = _cli(_calibrate(data, tmp_path / "o") + ["--robot", latin], capsys)
+    args = _calibrate(data, tmp_path / "o")
+    args[args.index("--robot") + 1] = latin  # an option given twice is refused as such
+    rc, _, err = _cli(args, capsys)
     _refused(rc, err, r"URDF file .*latin.urdf is not UTF-8 text.*save it as UTF-8")
 
 

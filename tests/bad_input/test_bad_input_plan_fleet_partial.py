@@ -114,7 +114,8 @@ def test_plan_cli_refuses_bad_input_and_writes_nothing(tmp_path, capsys, extra, 
     import re
 
     markers = [] if any(e.startswith("--marker") for e in extra) else ["--marker", SMR]
-    rc, err = _cli(["plan", "--robot", KR5, *markers, "--candidates", "200", "--select", "12", "--refine-steps", "0",
+    select = [] if "--select" in extra else ["--select", "12"]  # an option given twice is refused as such
+    rc, err = _cli(["plan", "--robot", KR5, *markers, "--candidates", "200", *select, "--refine-steps", "0",
                     "--out", str(tmp_path / "poses.csv"), *extra], capsys)
     assert rc == 2 and re.search(what, err), err
     assert "torchcal plan: error:" in err and _files(tmp_path) == []

@@ -127,10 +127,13 @@ def test_a_changed_or_broken_model_is_refused_naming_the_file(looped, tmp_path):
         load(m)
     shutil.copy(looped / "model" / "tensors.safetensors", t)
     meta = json.loads((m / "model.json").read_text())
-    del meta["tensors_sha256"]
+    del meta["tensors_sha256"]  # an edit of model.json: its own checksum no longer matches
     (m / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"model\.json does not match its checksum"):
+        load(m)
+    shutil.copy(looped / "model" / "model.json", m / "model.json")
     t.write_bytes(t.read_bytes()[:100])
-    with pytest.raises(ValueError, match=r"tensors\.safetensors cannot be read.*truncated"):
+    with pytest.raises(ValueError, match=r"tensors\.safetensors does not match the SHA-256"):
         load(m)
     (m / "model.json").write_text((looped / "model" / "model.json").read_text()[:200])
     with pytest.raises(ValueError, match=r"model\.json is not valid JSON"):

@@ -87,7 +87,9 @@ def test_save_load_predict_bit_identical(tmp_path):
     robot = shipped("ur5e")
     m = _model(robot, covariates=["temperature"])
     save(m, tmp_path / "m")
-    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == ["model.json", "robot.urdf", "tensors.safetensors"]
+    # the three files of a model, and the manifest by which a later force knows what torchcal wrote
+    assert sorted(p.name for p in (tmp_path / "m").iterdir()) == [".torchcal-manifest.json", "model.json", "robot.urdf",
+                                                                 "tensors.safetensors"]
     q = torch.rand(40, 6, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     cov = {"temperature": torch.linspace(0, 1, 40, dtype=torch.float64)}
     for m2 in (load(tmp_path / "m"), load(tmp_path / "m", robot=robot)):

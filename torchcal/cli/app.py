@@ -10,6 +10,7 @@ the result (``provenance.json``). Messages go to stderr through :mod:`logging` (
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import shlex
 import sys
@@ -27,10 +28,13 @@ from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of,
 from torchcal.cli.conventions import (DefaultsFormatter, add_progress, method_choice, method_help, progress_on,
                                       renamed)
 from torchcal.cli.correct import add_correct_parser
+from torchcal.cli.runtime import StdoutLost, Terminated, command_runtime, stdout_lost_message
+from torchcal.cli.strict import check_command_line, strict_parsers
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
+from torchcal.environment import NOTES
 from torchcal.kinematics.robot import Robot
 from torchcal.outputs import check_out_dir, check_out_file, claim, staged_dir
 from torchcal.measure.records import Stage
@@ -46,6 +50,7 @@ from torchcal.version import __version__
 __all__ = ["main", "build_parser"]
 
 logger = logging.getLogger("torchcal")
+EXIT_IOERR = 74  # EX_IOERR of sysexits.h: the run worked, its standard output failed
 
 
 def _print_stages(stages: list[Stage], has_test: bool) -> None:
@@ -263,27 +268,39 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     add_bag_parser(sub)
     for p in sub.choices.values():  # every command's --help shows every default
         p.formatter_class = DefaultsFormatter
+    strict_parsers(ap, sub.choices)
     return ap, sub.choices
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap, sub = build_parser()
+    own = join_negative_values(argv, sub)  # the user's own command line, without --config's options
     try:
         argv = expand_config(argv, sub)
     except SystemExit as e:
         print(e, file=sys.stderr)
         return 2
     a = ap.parse_args(join_negative_values(argv, sub))
+    problem = check_command_line(own[1:], a, sub[a.cmd])
+    if problem:
+        print(f"torchcal {a.cmd}: error: {problem}", file=sys.stderr)
+        return 2
     setup_logging(a)
+    for note in NOTES:
+        logger.warning(f"torchcal {a.cmd}: warning: {note}")
     # each command sets torch's threads from --threads; the library's own choice would override it
     threads, choice = torch.get_num_threads(), set_threads("caller")
     try:
-        with cli_wording(), claim(a.out):  # a second run on the same output is refused at once
+        with cli_wording(), command_runtime(), claim(a.out):  # a second run on the same output is refused at once
             return a.func(a, argv)
-    except KeyboardInterrupt:
-        print(f"torchcal {a.cmd}: interrupted; nothing was written", file=sys.stderr)
-        return 130
+    except StdoutLost as e:
+        print(stdout_lost_message(a.cmd, e, getattr(a, "out", None)), file=sys.stderr)
+        return 0 if e.errno == errno.EPIPE else EXIT_IOERR
+    except KeyboardInterrupt as e:
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        print(f"torchcal {a.cmd}: {how}; nothing was written", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
     except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
         return report_failure(a.cmd, e, getattr(a, "verbose", False), getattr(a, "out", None))
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dis
+import errno
 import glob
 import json
 import logging
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import yaml
 
+from torchcal.cli.strict import UniqueKeyLoader
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker, parse_marker
 from torchcal.kinematics.urdf import urdf_links
@@ -54,6 +56,10 @@ _MAX_MARKER_GUESS_M = 2.0  # a marker point further than 2 m from its link is a 
 # that is also a ValueError; any other KeyError is a lookup torchcal got wrong. A bug's message
 # names the exception and asks for a report; --verbose prints its traceback.
 EXIT_REFUSED, EXIT_BUG = 2, 70
+# what to do about an error of the file system, by its errno (the true cause, not always the disk)
+_FIXES = {errno.ENOSPC: "free some space or choose another --out", errno.EDQUOT: "free some of your quota or choose "
+          "another --out", errno.ENAMETOOLONG: "choose a shorter --out", errno.EROFS: "the file system is read-only: "
+          "choose another --out", errno.ELOOP: "a symbolic link on the path loops: fix it or choose another --out"}
 _REFUSED_BY_TORCHCAL = (ValueError, ImportError)
 
 
@@ -81,8 +87,15 @@ def report_failure(cmd: str, e: Exception, verbose: bool, out=None) -> int:
     the file system (a full disk, a drive gone) names the file and says nothing was written."""
     if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, FileExistsError, IsADirectoryError,
                                                      NotADirectoryError, PermissionError)):
-        print(f"torchcal {cmd}: error: could not write {e.filename or out}: {e.strerror or e}; free some space or "
-              "choose another --out, and run again (nothing was written)", file=sys.stderr)
+        name = str(e.filename or out)
+        name = name if len(name) <= 200 else name[:200] + "…"  # never a whole file's text
+        fix = _FIXES.get(e.errno, "choose another --out")
+        print(f"torchcal {cmd}: error: could not write {name}: {e.strerror or e}; {fix}, and run again (nothing was "
+              "written)", file=sys.stderr)
+        return EXIT_REFUSED
+    if isinstance(e, MemoryError) or (isinstance(e, RuntimeError) and "can't allocate memory" in str(e)):
+        print(f"torchcal {cmd}: error: ran out of memory ({str(e)[:120] or 'MemoryError'}); use fewer rows, or run "
+              "where there is more memory (nothing was written)", file=sys.stderr)
         return EXIT_REFUSED
     if is_refusal(e):
         msg = e.args[0] if isinstance(e, KeyError) and e.args else e
@@ -194,7 +207,10 @@ def expand_config(argv: list[str], sub: dict[str, argparse.ArgumentParser]) -> l
     if not path.is_file():
         raise SystemExit(f"torchcal {argv[0]}: error: config file not found: {path}")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.load(path.read_bytes().decode("utf-8-sig"), Loader=UniqueKeyLoader) or {}
+    except UnicodeDecodeError as e:
+        raise SystemExit(f"torchcal {argv[0]}: error: {path} is not UTF-8 text ({e.reason} at byte {e.start}); save "
+                         "it as UTF-8") from None
     except yaml.YAMLError as e:
         raise SystemExit(f"torchcal {argv[0]}: error: {path} is not valid YAML: {e}") from None
     if not isinstance(data, dict):

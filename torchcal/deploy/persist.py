@@ -1,6 +1,6 @@
 """Saving and loading :class:`~torchcal.deploy.model.CalibratedModel` directories.
 
-A model directory holds three files:
+A model directory holds three files (and the manifest by which a later ``force`` knows what torchcal wrote):
 
 * ``model.json``: metadata: format name and version, torchcal version, the robot (name, SHA-256
   of its URDF text, joint and marker names, markers, dtype), parameter names and units, the
@@ -14,7 +14,11 @@ A model directory holds three files:
 Loading for a robot whose URDF hash, joints or markers differ from the saved ones is refused:
 a model corrects one robot description, not another. ``model.json`` records the SHA-256 of the
 tensor file, and a model whose tensors changed (a flipped byte changes every command it gives)
-is refused too; a truncated or malformed file is named in the error.
+is refused too; a truncated or malformed file is named in the error. ``model.json`` itself carries
+a checksum of its content (which holds those of the tensors and the URDF), so an edited marker
+point is refused as well; its fields are checked one by one (:mod:`torchcal.deploy.model_schema`).
+A robot passed to :func:`load` must match the saved one by its URDF and its markers' links and
+points, not only their names.
 
 :func:`save` never replaces an existing model directory unless ``force=True``, and builds the
 directory under a temporary name: an interrupted save leaves nothing half-written.
@@ -24,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from pathlib import Path
 
 import torch
@@ -34,6 +39,7 @@ from torch import Tensor
 from torchcal.advice import advice
 from torchcal.elm import ELM
 from torchcal.deploy.model import ERROR_NAMES, CalibratedModel
+from torchcal.deploy.model_schema import CHECKSUM_KEY, check_meta, content_sha256
 from torchcal.effects.registry import effect_class, effect_type
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker
@@ -145,6 +151,7 @@ def _write(model: CalibratedModel, robot, text: str, out: Path) -> None:
     contig = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     save_file(contig, str(out / _TENSORS), metadata={"format": FORMAT, "format_version": str(FORMAT_VERSION)})
     meta["tensors_sha256"] = sha256_file(out / _TENSORS)
+    meta[CHECKSUM_KEY] = content_sha256(json.loads(_dumps(meta)))  # of what a reader will parse back
     (out / _URDF).write_bytes(text.encode())
     (out / _JSON).write_text(_dumps(meta) + "\n")
 
@@ -168,23 +175,39 @@ def _read_meta(d: Path) -> dict:
         raise FileNotFoundError(f"{d} is not a torchcal model directory: {f.name} is missing "
                                 f"(a model directory holds {_JSON}, {_TENSORS} and {_URDF}){_nearby_model(d)}")
     try:
-        meta = json.loads(f.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        meta = json.loads(f.read_bytes().decode("utf-8-sig"))
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
         raise ValueError(f"{f} is not valid JSON ({e}); the model file is truncated or was edited: save the "
                          "model again") from None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ValueError(f"{f} is not a torchcal model (format {meta.get('format')!r})")
-    v = int(meta.get("format_version", 0))
-    if v > FORMAT_VERSION:
-        raise ValueError(f"{f} has format version {v}, newer than this torchcal reads ({FORMAT_VERSION}); "
-                         "upgrade torchcal")
+    check_meta(meta, f, FORMAT, FORMAT_VERSION)
+    want = meta.get(CHECKSUM_KEY)
+    if want is None:
+        warnings.warn(f"{f} carries no checksum (saved by an earlier torchcal), so an edit of it cannot be detected; "
+                      "save the model again to add one", stacklevel=3)
+    elif want != content_sha256(meta):
+        raise ValueError(f"{f} does not match its checksum ({CHECKSUM_KEY}): the model changed since it was saved "
+                         "(an edit, a copy error), and a changed model gives wrong commands; restore the file or "
+                         "save the model again")
     return meta
 
 
-def _check_robot(robot, meta: dict, d: Path) -> None:
+def _same_markers(robot, r: dict, tol: float = 1e-9) -> str | None:
+    """What differs between the markers of ``robot`` and the saved ones (link, point, orientation), or None."""
+    for mk, rec in zip(robot.markers, r["markers"]):
+        if mk.link != rec["link"]:
+            return f"marker {mk.name!r} is on link {mk.link!r}, the model's on {rec['link']!r}"
+        for what, got, want, unit in (("point", mk.xyz, rec["xyz"], "m"), ("orientation", mk.rpy, rec["rpy"], "rad")):
+            gap = max(abs(float(a) - float(b)) for a, b in zip(got, want))
+            if gap > tol:
+                return (f"marker {mk.name!r} has the {what} {[round(float(v), 6) for v in got]} {unit}, the model's "
+                        f"{[round(float(v), 6) for v in want]} {unit}")
+    return None
+
+
+def _check_robot(robot, meta: dict, d: Path, by_hash: bool = True) -> None:
     r = meta["robot"]
     h = robot.urdf_hash()
-    if h != r["urdf_sha256"]:
+    if by_hash and h != r["urdf_sha256"]:
         raise ValueError(
             f"the model in {d} was made for robot {r['name']!r} (URDF sha256 {r['urdf_sha256'][:12]}…), but the "
             f"robot given is {robot.name!r} (URDF sha256 {h[:12]}…). A model only corrects the robot description "
@@ -195,6 +218,11 @@ def _check_robot(robot, meta: dict, d: Path) -> None:
     if list(robot.marker_names) != r["marker_names"]:
         raise ValueError(f"the model in {d} was made with markers {r['marker_names']}, the robot given has "
                          f"{robot.marker_names}; build the robot with the same markers or load without robot=")
+    differs = _same_markers(robot, r) if len(r["markers"]) == len(robot.markers) else "the number of markers differs"
+    if differs:
+        raise ValueError(f"the robot given does not match the model in {d}: {differs}. A marker's point is part of "
+                         "the calibration: load without robot= to use the model's own markers, or build the robot "
+                         "with the same ones")
 
 
 def load(directory: str | os.PathLike, robot=None, *, device: torch.device | str | None = None) -> CalibratedModel:
@@ -222,14 +250,14 @@ def load(directory: str | os.PathLike, robot=None, *, device: torch.device | str
         f = d / r.get("urdf_file", _URDF)
         if not f.is_file():
             raise FileNotFoundError(f"{f} is missing; pass the robot with load(dir, robot=...)")
-        text = f.read_bytes().decode()
-        if hashlib.sha256(text.encode()).hexdigest() != r["urdf_sha256"]:
+        raw = f.read_bytes()
+        if hashlib.sha256(raw).hexdigest() != r["urdf_sha256"]:
             raise ValueError(f"{f} does not match the hash recorded in {d / _JSON}; the model directory was "
                              "modified or is corrupt")
         markers = [Marker(m["name"], m["link"], tuple(m["xyz"]), tuple(m["rpy"])) for m in r["markers"]]
-        dtype = getattr(torch, r.get("dtype", "float64"))
-        robot = Robot.from_urdf(text, markers=markers, dtype=dtype, device=device or "cpu")
-        _check_robot(robot, meta, d)
+        dtype = getattr(torch, r.get("dtype") or "float64")
+        robot = Robot.from_urdf(raw.decode("utf-8-sig"), markers=markers, dtype=dtype, device=device or "cpu")
+        _check_robot(robot, meta, d, by_hash=False)  # the file's own bytes matched the recorded hash above
     dev = robot.device
     tf = d / _TENSORS
     if not tf.is_file():

@@ -28,7 +28,7 @@ from torch import Tensor
 from torchcal.damping import initial_damping
 from torchcal.options import Options
 from torchcal.params import ParamSet
-from torchcal.kinematics.transforms import so3_log
+from torchcal.kinematics.transforms import check_rotations, so3_log
 
 __all__ = ["IKResult", "IKOptions", "solve_ik", "target_frames", "REASONS"]
 
@@ -109,7 +109,7 @@ class IKResult:
 
 def target_frames(robot, target) -> tuple[Tensor | None, Tensor]:
     """Targets as ``(R (N, 3, 3) or None, p (N, 3) m)`` from ``(N, 4, 4)`` poses or ``(N, 3)``
-    positions (m) in the robot's frame, checked: orthonormal rotations, finite values."""
+    positions (m) in the robot's frame, checked: proper rotations (orthonormal, det = +1), finite values."""
     t = torch.as_tensor(target, dtype=robot.dtype, device=robot.device)
     if t.ndim in (1, 2) and t.shape[-1] == 3 and not (t.ndim == 2 and t.shape == (4, 4)):
         t = t.reshape(-1, 3)
@@ -117,12 +117,7 @@ def target_frames(robot, target) -> tuple[Tensor | None, Tensor]:
     elif t.shape[-2:] == (4, 4):
         t = t.reshape(-1, 4, 4)
         R, p = t[:, :3, :3], t[:, :3, 3]
-        # a non-orthonormal rotation would make the orientation error meaningless
-        dev = (R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype, device=R.device)).abs().amax((-1, -2))
-        if bool((dev > 1e-6).any()):
-            i = int(torch.nonzero(dev > 1e-6)[0])
-            raise ValueError(f"target {i} has a rotation part that is not orthonormal (|RᵀR - I| = "
-                             f"{float(dev[i]):.1e}); pass proper (N, 4, 4) poses or (N, 3) positions")
+        check_rotations(R, "target")
     else:
         raise ValueError(f"targets must be (N, 4, 4) poses or (N, 3) positions in m, got {tuple(t.shape)}")
     if not bool(torch.isfinite(p).all()) or (R is not None and not bool(torch.isfinite(R).all())):

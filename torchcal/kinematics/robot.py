@@ -34,6 +34,7 @@ from torchcal.kinematics.slots import slot_layout
 from torchcal.kinematics.transforms import align_z, homogeneous
 from torchcal.kinematics.tree import JointSpec, Marker, parse_marker, select_subtree
 from torchcal.kinematics.urdf import load_joints, read_urdf_text
+from torchcal.kinematics.urdf_check import is_urdf_text, strip_bom
 from torchcal.params import ParamSet
 
 __all__ = ["Robot"]
@@ -87,8 +88,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
                 Default: every leaf link.
         """
 
-        is_xml = isinstance(path, str) and path.lstrip().startswith("<")
-        text = path if is_xml else (read_urdf_text(path) if Path(path).is_file() else None)
+        text = strip_bom(path) if is_urdf_text(path) else (read_urdf_text(path) if Path(path).is_file() else None)
         name, joints, _ = load_joints(path)
         if markers is None:
             parents = {j.parent for j in joints}

@@ -15,7 +15,7 @@ import pytorch_kinematics.transforms as pk_transforms
 import torch
 from torch import Tensor
 
-__all__ = ["similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix",
+__all__ = ["check_rotations", "similarity", "quat_to_matrix", "matrix_to_quat", "skew", "rot_x", "rot_y", "rot_z", "rpy_to_matrix",
            "matrix_to_rpy", "so3_exp", "so3_log", "so3_left_jacobian", "so3_left_jacobian_inv", "homogeneous", "kabsch",
            "align_z"]
 
@@ -224,3 +224,25 @@ def align_z(axis: Tensor) -> Tensor:
         return torch.eye(3, dtype=axis.dtype, device=axis.device) if c > 0 else \
             torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=axis.dtype, device=axis.device))
     return so3_exp(v / v.norm() * torch.atan2(v.norm(), torch.tensor(c, dtype=axis.dtype, device=axis.device)))
+
+
+def check_rotations(R: Tensor, what: str = "rotation", tol: float = 1e-6) -> None:
+    """Refuse (``ValueError`` naming the first bad ``what`` by index) rotation matrices ``R``
+    (N, 3, 3) that are not proper rotations: not finite, not orthonormal (|RᵀR - I| > ``tol``), or
+    mirrored (det = -1, a frame with one axis flipped, which no joint motion reaches)."""
+    R = R.reshape(-1, 3, 3)
+    bad = ~torch.isfinite(R).all(dim=(-1, -2))
+    if bool(bad.any()):
+        i = int(torch.nonzero(bad)[0])
+        raise ValueError(f"{what} {i} has a rotation part with NaN or inf; pass finite rotations")
+    dev = (R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype, device=R.device)).abs().amax((-1, -2))
+    if bool((dev > tol).any()):
+        i = int(torch.nonzero(dev > tol)[0])
+        raise ValueError(f"{what} {i} has a rotation part that is not orthonormal (|RᵀR - I| = {float(dev[i]):.1e}); "
+                         "pass proper (N, 4, 4) poses or (N, 3) positions")
+    det = torch.linalg.det(R)
+    if bool((det < 0).any()):
+        i = int(torch.nonzero(det < 0)[0])
+        raise ValueError(f"{what} {i} has a mirrored rotation part (det = {float(det[i]):+.3f}: one axis flipped, a "
+                         "left-handed frame no robot reaches); pass a right-handed rotation (det = +1), e.g. flip a "
+                         "second axis or build it from a quaternion")

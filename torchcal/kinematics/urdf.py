@@ -9,23 +9,19 @@ from pathlib import Path
 import numpy as np
 import torch
 import yourdfpy
-from lxml import etree
 
 from torchcal.kinematics.transforms import matrix_to_rpy
 from torchcal.kinematics.tree import JointSpec
+from torchcal.kinematics.urdf_check import is_urdf_text, parse_checked, strip_bom
 
 __all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions", "read_urdf_text"]
 
 
 def _strict_parse(text: str, where: str) -> None:
     """yourdfpy parses in lxml's recover mode, which silently drops whatever follows an XML
-    error (a truncated file loses its last joints): parse strictly first to say where it broke."""
-
-    try:
-        etree.fromstring(text.encode())
-    except etree.XMLSyntaxError as e:
-        raise ValueError(f"could not parse URDF {where}: {e}. It must be well-formed XML (every tag closed, quotes "
-                         "matched) and load it again") from None
+    error (a truncated file loses its last joints) and reads numbers leniently: parse strictly
+    and check every element first (:mod:`torchcal.kinematics.urdf_check`)."""
+    parse_checked(text, where)
 
 
 def read_urdf_text(path) -> str:
@@ -35,7 +31,7 @@ def read_urdf_text(path) -> str:
     if p.is_dir():
         raise IsADirectoryError(f"URDF path {p} is a directory; give the .urdf file")
     try:
-        text = p.read_bytes().decode("utf-8")
+        text = p.read_bytes().decode("utf-8-sig")  # a byte-order mark is no part of the text
     except UnicodeDecodeError as e:
         raise ValueError(f"URDF file {p} is not UTF-8 text (byte 0x{e.object[e.start]:02x} at position {e.start}); "
                          "save it as UTF-8 (e.g. iconv -f latin1 -t utf-8 in.urdf > out.urdf)") from None
@@ -51,28 +47,27 @@ def _refuse_xacro(text: str, where: str) -> None:
 
 
 def _load(path_or_xml):
-
     kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
               load_collision_meshes=False)
-    is_xml = isinstance(path_or_xml, str) and path_or_xml.lstrip().startswith("<")
-    if is_xml:
-        _refuse_xacro(path_or_xml, "the URDF string")
-        _strict_parse(path_or_xml, "string")
-    elif Path(path_or_xml).is_file() or Path(path_or_xml).is_dir():
-        _strict_parse(read_urdf_text(path_or_xml), str(path_or_xml))
+    if is_urdf_text(path_or_xml):
+        text, where = strip_bom(path_or_xml), "string"
+        _refuse_xacro(text, "the URDF string")
+    else:
+        p = Path(path_or_xml)
+        if not (p.is_file() or p.is_dir()):
+            raise FileNotFoundError(f"URDF file not found: {p} (give the path to a .urdf file)")
+        text, where = read_urdf_text(p), str(p)  # read once: yourdfpy parses the text that was checked
+    _strict_parse(text, where)
     try:
-        if isinstance(path_or_xml, (str, os.PathLike)) and not str(path_or_xml).lstrip().startswith("<"):
-            p = Path(path_or_xml)
-            if not p.is_file():
-                raise FileNotFoundError(f"URDF file not found: {p} (give the path to a .urdf file)")
-            return yourdfpy.URDF.load(str(p), **kw)
-
-        return yourdfpy.URDF.load(io.BytesIO(str(path_or_xml).encode()), **kw)
-    except FileNotFoundError:
-        raise
+        return yourdfpy.URDF.load(io.BytesIO(text.encode()), **kw)
     except Exception as e:  # yourdfpy/lxml raise many types; say what the user can fix
-        raise ValueError(f"could not parse URDF {str(path_or_xml)[:200]!r}: {e}. Check that it is "
-                         "well-formed XML with a <robot> root and <link>/<joint> elements") from e
+        raise ValueError(f"could not parse URDF {where}: {e}. Check that it is well-formed XML with a <robot> root "
+                         "and <link>/<joint> elements") from e
+
+
+def _or(value, default: float) -> float:
+    """``value`` as a float, ``default`` only when it is absent (never when it is 0)."""
+    return default if value is None else float(value)
 
 
 def load_joints(path_or_xml) -> tuple[str, list[JointSpec], object]:
@@ -86,8 +81,8 @@ def load_joints(path_or_xml) -> tuple[str, list[JointSpec], object]:
             name=j.name, type=j.type, parent=j.parent, child=j.child,
             origin=np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float),
             axis=np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=float),
-            mimic=None if j.mimic is None else (j.mimic.joint, float(j.mimic.multiplier or 1.0),
-                                                float(j.mimic.offset or 0.0)),
+            # by presence: a multiplier of 0 is a joint that does not follow, not a missing value
+            mimic=None if j.mimic is None else (j.mimic.joint, _or(j.mimic.multiplier, 1.0), _or(j.mimic.offset, 0.0)),
             lower=None if lim is None or lim.lower is None else float(lim.lower),
             upper=None if lim is None or lim.upper is None else float(lim.upper),
             velocity=None if lim is None or lim.velocity is None else float(lim.velocity),
@@ -146,8 +141,8 @@ def write_urdf(name: str, joints: list[JointSpec], path: str | os.PathLike | Non
         if j.type in ("revolute", "prismatic"):
             lo = -np.pi if j.lower is None else j.lower
             hi = np.pi if j.upper is None else j.upper
-            out.append(f'    <limit lower="{lo!r}" upper="{hi!r}" effort="{float(j.effort or 0.0)!r}" '
-                       f'velocity="{float(j.velocity or 0.0)!r}"/>')
+            out.append(f'    <limit lower="{lo!r}" upper="{hi!r}" effort="{_or(j.effort, 0.0)!r}" '
+                       f'velocity="{_or(j.velocity, 0.0)!r}"/>')
         if j.mimic is not None:
             out.append(f'    <mimic joint="{j.mimic[0]}" multiplier="{j.mimic[1]!r}" offset="{j.mimic[2]!r}"/>')
         out.append("  </joint>")

@@ -27,6 +27,7 @@ from torch import Tensor
 from torchcal.advice import advice
 from torchcal.kinematics.robot import Robot
 from torchcal.measure.data import Measurements
+from torchcal.measure.memory import check_memory
 
 __all__ = ["check_fit_inputs", "check_robot", "check_data_type", "check_enough", "check_motion", "warn_limits",
            "identifiable_count", "MOTION_RATIO", "LIMIT_SLACK"]
@@ -109,31 +110,52 @@ def _spread_poses(robot: Robot, n: int) -> Tensor:
     return lo + (hi - lo) * u.to(device=lo.device, dtype=lo.dtype)
 
 
+def distinct_poses(data: Measurements) -> int:
+    """How many different joint commands the rows hold (a pose measured 100 times is one pose)."""
+    return int(torch.unique(data.q.detach(), dim=0).shape[0]) if len(data) else 0
+
+
+def check_poses_move(data: Measurements, who: str = "training") -> None:
+    """Refuse data whose rows all hold the same joint values: the joints never moved, and no
+    geometric error shows in one pose, however often it is measured."""
+    if len(data) >= 2 and distinct_poses(data) == 1:
+        src = f" ({data.source})" if data.source else ""
+        raise ValueError(f"the joints never moved: all {len(data)} rows of the {who} data{src} hold the same joint "
+                         "values, one pose measured again and again; a calibration compares many poses across the "
+                         "workspace: measure different poses (torchcal plan chooses them)")
+
+
 def check_enough(robot: Robot, data: Measurements, who: str = "training") -> None:
     """The one minimum of data every fit asks: at least twice as many measured values as the
     unknowns every model has (instrument frame and marker points), and, for positions, more values
     than the errors the poses can identify (:func:`identifiable_count`): else a fit passes through
     every point, its noise estimate collapses to zero and its error reads 0.0000 mm."""
+    check_poses_move(data, who)
     M = max(len(data.marker_names), 1)
     unknowns = 6 + 3 * len(data.marker_names)
     need = 2 * unknowns
+    # a pose measured again adds no geometry: count the values of different poses only
+    poses = distinct_poses(data)
+    values = data.n_values if poses == len(data) else int(round(data.n_values * poses / max(len(data), 1)))
     why = (f"every fit identifies at least {unknowns} unknowns (where the instrument stands, and each marker's point), "
            "and needs at least twice as many values")
-    refuse = data.n_values < need
+    refuse = values < need
     if data.positions_only and int(data.seen.sum()) >= 3:
         k = identifiable_count(robot, data)
-        if refuse or data.n_values <= k:
+        if refuse or values <= k:
             most = identifiable_count(robot, data, _spread_poses(robot, robot.n_params // 3 + 8))
             need, refuse = max(most + 1, need), True
-            if data.n_values <= k:
+            if values <= k:
                 why = (f"these poses can identify {k} geometric errors, as many as their values, so a fit passes "
                        f"through every point and leaves nothing to judge it by (poses spread over the workspace "
                        f"identify {most} errors of this robot)")
     if refuse:
         rows = -(-need // (3 * M))
         src = f" ({data.source})" if data.source else ""
-        raise ValueError(f"too few rows: the {who} data{src} have {len(data)} rows ({data.n_values} measured values); "
-                         f"{why}: measure at least {rows} poses (a geometric calibration wants several times more)")
+        same = "" if poses == len(data) else f", only {poses} different poses (the others repeat a joint command)"
+        raise ValueError(f"too few rows: the {who} data{src} have {len(data)} rows ({data.n_values} measured values"
+                         f"{same}); {why}: measure at least {rows} poses, each a different joint command (a geometric "
+                         "calibration wants several times more)")
 
 
 def _spread(x: np.ndarray) -> float:
@@ -142,7 +164,7 @@ def _spread(x: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(x - np.median(x, axis=0), axis=1)))
 
 
-def _stale(src: str, marker: str, meas: np.ndarray, model: np.ndarray, rows: np.ndarray, file: bool) -> None:
+def _stale(src: str, marker: str, meas: np.ndarray, model: np.ndarray, rows: np.ndarray, file) -> None:
     """Refuse rows that repeat another row's measured position exactly where the model moves the
     marker: an instrument that lost the target and kept reporting its last value."""
     idx = np.flatnonzero(rows)
@@ -150,9 +172,10 @@ def _stale(src: str, marker: str, meas: np.ndarray, model: np.ndarray, rows: np.
     inv = inv.reshape(-1)
     moved = np.linalg.norm(model[idx] - model[idx][first][inv], axis=1) > _STILL_M
     if moved.any():
-        at = 2 if file else 0  # CSV line numbers, or row indices
-        lines = sorted({int(idx[first[inv[i]]]) + at for i in np.flatnonzero(moved)} |
-                       {int(idx[i]) + at for i in np.flatnonzero(moved)})
+        # CSV line numbers (given, or counted from a file without blank lines), or row indices
+        at = (lambda r: file[r]) if isinstance(file, (list, tuple)) else (lambda r: r + 2) if file else (lambda r: r)
+        lines = sorted({at(int(idx[first[inv[i]]])) for i in np.flatnonzero(moved)} |
+                       {at(int(idx[i])) for i in np.flatnonzero(moved)})
         raise ValueError(f"{src}: marker {marker!r} has exactly the same position in {len(lines)} rows "
                          f"({'lines' if file else 'rows'} "
                          f"{lines[:8]}{' …' if len(lines) > 8 else ''}) whose joint values move it in the model: the "
@@ -160,23 +183,25 @@ def _stale(src: str, marker: str, meas: np.ndarray, model: np.ndarray, rows: np.
                          "again")
 
 
-def check_motion(robot: Robot, data: Measurements, units=(), where: str | None = None) -> None:
+def check_motion(robot: Robot, data: Measurements, units=(), where: str | None = None,
+                 lines: list[int] | None = None) -> None:
     """Each marker's measured positions spread about as far as the model's, through the same joint
     values (a rigid instrument frame does not change a spread). ``units``: the units declared for
-    the file, which word the advice."""
+    the file, which word the advice; ``lines``: the file line of each row."""
     seen = data.seen.cpu().numpy()
     if seen.sum() < 3:
         return
     mk = [robot.marker_names.index(m) for m in data.marker_names]
     model = robot.positions(data.q.to(robot.dtype), check=False).detach().cpu().numpy()[:, mk]
     check_motion_arrays(data.marker_names, model, data.positions.detach().cpu().numpy(), seen,
-                        where or (data.source or "the data"), where is not None, units)
+                        where or (data.source or "the data"), lines if lines is not None else where is not None, units)
 
 
 def check_motion_arrays(markers: list[str], model: np.ndarray, meas: np.ndarray, seen: np.ndarray, src: str,
-                        file: bool = False, units=()) -> None:
+                        file: bool | list[int] = False, units=()) -> None:
     """:func:`check_motion` on arrays already at hand: ``model`` and ``meas`` ``(N, M, 3)`` (m) of the
-    ``markers``, ``seen (N, M)``; a fleet computes the model of every robot in one batched call."""
+    ``markers``, ``seen (N, M)``; a fleet computes the model of every robot in one batched call.
+    ``file``: rows come from a file (True), with these file lines (a list), or not (False)."""
     for k, m in enumerate(markers):
         rows = seen[:, k]
         if rows.sum() < 3:
@@ -258,6 +283,7 @@ def check_fit_inputs(robot, train, test=None, enough: bool = True, motion: bool 
     if test is not None:
         check_data_type(test, "test")
     sets = [(d, who) for d, who in ((train, "training"), (test, "held-out")) if d is not None]
+    check_poses_move(train)
     for d, who in sets:
         _tie(robot, d, who)
         if motion:
@@ -265,5 +291,7 @@ def check_fit_inputs(robot, train, test=None, enough: bool = True, motion: bool 
     warn_limits(robot, sets)
     if enough:
         check_enough(robot, train)
+    check_memory(sum(len(d) for d, _ in sets), len(train.marker_names), robot.n_params,
+                 itemsize=torch.finfo(robot.dtype).bits // 8)
     if test is not None:
         _warn_repeated(train, test)

@@ -53,16 +53,23 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
                                 + (f", e.g. {p / inside[0]} (it holds {inside})" if inside else " (it holds no .csv)"))
     if not p.is_file():
         raise FileNotFoundError(f"{what} not found: {p}")
+    rows, lines = CsvRows(), []
     try:
         with open(p, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: strip Excel's BOM
-            rows = list(csv.reader(fh))
+            reader, end = csv.reader(fh), 0
+            for r in reader:
+                # blank lines are skipped, but every message names the line in the file as an editor shows it
+                if r and not (len(r) == 1 and not r[0].strip()):
+                    rows.append(r)
+                    lines.append(end + 1)
+                end = reader.line_num
     except UnicodeDecodeError as e:
         raise ValueError(f"{p}: not UTF-8 text ({e}); save the file as CSV UTF-8") from None
-    rows = [r for r in rows if r and not (len(r) == 1 and not r[0].strip())]
+    rows.lines = lines
     if not rows:
         raise ValueError(f"{p}: the file is empty; it needs a header row and one row per pose")
     if rows[0][0].lstrip().startswith("#"):
-        raise ValueError(f"{p}: line 1 starts with '#' ({','.join(rows[0])[:60]!r}); torchcal reads the column names "
+        raise ValueError(f"{p}: line {lines[0]} starts with '#' ({','.join(rows[0])[:60]!r}); torchcal reads the column names "
                          "from the first line, as they are: delete comment lines above the header, and the '#' before "
                          "a header (numpy.savetxt writes one unless comments='')")
     if len(rows[0]) == 1 and rows[0][0].count(";") >= 2:
@@ -76,10 +83,30 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
         raise ValueError(f"{p}: duplicate column names {dup}")
-    for i, r in enumerate(rows[1:], start=2):
+    for i, r in enumerate(rows[1:], start=1):
         if len(r) != len(header):
-            raise ValueError(f"{p}, line {i}: {len(r)} cells but the header has {len(header)} columns")
-    return header, rows[1:]
+            raise ValueError(f"{p}, line {lines[i]}: {len(r)} cells but the header has {len(header)} columns")
+    body = CsvRows(rows[1:])
+    body.lines = lines[1:]
+    return header, body
+
+
+class CsvRows(list):
+    """The data rows of a CSV file (lists of cells); ``lines[i]`` the file line of row ``i``."""
+
+    lines: list[int]
+
+
+class _Source(str):
+    """A file's name that knows the file line of each data row (blank lines are not rows)."""
+
+    def __new__(cls, path, rows):
+        self = super().__new__(cls, str(path))
+        self.lines = list(getattr(rows, "lines", None) or range(2, len(rows) + 2))
+        return self
+
+    def line(self, i) -> int:
+        return self.lines[int(i)]
 
 
 def _number(cell: str, line: int, col: str, path) -> float:
@@ -118,6 +145,7 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     header, rows = read_csv(path)
     if not rows:
         raise ValueError(f"{path}: the file has a header but no rows")
+    path = _Source(path, rows)
     c = sort_columns(path, header, rows, robot)
     data = _cells(path, c)
     Q = _joint_values(path, robot, c, data)
@@ -134,10 +162,10 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", units_judged=True).to(robot.device)
     as_t = lambda v: torch.as_tensor(v, dtype=dt, device=robot.device)  # noqa: E731
     out = Measurements(q, as_t(P), c.measured, c.joints, None if Qt is None else as_t(Qt),
-                       {k: as_t(c.col(data, k)) for k in c.covariates}, str(path),
+                       {k: as_t(v) for k, v in _covariates(path, c, data).items()}, str(path),
                        None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
                        {k: as_t(v) for k, v in D.items()}, robot.name)
-    check_motion(robot, out, units, where=str(path))
+    check_motion(robot, out, units, where=str(path), lines=path.lines)
     return out
 
 
@@ -149,7 +177,7 @@ def _cells(path, c: Columns) -> np.ndarray:
     for i, r in enumerate(c.rows):
         for col in numeric:
             j = c.idx[col]
-            data[i, j] = _number(r[j], i + 2, col, path)
+            data[i, j] = _number(r[j], path.line(i), col, path)
     _absurd(path, data, c.header, set(c.covariates))
     return data
 
@@ -161,7 +189,7 @@ def _joint_values(path, robot, c: Columns, data: np.ndarray) -> np.ndarray:
     bad = np.argwhere(~np.isfinite(Q))
     if len(bad):
         i, j = bad[0]
-        raise ValueError(f"{path}, line {i + 2}: joint {c.joints[j]!r} is empty or not finite; every row needs all "
+        raise ValueError(f"{path}, line {path.line(i)}: joint {c.joints[j]!r} is empty or not finite; every row needs all "
                          "joint values (drop the row if the robot state was not recorded)")
     return Q
 
@@ -173,7 +201,7 @@ def _marker_positions(path, c: Columns, data: np.ndarray) -> np.ndarray:
                   for m in c.measured], 1)
     if np.isinf(P).any():
         i, m = np.argwhere(np.isinf(P).any(-1))[0]
-        raise ValueError(f"{path}, line {i + 2}: marker {c.measured[m]!r} has an infinite coordinate")
+        raise ValueError(f"{path}, line {path.line(i)}: marker {c.measured[m]!r} has an infinite coordinate")
     return P
 
 
@@ -192,7 +220,7 @@ def _plane_contacts(path, c: Columns, P: np.ndarray) -> tuple[np.ndarray | None,
             if not lab:
                 continue
             if np.isfinite(P[i, k]).any():
-                raise ValueError(f"{path}, line {i + 2}: marker {m!r} has a plane contact ({lab!r}) and position "
+                raise ValueError(f"{path}, line {path.line(i)}: marker {m!r} has a plane contact ({lab!r}) and position "
                                  "cells; a contact measures only the distance along the plane's normal: leave "
                                  "x/y/z empty in contact rows")
             if lab not in plane_names:
@@ -207,7 +235,7 @@ def _distances(path, c: Columns, data: np.ndarray) -> dict[tuple[str, str], np.n
     for (a_, b_), v in D.items():
         if np.isinf(v).any() or (v[np.isfinite(v)] < 0).any():
             i = int(np.argmax(np.isinf(v) | (np.nan_to_num(v) < 0)))
-            raise ValueError(f"{path}, line {i + 2}: distance {a_}.dist.{b_} = {v[i]} is not a length; a distance is "
+            raise ValueError(f"{path}, line {path.line(i)}: distance {a_}.dist.{b_} = {v[i]} is not a length; a distance is "
                              "a finite number of metres, zero or more: correct the cell, or leave it empty where "
                              "nothing was measured")
     return D
@@ -226,10 +254,33 @@ def _orientations(path, c: Columns, data: np.ndarray) -> np.ndarray | None:
             ok = np.isfinite(norm)
             if ok.any() and np.abs(norm[ok] - 1).max() > 1e-3:
                 i = int(np.argmax(np.where(ok, np.abs(norm - 1), 0)))
-                raise ValueError(f"{path}, line {i + 2}: quaternion of {m!r} has norm {norm[i]:.4f}; "
+                raise ValueError(f"{path}, line {path.line(i)}: quaternion of {m!r} has norm {norm[i]:.4f}; "
                                  "give unit quaternions (qw, qx, qy, qz)")
             Qt[:, k] = qq / np.where(ok, norm, 1)[:, None]
     return Qt
+
+
+def _covariates(path, c: Columns, data: np.ndarray) -> dict[str, np.ndarray]:
+    """The covariate columns (a temperature, a time) an effect may read: an infinite value is
+    refused with its line; a column with empty cells is left out, with one warning, since a model
+    that reads it could not be evaluated on those rows (the thermal search would fit NaN)."""
+    out = {}
+    for k in c.covariates:
+        v = c.col(data, k)
+        if np.isinf(v).any():
+            i = int(np.flatnonzero(np.isinf(v))[0])
+            raise ValueError(f"{path}, line {path.line(i)}, column {k!r}: {v[i]} is not a finite value; a covariate "
+                             "(a temperature, a time) needs a number in every row: correct the cell, or delete the "
+                             "column to calibrate without it")
+        empty = np.flatnonzero(np.isnan(v))
+        if len(empty):
+            which = "is empty" if len(empty) == len(v) else \
+                f"is empty in {len(empty)} of {len(v)} rows (lines {[path.line(i) for i in empty[:5]]})"
+            warnings.warn(f"{path}: column {k!r} {which}; it is not used as a covariate (no effect reads it): fill "
+                          "it in every row to use it, or delete it", stacklevel=3)
+            continue
+        out[k] = v
+    return out
 
 
 def _absurd(path, data: np.ndarray, header: list[str], covariates: set[str]) -> None:
@@ -240,7 +291,7 @@ def _absurd(path, data: np.ndarray, header: list[str], covariates: set[str]) -> 
     big = np.isfinite(x) & (np.abs(np.where(np.isfinite(x), x, 0.0)) > _ABSURD)  # inf: named by the checks below
     if big.any():
         i, j = np.argwhere(big)[0]
-        raise ValueError(f"{path}, line {i + 2}, column {header[cols[j]]!r}: {data[i, cols[j]]:.4g} is not a plausible "
+        raise ValueError(f"{path}, line {path.line(i)}, column {header[cols[j]]!r}: {data[i, cols[j]]:.4g} is not a plausible "
                          "joint value or measurement in any unit (radians, metres, degrees, millimetres); correct the "
                          "cell, or drop the row")
 
@@ -265,7 +316,7 @@ def _warn_duplicates(path, data: np.ndarray) -> None:
     _, first, counts = np.unique(np.nan_to_num(data, nan=np.inf), axis=0, return_index=True, return_counts=True)
     n_dup = int((counts - 1).sum())
     if n_dup:
-        lines = sorted(int(i) + 2 for i, c in zip(first, counts) if c > 1)[:5]
+        lines = sorted(path.line(i) for i, c in zip(first, counts) if c > 1)[:5]
         warnings.warn(f"{path}: {n_dup} row(s) repeat another row exactly (first at line(s) {lines}); each copy counts "
                       "in the fit, and cross-validation keeps copies in one fold", stacklevel=3)
 

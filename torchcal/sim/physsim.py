@@ -81,7 +81,8 @@ class PhysicalRobot:
                  gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True, joint_terms=None, marker_rpy=None,
                  marker_rotation_error_rad: float = 0.0, pose_markers=None, rot_noise_rad: float = 0.0,
                  marker_true_m=None):
-        text = str(urdf) if str(urdf).lstrip().startswith("<") else Path(urdf).read_text()
+        text = str(urdf) if str(urdf).lstrip("\ufeff \t\r\n").startswith("<") else Path(urdf).read_text("utf-8-sig")
+        text = text.lstrip("\ufeff")  # a byte-order mark is no part of the text
         self.name, joints, self._bodies = parse_urdf(text)
         self._j = {j.name: j for j in joints}
         self.root, self._order, self._below = tree_order(joints)
