@@ -88,7 +88,16 @@ def test_an_option_that_would_be_ignored_is_refused(tmp_path, torchcal_cli, ur5e
     _refused(rc, err, "--shards without --ray")
 
 
-def test_a_list_option_given_twice_is_refused(tmp_path, torchcal_cli, ur5e_csv):
-    rc, _, err = torchcal_cli("loop", "--robot", UR5E, "--marker", SMR, "--data", ur5e_csv, "--out", tmp_path / "o",
-                              "--candidates", "backlash", "--candidates", "joint_compliance")
-    _refused(rc, err, "--candidates takes its values at once")
+def test_a_list_option_given_twice_is_refused():
+    # no command keeps a list option of the '--opt A B' form (effects are '--effect A --effect B'), so the
+    # rule is checked on a parser that has one: a second '--opt C' would replace the first list
+    import argparse
+    from torchcal.cli.strict import _repeated
+    p = argparse.ArgumentParser(allow_abbrev=False)
+    p.add_argument("--names", nargs="+")
+    p.add_argument("--each", action="append")
+    msg = _repeated(["--names", "a", "b", "--names", "c"], p)
+    assert msg is not None and "--names takes its values at once" in msg and "Give it once" in msg
+    assert _repeated(["--each", "a", "--each", "b"], p) is None  # append options add up
+
+
