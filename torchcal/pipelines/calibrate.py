@@ -224,9 +224,6 @@ class _Fitter:
         self.robot, self.data, self.start, self.opt, self.plausible = robot, data, start, opt, plausible
         self.swarm = is_population(opt.method)  # a population searches a box around the start
         self.solver_options = dict(opt.options or {})
-        if opt.method.lower() in ("lm", "levenberg-marquardt"):
-            # the registered start is close to the solution: little initial damping, fewer Jacobians
-            self.solver_options.setdefault("tau", 1e-6)
 
     def problem(self, q: ParamSet, loss: Loss | None) -> CalibrationProblem:
         """The fit's problem from ``q`` under ``loss`` (a swarm's: in its search box)."""

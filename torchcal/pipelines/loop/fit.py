@@ -200,7 +200,7 @@ def fit_noise(prob: EffectCalibrationProblem, x: Tensor, k: float | None = None)
 
 def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
     make = lambda p: effect_problem(ctx, p, effects, data, prior)  # noqa: E731
-    opts = {"max_iter": 200 if reduce else 100, "tau": 1e-6}
+    opts = {"max_iter": 200 if reduce else 100}
     # under a prior nothing is dropped for imprecision: the prior holds what the data barely see;
     # otherwise the noise the candidate itself reaches says how well a parameter is seen
     noise = fit_noise if prior is None else None
