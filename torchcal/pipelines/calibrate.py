@@ -12,6 +12,7 @@ from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.details import error_details
 from torchcal.measure.loss import Loss
+from torchcal.measure.noise import mad_sigma
 from torchcal.measure.observations import Observations
 from torchcal.measure.records import ErrorStats, Stage, StageErrors
 from torchcal.measure.registration import leave_out_gross, register_base, register_marker_rotations
@@ -257,7 +258,7 @@ class _Fitter:
         for rnd in range(1 if o.loss == "l2" or o.loss_scale is not None else 12):
             if o.loss != "l2":
                 scale = float(o.loss_scale) if o.loss_scale is not None else max(
-                    2.5 * 1.4826 * float(_position_errors(self.robot, p.values, self.data)[0].median()),
+                    2.5 * mad_sigma(_position_errors(self.robot, p.values, self.data)[0], center=0.0),
                     1e-9)
                 if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
                     break

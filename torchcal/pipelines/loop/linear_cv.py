@@ -14,7 +14,7 @@ import torch
 from scipy.optimize import least_squares
 from torch import Tensor
 
-from torchcal.pipelines.loop.selection import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
+from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
 
 __all__ = ["LinearCV", "ALIAS_COS"]
 
