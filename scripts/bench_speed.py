@@ -25,7 +25,7 @@ Prints a table to stderr and one JSON line to stdout: per figure the base's and 
 seconds and base / new, the bars of issue 33 and whether each is met.
 
 Usage: python scripts/bench_speed.py [--base-commit bb752dd] [--base-dir /tmp/torchcal-base]
-       [--reps 3] [--only loop_arm9,loop_demo] [--fleet 6]
+       [--reps 3] [--only loop_arm9,loop_demo] [--fleet 6] [--save out/bench_speed]
 """
 from __future__ import annotations
 
@@ -119,12 +119,15 @@ def _env(tree: Path) -> dict:
     return env
 
 
-def _wall(cmd: list[str], tree: Path, reps: int) -> float:
-    best = float("inf")
+def _wall(cmd: list[str], trees: dict[str, Path], reps: int) -> dict[str, float]:
+    """The least wall time of ``cmd`` per tree over ``reps`` runs, the trees taking turns (so that both
+    meet the same load on a shared machine)."""
+    best = {tag: float("inf") for tag in trees}
     for _ in range(reps):
-        t = time.perf_counter()
-        subprocess.run(cmd, cwd=tree, env=_env(tree), check=True, capture_output=True)
-        best = min(best, time.perf_counter() - t)
+        for tag, tree in trees.items():
+            t = time.perf_counter()
+            subprocess.run(cmd, cwd=tree, env=_env(tree), check=True, capture_output=True)
+            best[tag] = min(best[tag], time.perf_counter() - t)
     return best
 
 
@@ -157,6 +160,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--reps", type=int, default=3, help="runs of each start-up figure (the least counts)")
     ap.add_argument("--only", help="comma-separated figures (default all): " + ", ".join(FIGURES))
     ap.add_argument("--fleet", type=int, default=6, help="robots of the fleet figure")
+    ap.add_argument("--save", help="a folder for each worker's full output (decisions, parameters), per tree")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
@@ -168,18 +172,19 @@ def main(argv=None) -> dict:
     trees = {"base": _base_tree(a.base_commit, Path(a.base_dir)), "new": ROOT}
     fig: dict[str, dict] = {}
     py = sys.executable
-    for tag, tree in trees.items():
-        if "import_torch" in only:
-            fig.setdefault("import_torch", {})[tag] = _wall([py, "-c", "import torch"], tree, a.reps)
-        if "import_torchcal" in only:
-            fig.setdefault("import_torchcal", {})[tag] = _wall([py, "-c", "import torchcal"], tree, a.reps)
-        if "help" in only:
-            fig.setdefault("help", {})[tag] = _wall([py, "-m", "torchcal", "--help"], tree, a.reps)
+    starts = {"import_torch": [py, "-c", "import torch"], "import_torchcal": [py, "-c", "import torchcal"],
+              "help": [py, "-m", "torchcal", "--help"]}
+    for name, cmd in starts.items():
+        if name in only:
+            fig[name] = _wall(cmd, trees, a.reps)
     runs: dict[str, dict] = {}
     for name in ("loop_arm9", "loop_demo", "fleet_page"):
         want = name in only or (name == "loop_demo" and "report_demo" in only)
         if want:
             runs[name] = {tag: _worker(name, tree, a.fleet) for tag, tree in trees.items()}
+            if a.save:
+                Path(a.save).mkdir(parents=True, exist_ok=True)
+                (Path(a.save) / f"{name}.json").write_text(json.dumps(runs[name]))
     for name in ("loop_arm9", "loop_demo", "fleet_page"):
         if name in runs and name in only:
             fig[name] = {tag: r["cpu_s"] for tag, r in runs[name].items()}
