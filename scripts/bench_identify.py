@@ -20,7 +20,7 @@ Peers, with the *same* residual function ``problem.residuals`` and the same star
 * ``scipy_jac``: the same, given torchcal's analytic Jacobian ``problem.jacobian``.
 
 The headline ``lm`` is LM as ``torchcal.calibrate()`` runs it (``tau=1e-6``). Two option settings
-are timed alongside for the record: ``lm_tau3`` (the solver's generic default ``tau=1e-3``) and ``lm_tau6_2pt``
+are timed alongside for the record: ``lm_tau3`` (the former generic default ``tau=1e-3``) and ``lm_tau6_2pt``
 (also ``jac="2-point"``: forward differences as one batched residuals call of k+1 points).
 Call counts are reported per solver: residual points, Jacobians, and ``problem.fitness`` calls.
 
@@ -71,9 +71,9 @@ from torchcal.sim.serial import random_configs  # noqa: E402
 D = torch.float64
 LEN_ERR, ANG_ERR = 0.25e-3, 0.05  # uniform half-widths: m, rad
 THREE_MARKERS = ["flange", "m2@flange=0.1,0,0", "m3@flange=0,0.1,0"]
-# The headline "lm" is LM as torchcal.calibrate() runs it: tau = 1e-6 (initial damping
-# mu0 = tau max diag(JᵀJ), Madsen-Nielsen's value for a good start; calibrate() starts at the
-# registered point). Timed alongside: the solver's generic default tau = 1e-3 ("lm_tau3", ~3 more
+# The headline "lm" is LM as torchcal.calibrate() runs it: tau = 1e-6 (torchcal.damping.TAU, the one
+# default: mu0 = tau with Marquardt scaling, a value for a good start; calibrate() starts at the
+# registered point). Timed alongside: the former generic default tau = 1e-3 ("lm_tau3", ~3 more
 # iterations here) and the batched forward-difference Jacobian (k+1 points in one residuals()
 # call), which is cheaper than the analytic one at this size.
 CALIBRATE_LM = {"tau": 1e-6}
@@ -338,7 +338,7 @@ def main() -> None:
             t = v[f"{n}_time_ms"]
             print(f"{name:<14}{n:<13}{t:>8.1f}{v['scipy_time_ms'] / t:>9.2f}{v['scipy_jac_time_ms'] / t:>10.2f}"
                   f"{v[f'{n}_max_err_mm']:>12.7f}{v[f'{n}_sse_m2']:>12.4e}  {ev}")
-    print("(lm: as calibrate() runs it, tau=1e-6; lm_tau3: the solver default tau=1e-3; lm_tau6_2pt: tau=1e-6, jac='2-point'; scipy: method='lm', "
+    print("(lm: as calibrate() runs it, tau=1e-6; lm_tau3: the former default tau=1e-3; lm_tau6_2pt: tau=1e-6, jac='2-point'; scipy: method='lm', "
           "finite differences; scipy_jac: method='lm' with torchcal's analytic Jacobian)")
     print("\nposes: 'LM ms' from one loop interleaving the pose counts; the rest from each count's own loop")
     print(f"{'poses':<8}{'m':>7}{'LM ms':>9}{'tau3':>8}{'tau6_2pt':>9}{'scipy':>9}{'scipy+J':>9}{'scipy/LM':>9}"

@@ -64,7 +64,7 @@ from torchcal import CalibratedModel, calibrate, plan_poses, run_loop  # noqa: E
 from torchcal.effects import build_effect, effect_params  # noqa: E402
 from torchcal.pipelines.fitting import fit_identified  # noqa: E402
 from torchcal.problems.identifiability import stacked_jacobian  # noqa: E402
-from torchcal.pipelines.loop.fit import geometric_start  # noqa: E402
+from torchcal.problems.template import geometric_start  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402
 from torchcal.problems.calibration import EffectCalibrationProblem  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402

@@ -1,17 +1,16 @@
-"""The step arithmetic of damped least squares, written once for every Levenberg-Marquardt loop.
+"""The step arithmetic of damped least squares, stated once.
 
-Four loops damp a Gauss-Newton step: the engine's :class:`~torchcal.optim.LevenbergMarquardt`
-(one problem, Python floats), :func:`~torchcal.optim.lm_batched.lm_batched` (a batch of problems,
-one damping each, tensors), :func:`~torchcal.optim.lm_arrow.lm_arrow` (one global damping) and
+Two iterations damp a Gauss-Newton step: the one Levenberg-Marquardt iteration
+(:func:`~torchcal.optim.lm_batched.lm_batched`: a batch of problems, one damping each; a single
+problem is a batch of one and the coupled fleet one problem with an arrow-shaped linear step) and
 the inverse kinematics of :mod:`torchcal.kinematics.ik` (one damping per target). They share the
-rules here: the gain ratio, Nielsen's damping update (Madsen, Nielsen & Tingleff, *Methods for
-non-linear least squares problems*, 2004, Alg. 3.16), the initial damping, the floor of Marquardt's
-scaling, MINPACK's scale-free gradient test and the ftol/xtol stopping tests.
+rules here: the initial damping :data:`TAU`, the gain ratio, Nielsen's damping update (Madsen,
+Nielsen & Tingleff, *Methods for non-linear least squares problems*, 2004, Alg. 3.16), the floor of
+Marquardt's scaling, MINPACK's scale-free gradient test and the ftol/xtol stopping tests.
 
-The rules that the single solver applies to Python floats (one problem) take tensors (one entry
-per problem) as well and compute the same expression either way, so a batched loop follows the
-single solver to the bit. IK uses the initial damping only: it takes any step that lowers its
-error and moves the damping by fixed factors (see :mod:`torchcal.kinematics.ik`).
+The rules take Python floats or tensors (one entry per problem) and compute the same expression
+either way. IK uses the initial damping only: it takes any step that lowers its error and moves the
+damping by fixed factors (see :mod:`torchcal.kinematics.ik`).
 
 Why here, at the top of the package beside :mod:`torchcal.params`: the helpers serve kinematics
 (IK) and optim alike, and kinematics comes before optim in the data path (kinematics -> measure ->
@@ -26,11 +25,17 @@ from typing import TypeVar
 import torch
 from torch import Tensor
 
-__all__ = ["gain_ratio", "predicted_decrease", "nielsen_update", "damp_harder", "initial_damping",
+__all__ = ["TAU", "gain_ratio", "predicted_decrease", "nielsen_update", "damp_harder", "initial_damping",
            "scaling_floor", "gradient_cosine", "small_decrease", "small_step"]
 
 Num = TypeVar("Num", float, Tensor)
 
+#: The default initial damping, for every LM in torchcal. With Marquardt's scaling (the default)
+#: ``mu0 = TAU`` is dimensionless: the scaling carries the problem's units. Small, because every
+#: start torchcal fits from is close (registered to the instrument, or the last fit): a large mu0
+#: spends its first steps as gradient descent, while a too-small one costs one rejected step (Nielsen's
+#: rule doubles its way up). With identity scaling, ``mu0 = TAU * max diag(JᵀJ)``.
+TAU = 1e-6
 #: Nielsen's smallest damping factor after a good step: mu never falls by more than 3x at once.
 _MIN_SHRINK = 1.0 / 3.0
 #: Marquardt scaling is floored at this fraction of its largest entry, so that a direction the

@@ -21,7 +21,7 @@ from torchcal.cli.app import main as cli
 from torchcal.cli.common import EXIT_BUG, EXIT_REFUSED, is_refusal
 from torchcal.params import NoSuchParameter
 from torchcal.measure.io import UnitsError
-from torchcal.pipelines.loop.fit import folds_of
+from torchcal.pipelines.crossval.models import folds_of
 from torchcal.kinematics.robots import urdf_path
 from torchcal.kinematics.transforms import quat_to_matrix
 

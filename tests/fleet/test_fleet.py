@@ -96,14 +96,14 @@ def test_lm_batched_replicates_single_lm(kr5):
     data = [simulate(kr5, SimConfig(n=n, seed=70 + n, base_distance=0.0), true_params=_errors(kr5, p, n))[0]
             for n in (12, 20, 31)]  # robot-frame data: the base stays at 0
     probs = [CalibrationProblem(kr5, p, d) for d in data]
-    singles = [get_solver("lm", tau=1e-6).minimize(pr) for pr in probs]
+    singles = [get_solver("lm").minimize(pr) for pr in probs]
     m = max(pr.m for pr in probs)
     pad = lambda t, n: torch.cat([t, t.new_zeros(n - t.shape[0], *t.shape[1:])])  # noqa: E731
     res = lm_batched(lambda X, i: torch.stack([pad(probs[k].residuals(X[j:j + 1, p.free_index])[0], m)
                                                for j, k in enumerate(i.tolist())]),
                      lambda X, i: torch.stack([pad(probs[k].full_jacobian(X[j]), m)
                                                for j, k in enumerate(i.tolist())]),
-                     p.values.expand(3, -1), p.free.expand(3, -1), p.lower, p.upper, tau=1e-6)
+                     p.values.expand(3, -1), p.free.expand(3, -1), p.lower, p.upper)
     for b, (pr, s) in enumerate(zip(probs, singles)):
         assert bool(res.converged[b]) and s.converged
         x = p.values.clone()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from torchcal.pipelines.loop.fit import folds_of
+from torchcal.pipelines.crossval.models import folds_of
 from torchcal.pipelines.loop.linear_cv import LinearCV
 
 D = torch.float64

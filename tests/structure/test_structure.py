@@ -55,15 +55,36 @@ def test_no_function_is_over_100_lines():
     assert not long, "split these into named steps: " + ", ".join(long)
 
 
-def test_public_functions_take_at_most_10_parameters():
-    def count(fn) -> int:
-        a = fn.args
-        names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
-        return len(names) - (1 if names and names[0] in ("self", "cls") else 0)
+def _count_params(fn) -> int:
+    a = fn.args
+    names = [x.arg for x in a.posonlyargs + a.args + a.kwonlyargs]
+    return len(names) - (1 if names and names[0] in ("self", "cls") else 0)
 
-    long = [f"{rel}:{fn.name} ({count(fn)})" for rel, tree, _ in MODULES for fn in _functions(tree)
-            if not fn.name.startswith("_") and count(fn) > MAX_PUBLIC_PARAMS]
+
+def _constructors() -> list[tuple[str, str, ast.FunctionDef]]:
+    """``(module, class, __init__)`` of every public class that writes its own constructor."""
+    return [(rel, c.name, fn) for rel, tree, _ in MODULES for c in ast.walk(tree)
+            if isinstance(c, ast.ClassDef) and not c.name.startswith("_")
+            for fn in c.body if isinstance(fn, ast.FunctionDef) and fn.name == "__init__"]
+
+
+# Constructors being converted to settings records on another branch (issue 34 §3): listed here so the
+# check holds for everything else meanwhile; remove an entry when its record lands.
+PENDING_CONSTRUCTORS = {"sim/physsim.py"}
+
+
+def test_public_functions_take_at_most_10_parameters():
+    long = [f"{rel}:{fn.name} ({_count_params(fn)})" for rel, tree, _ in MODULES for fn in _functions(tree)
+            if not fn.name.startswith("_") and _count_params(fn) > MAX_PUBLIC_PARAMS]
     assert not long, "move the settings of these into a torchcal.options.Options record: " + ", ".join(long)
+
+
+def test_constructors_take_at_most_10_parameters():
+    ctors = _constructors()
+    assert len(ctors) > 20  # a check that found no constructor would pass
+    long = [f"{rel}:{cls}.__init__ ({_count_params(fn)})" for rel, cls, fn in ctors
+            if _count_params(fn) > MAX_PUBLIC_PARAMS and rel not in PENDING_CONSTRUCTORS]
+    assert not long, "give these a torchcal.options.Options settings record: " + ", ".join(long)
 
 
 def test_no_module_is_over_400_lines():

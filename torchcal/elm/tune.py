@@ -84,7 +84,7 @@ def tune_elm(X_train, Y_train, X_val, Y_val, method: str = "mma", n_hidden: int 
     opt = TuneOptions.build(settings, **kw)
     if opt.refit not in ("train", "all"):
         raise ValueError(f"refit must be 'train' or 'all', got {opt.refit!r}")
-    prob = ELMProblem(X_train, Y_train, X_val, Y_val, n_hidden, opt.activation, opt.ridge)
+    prob = ELMProblem(X_train, Y_train, X_val, Y_val, n_hidden=n_hidden, activation=opt.activation, ridge=opt.ridge)
     opts = dict(opt.options or {})
     if method.lower() == "random":
         res = _random_search(prob, int(opts.pop("n_evals", 2000)), opt.seed, int(opts.pop("batch", 64)))

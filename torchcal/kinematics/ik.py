@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcal.damping import initial_damping
+from torchcal.damping import TAU, initial_damping
 from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.kinematics.transforms import check_rotations, so3_log
@@ -277,7 +277,7 @@ def _descend(task: _Task, R_t: Tensor | None, p_t: Tensor, q: Tensor, e_p: Tenso
         first = mua < 0
         if bool(first.any()):
             # start with light damping relative to the Jacobian's scale
-            mua = torch.where(first, initial_damping(1e-6, scale), mua)
+            mua = torch.where(first, initial_damping(TAU, scale), mua)
         dq = torch.linalg.solve(JtJ + mua[:, None, None] * eye, g[..., None])[..., 0]
         qn = torch.minimum(torch.maximum(q[act] + dq, task.lo), task.hi)
         ep_n, er_n = task.errors(qn, None if R_t is None else R_t[act], p_t[act])

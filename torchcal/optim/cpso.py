@@ -19,6 +19,7 @@ from torch import Tensor
 
 from torchcal.optim.base import register
 from torchcal.optim.pso import PSO, SwarmState
+from torchcal.optim.swarm_options import CPSOOptions, PSOOptions
 from torchcal.problems.base import Problem
 
 __all__ = ["ChaoticPSO", "logistic_sequence", "avoid_fixed_points"]
@@ -108,13 +109,13 @@ class ChaoticPSO(PSO):
     aliases = ("chaotic-pso",)
     batched = False  # the chaotic search follows one global best
 
-    def __init__(self, *, pop_size: int = 200, max_iter: int = 200,
-                 w: float | tuple[float, float] = (0.9, 0.2), c1: float = 1.3, c2: float = 1.8,
-                 v_max: float | None = 0.2, n_chaos: int = 10, chaos_radius: float | None = None,
-                 mu: float = 4.0, seed: int | None = 0, progress: bool = False,
-                 callback: Callable[[int, float], None] | None = None):
-        super().__init__(pop_size=pop_size, max_iter=max_iter, w=w, c1=c1, c2=c2, v_max=v_max,
+    def __init__(self, settings: CPSOOptions | None = None, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None, **options):
+        o = CPSOOptions.build(settings, **options)
+        super().__init__(PSOOptions(pop_size=o.pop_size, max_iter=o.max_iter, w=o.w, c1=o.c1, c2=o.c2, v_max=o.v_max),
                          seed=seed, progress=progress, callback=callback)
+        self.settings = o
+        n_chaos, chaos_radius, mu = o.n_chaos, o.chaos_radius, o.mu
         if int(n_chaos) < 0:
             raise ValueError(f"n_chaos must be >= 0, got {n_chaos}")
         if chaos_radius is not None and not chaos_radius > 0:

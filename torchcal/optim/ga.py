@@ -13,6 +13,7 @@ scaling, island migration) and the usual real-coded GA operators where they do n
 from __future__ import annotations
 
 import math
+from dataclasses import astuple
 from types import SimpleNamespace
 from typing import Callable
 
@@ -22,6 +23,7 @@ from torch import Tensor
 from torchcal.optim.base import register
 from torchcal.optim.engine import IterativeSolver, evaluate
 from torchcal.optim.result import Result
+from torchcal.optim.swarm_options import GAOptions
 from torchcal.problems.base import Problem
 
 __all__ = ["GeneticAlgorithm"]
@@ -114,12 +116,11 @@ class GeneticAlgorithm(IterativeSolver):
         "seed001": {"p_crossover": 0.5, "p_mutation": 0.2},
     }
 
-    def __init__(self, *, pop_size: int = 30, max_iter: int = 200, p_crossover: float = 0.8,
-                 p_mutation: float = 0.2, migration: float = 0.7, n_islands: int = 2,
-                 migration_interval: int = 20, n_elite: int | None = None,
-                 selection: str = "sus", scaling_rate: float = 2.0, alpha: float = 0.3,
-                 mutation_scale: float = 0.1, shrink: float = 1.0, seed: int | None = 0,
-                 progress: bool = False, callback: Callable[[int, float], None] | None = None):
+    def __init__(self, settings: GAOptions | None = None, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None, **options):
+        self.settings = GAOptions.build(settings, **options)
+        (pop_size, max_iter, p_crossover, p_mutation, migration, n_islands, migration_interval, n_elite, selection,
+         scaling_rate, alpha, mutation_scale, shrink) = astuple(self.settings)
         super().__init__(seed=seed, progress=progress, callback=callback)
         pop_size, n_islands = int(pop_size), int(n_islands)
         if n_islands < 1 or pop_size < 2 * n_islands or pop_size % n_islands:

@@ -10,13 +10,18 @@ from torch import Tensor
 
 from torchcal.optim.result import Result
 
-__all__ = ["BatchedLMResult", "STOP_GTOL", "STOP_FTOL", "STOP_XTOL", "STOP_BLOWN", "STOP_GTOL0"]
+__all__ = ["BatchedLMResult", "stop_message", "STOP_GTOL", "STOP_FTOL", "STOP_XTOL", "STOP_BLOWN", "STOP_GTOL0"]
 
 # Why a problem stopped, by code (0: the iteration cap).
 STOP_GTOL, STOP_FTOL, STOP_XTOL, STOP_BLOWN, STOP_GTOL0 = 1, 2, 3, 4, 5
 _WHY = {STOP_GTOL: "projected gradient below gtol", STOP_FTOL: "relative decrease of the sum of squares below ftol",
         STOP_XTOL: "step below xtol", STOP_BLOWN: "damping overflowed: no decrease found along any step",
         STOP_GTOL0: "projected gradient below gtol at the start"}
+
+
+def stop_message(code: int, max_iter: int) -> str:
+    """Why a problem stopped, in words, from its code."""
+    return _WHY.get(code, f"reached max_iter={max_iter}")
 
 
 @dataclass
@@ -53,8 +58,7 @@ class BatchedLMResult:
     @cached_property
     def messages(self) -> list[str]:
         """Why each problem stopped, in words."""
-        cap = f"reached max_iter={self.max_iter}"
-        return [_WHY.get(c, cap) for c in self.stop.tolist()]
+        return [stop_message(c, self.max_iter) for c in self.stop.tolist()]
 
     @cached_property
     def history(self) -> list[list[float]]:

@@ -12,7 +12,7 @@ Shapes: males ``Xm, Vm, Pm`` (positions, velocities, personal bests) ``(n, k)`` 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from typing import Callable
 
 import torch
@@ -21,6 +21,7 @@ from torch import Tensor
 from torchcal.optim.base import register
 from torchcal.optim.engine import IterativeSolver, evaluate
 from torchcal.optim.result import Result
+from torchcal.optim.swarm_options import MayflyOptions
 from torchcal.problems.base import Problem
 
 __all__ = ["Mayfly", "MayflyState", "best_rows", "sorted_rows"]
@@ -140,12 +141,10 @@ class Mayfly(IterativeSolver):
     population = True
     aliases = ("mayfly",)
 
-    def __init__(self, *, pop_size: int = 20, max_iter: int = 200, n_off: int | None = None,
-                 g: float = 0.8, g_damp: float = 1.0, a1: float = 1.0, a2: float = 1.5,
-                 a3: float = 1.5, beta: float = 2.0, d: float = 0.1, d_damp: float = 0.99,
-                 fl: float = 0.1, fl_damp: float = 0.99, v_max: float = 0.1,
-                 seed: int | None = 0, progress: bool = False,
-                 callback: Callable[[int, float], None] | None = None):
+    def __init__(self, settings: MayflyOptions | None = None, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None, **options):
+        self.settings = MayflyOptions.build(settings, **options)
+        pop_size, max_iter, n_off, g, g_damp, a1, a2, a3, beta, d, d_damp, fl, fl_damp, v_max = astuple(self.settings)
         super().__init__(seed=seed, progress=progress, callback=callback)
         pop_size = int(pop_size)
         n_off = pop_size + pop_size % 2 if n_off is None else int(n_off)

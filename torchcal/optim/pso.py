@@ -19,6 +19,7 @@ Shapes: ``k`` parameters, ``P`` particles; positions ``X``, velocities ``V``, pe
 """
 from __future__ import annotations
 
+from dataclasses import astuple
 from fractions import Fraction
 from typing import Callable
 
@@ -28,6 +29,7 @@ from torch import Tensor
 from torchcal.optim.base import register
 from torchcal.optim.engine import IterativeSolver
 from torchcal.optim.swarm import SwarmState, rand_runs, rows_of
+from torchcal.optim.swarm_options import LDPSOOptions, PSOOptions
 from torchcal.problems.base import Problem
 
 __all__ = ["PSO", "LDPSO_BT", "ldpso_pop_sizes", "SwarmState"]
@@ -77,10 +79,10 @@ class PSO(IterativeSolver):
     population = True
     batched = True
 
-    def __init__(self, *, pop_size: int = 240, max_iter: int = 500,
-                 w: float | tuple[float, float] = 0.8, c1: float = 1.49, c2: float = 1.49,
-                 v_max: float | None = 0.2, stall_iter: int | None = None, stall_tol: float = 0.0,
-                 seed: int | None = 0, progress: bool = False, callback: Callable[[int, float], None] | None = None):
+    def __init__(self, settings: PSOOptions | None = None, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None, **options):
+        self.settings = PSOOptions.build(settings, **options)
+        pop_size, max_iter, w, c1, c2, v_max, stall_iter, stall_tol = astuple(self.settings)
         super().__init__(seed=seed, progress=progress, callback=callback)
         if int(pop_size) < 1:
             raise ValueError(f"pop_size must be >= 1, got {pop_size}")
@@ -297,15 +299,16 @@ class LDPSO_BT(PSO):
     name = "ldpso-bt"
     aliases = ("ldpso",)
 
-    def __init__(self, *, n_max: int = 240, n_min: int = 40, max_iter: int = 500, w1: float = 0.8,
-                 w2: float = 0.4, k_switch: float = 0.8, c1: float = 1.49, c2: float = 1.49,
-                 v_max: float | None = 0.2, stall_iter: int | None = None, stall_tol: float = 0.0,
-                 seed: int | None = 0, progress: bool = False, callback: Callable[[int, float], None] | None = None):
+    def __init__(self, settings: LDPSOOptions | None = None, *, seed: int | None = 0, progress: bool = False,
+                 callback: Callable[[int, float], None] | None = None, **options):
+        o = LDPSOOptions.build(settings, **options)
+        n_max, n_min, max_iter, w1, w2, k_switch = o.n_max, o.n_min, o.max_iter, o.w1, o.w2, o.k_switch
         if not 1 <= int(n_min) <= int(n_max):
             raise ValueError(f"need 1 <= n_min <= n_max, got n_min={n_min}, n_max={n_max}")
-        super().__init__(pop_size=n_max, max_iter=max_iter, w=w1, c1=c1, c2=c2, v_max=v_max,
-                         stall_iter=stall_iter, stall_tol=stall_tol, seed=seed, progress=progress,
-                         callback=callback)
+        super().__init__(PSOOptions(pop_size=n_max, max_iter=max_iter, w=w1, c1=o.c1, c2=o.c2, v_max=o.v_max,
+                                    stall_iter=o.stall_iter, stall_tol=o.stall_tol),
+                         seed=seed, progress=progress, callback=callback)
+        self.settings = o
         self.n_max = int(n_max)
         self.n_min = int(n_min)
         self.w1 = float(w1)

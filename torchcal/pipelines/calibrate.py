@@ -13,6 +13,7 @@ from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.details import error_details
 from torchcal.measure.loss import Loss
+from torchcal.measure.noise import mad_sigma
 from torchcal.measure.observations import Observations
 from torchcal.measure.records import ErrorStats, Stage, StageErrors
 from torchcal.measure.registration import leave_out_gross, register_base, register_marker_rotations
@@ -246,9 +247,6 @@ class _Fitter:
         self.robot, self.data, self.start, self.opt, self.plausible = robot, data, start, opt, plausible
         self.swarm = is_population(opt.method)  # a population searches a box around the start
         self.solver_options = dict(opt.options or {})
-        if opt.method.lower() in ("lm", "levenberg-marquardt"):
-            # the registered start is close to the solution: little initial damping, fewer Jacobians
-            self.solver_options.setdefault("tau", 1e-6)
 
     def problem(self, q: ParamSet, loss: Loss | None) -> CalibrationProblem:
         """The fit's problem from ``q`` under ``loss`` (a swarm's: in its search box)."""
@@ -282,7 +280,7 @@ class _Fitter:
         for rnd in range(1 if o.loss == "l2" or o.loss_scale is not None else 12):
             if o.loss != "l2":
                 scale = float(o.loss_scale) if o.loss_scale is not None else max(
-                    2.5 * 1.4826 * float(_position_errors(self.robot, p.values, self.data)[0].median()),
+                    2.5 * mad_sigma(_position_errors(self.robot, p.values, self.data)[0], center=0.0),
                     1e-9)
                 if scale_prev is not None and abs(scale - scale_prev) <= 0.05 * scale_prev:
                     break

@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import SMALL_DATA, implausible_values, is_small
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, duplicate_groups, effect_problem,
-                                         evaluate, evaluate_prior, fit_noise, folds_of,
-                                         plausible_scale)
-from torchcal.pipelines.loop.selection import penalised
+from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, plausible_scale
+from torchcal.pipelines.crossval.models import Context, Model, duplicate_groups, effect_problem, fit_noise, folds_of
+from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior
+from torchcal.pipelines.crossval.scores import penalised
 
 __all__ = ["PriorChoice", "choose_prior"]
 

@@ -255,6 +255,7 @@ class EffectCalibrationProblem(Problem):
                 self.m += 1
         self._set_free = torch.nonzero(free[K:K + S]).flatten() + K
         self._eff_free = torch.nonzero(free[K + S:]).flatten() + K + S
+        self._memo = None  # (full (1, K'), its marker frames): see _points
 
     def full(self, X: Tensor) -> Tensor:
         return self.params.expand(X)
@@ -291,12 +292,23 @@ class EffectCalibrationProblem(Problem):
         Rb, tb = self.robot.base_transform(geo)
         return Rb[:, None, None] @ R, tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
 
+    def _points(self, full: Tensor) -> tuple[Tensor | None, Tensor]:
+        """Marker rotations (None without measured orientations) and positions at ``full``. The last
+        single point is kept: a least-squares solver asks for the Jacobian (and the loss's weights)
+        where it has just evaluated the residuals, and the kinematics need not run again."""
+        memo = self._memo
+        one = full.shape[0] == 1 and not full.requires_grad  # (a graph is never kept)
+        if one and memo is not None and torch.equal(memo[0], full):
+            return memo[1]
+        out = self.marker_frames(full) if self.obs.has_orientation else (None, self.marker_positions(full))
+        if one:
+            self._memo = (full.clone(), out)
+        return out
+
     def residual_vectors(self, full: Tensor) -> Tensor:
         """``(P, n_obs, 3)`` model − measured per observation (m; zero where nothing was measured)."""
-        if self.obs.has_orientation:
-            R, p = self.marker_frames(full)
-            return self.obs.residuals(p, full[:, self.K:self.K + self.S], R)
-        return self.obs.residuals(self.marker_positions(full), full[:, self.K:self.K + self.S])
+        R, p = self._points(full)
+        return self.obs.residuals(p, full[:, self.K:self.K + self.S], R)
 
     def errors(self, full: Tensor) -> Tensor:
         """``(P, n_obs)`` Euclidean error of each observation's measured components (m)."""
@@ -322,7 +334,7 @@ class EffectCalibrationProblem(Problem):
         K, S = self.K, self.S
         turns = self.obs.has_orientation
         if self._geo_free.numel() or self._set_free.numel():
-            R, p = (self.marker_frames(full) if turns else (None, self.marker_positions(full)))
+            R, p = self._points(full)
             R, p = (None if R is None else R[0]), p[0]
             s = full[0, K:K + S]
         if self._geo_free.numel():

@@ -4,14 +4,16 @@ population of hidden layers; the hidden weights and biases are the parameters an
 error is the fitness, so the same swarm solvers that identify geometry (MMA, PSO, GA, ...) tune it."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
 from torch import Tensor
 
+from torchcal.options import Options
 from torchcal.problems.base import FunctionProblem
 
-__all__ = ["ACTIVATIONS", "ELMProblem", "Scaler", "as_matrix", "activation_fn", "fit_population",
+__all__ = ["ACTIVATIONS", "ELMProblem", "ELMProblemOptions", "Scaler", "as_matrix", "activation_fn", "fit_population",
            "hidden_layer", "solve_output_weights"]
 
 
@@ -125,6 +127,21 @@ class Scaler:
         return mu, torch.where(sd > 0, sd, torch.ones_like(sd))
 
 
+@dataclass(frozen=True)
+class ELMProblemOptions(Options):
+    """Settings of :class:`ELMProblem`: hidden neurons, activation, ridge of the output solve (0: the
+    pseudo-inverse), the bounds ``[low, high]`` of ``W`` and ``b``, the dtype and the population chunk
+    solved at once."""
+
+    n_hidden: int = 40
+    activation: str = "sigmoid"
+    ridge: float = 0.0
+    low: float = -1.0
+    high: float = 1.0
+    dtype: torch.dtype = torch.float64
+    chunk: int = 256
+
+
 class ELMProblem(FunctionProblem):
     """Seed 002's search problem: ``W`` and ``b`` of an ELM, fitness = validation RMSE.
 
@@ -138,9 +155,10 @@ class ELMProblem(FunctionProblem):
     Scaling (inputs to [-1, 1], outputs standardised) is fitted on the training split only.
     """
 
-    def __init__(self, X_train, Y_train, X_val, Y_val, n_hidden: int = 40,
-                 activation: str = "sigmoid", ridge: float = 0.0, low: float = -1.0,
-                 high: float = 1.0, dtype: torch.dtype = torch.float64, chunk: int = 256):
+    def __init__(self, X_train, Y_train, X_val, Y_val, settings: ELMProblemOptions | None = None, **options):
+        o = ELMProblemOptions.build(settings, **options)
+        n_hidden, activation, ridge, low, high, dtype, chunk = (o.n_hidden, o.activation, o.ridge, o.low, o.high,
+                                                                o.dtype, o.chunk)
         dev = X_train.device if isinstance(X_train, Tensor) else "cpu"
         Xt, Yt = as_matrix(X_train, "X_train", dtype, dev), as_matrix(Y_train, "Y_train", dtype, dev)
         Xv, Yv = as_matrix(X_val, "X_val", dtype, dev), as_matrix(Y_val, "Y_val", dtype, dev)

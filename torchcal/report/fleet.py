@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 from scipy import stats
 
+from torchcal.measure.noise import mad_sigma
 from torchcal.params import display_unit
 from torchcal.report.calibration import write_json
 from torchcal.report.figures import fleet_figure
@@ -44,7 +45,6 @@ SPREAD_FIGURE = "fleet_spread.png"
 MIN_ROBOTS = 5  # fewer robots than this: a median and a MAD say too little to flag anyone
 SCREEN = 4.0  # siblings beyond this many robust standard deviations do not set the yardstick
 FALSE_ALARM = 0.05  # default chance that a fleet of healthy robots raises any flag
-_MAD = 1.4826  # MAD -> standard deviation for a normal distribution
 
 
 def _columns(results, extra) -> list[tuple[str, str, list[float | None], list[float | None]]]:
@@ -93,7 +93,7 @@ def sibling_z(x: np.ndarray, se: np.ndarray, floor: float = 0.0, screen: float =
         raise ValueError(f"sibling_z needs at least 4 robots (3 siblings to estimate a spread), got {n}")
     med = float(np.median(x))
     d = x - med  # centred: the sums below then lose no digits to the parameter's nominal size
-    s0 = max(_MAD * float(np.median(np.abs(d))), floor)
+    s0 = max(mad_sigma(d, center=0.0), floor)
     near = np.abs(d) <= screen * s0 if s0 > 0 else np.ones(n, dtype=bool)
     # leave-one-out sums over each robot's siblings: the near ones, or all of them where fewer than
     # 3 near siblings are left to say how far is far
@@ -137,13 +137,13 @@ def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra:
         who = [i for i, v in enumerate(vals) if v is not None]
         x = np.array([vals[i] for i in who], dtype=float)
         med = float(np.median(x))
-        mad = float(np.median(np.abs(x - med)))
+        rstd = mad_sigma(x)
         se_all = np.array([ses[i] if ses[i] is not None and math.isfinite(ses[i]) else np.nan for i in who])
         floor = float(np.nanmedian(se_all)) if np.isfinite(se_all).any() else 0.0
         entry = {"unit": u, "n": len(who), "mean": float(x.mean()),
                  "std": float(x.std(ddof=1)) if len(who) > 1 else 0.0,
-                 "median": med, "robust_std": _MAD * mad, "median_std_error": floor,
-                 "z_scale": max(_MAD * mad, floor), "z_needed": None, "min": float(x.min()), "max": float(x.max()),
+                 "median": med, "robust_std": rstd, "median_std_error": floor,
+                 "z_scale": max(rstd, floor), "z_needed": None, "min": float(x.min()), "max": float(x.max()),
                  "outliers": []}
         if len(who) >= MIN_ROBOTS and entry["z_scale"] > 0:
             z, k = sibling_z(x, np.nan_to_num(se_all, nan=0.0), floor)

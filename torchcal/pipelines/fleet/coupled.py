@@ -14,7 +14,7 @@ unknown payload ``μ = (m, m·s)``), with its own compliances ``c_r`` and a payl
 fleet or its own. The Jacobian columns of ``c`` and ``μ`` follow from the zero-offset columns of the
 analytic kinematic Jacobian (an offset moves the chain exactly as the joint does).
 
-Both are solved by :func:`~torchcal.optim.lm_arrow.lm_arrow` over per-robot blocks and the shared
+Both are solved by :func:`~torchcal.optim.lm_linear.lm_arrow` over per-robot blocks and the shared
 parameters, and judged on the pooled design (one identifiable set for every robot).
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.optim import Result
-from torchcal.optim.lm_arrow import arrow_solve, lm_arrow
+from torchcal.optim.lm_linear import arrow_solve, lm_arrow
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import FitOptions, imprecise
 from torchcal.pipelines.fleet.coupled_model import CoupledModel, block_layout, fleet_compliance

@@ -13,7 +13,7 @@ from torchcal.pipelines.fitting import check_plausible
 
 __all__ = ["FleetOptions"]
 
-_LM_DEFAULTS = {"tau": 1e-6, "reuse": 0.9}
+_LM_DEFAULTS = {"reuse": 0.9}
 _PRIOR_MIN_ROBOTS = 3  # a spread estimated from fewer robots is no estimate
 
 

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.pipelines.loop.covariates import extrapolation
-from torchcal.pipelines.loop.fit import Context, Model, noise_sigma
+from torchcal.pipelines.crossval.models import Context, Model, noise_sigma
 from torchcal.pipelines.loop.prune import prune
 from torchcal.pipelines.loop.records import Candidate, Trial
-from torchcal.pipelines.loop.selection import HUBER_K, penalised
+from torchcal.pipelines.crossval.scores import HUBER_K, penalised
 from torchcal.pipelines.loop.steps import progress_bar, refit, refresh, test_gain, try_candidate
 
 __all__ = ["Step", "Diagnosis", "diagnose", "MAX_ROUNDS"]

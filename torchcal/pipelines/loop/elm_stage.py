@@ -3,9 +3,9 @@ it passes the same cross-validated rule as an effect."""
 from __future__ import annotations
 
 from torchcal.elm import ELM
-from torchcal.pipelines.loop.fit import Context, Model
+from torchcal.pipelines.crossval.models import Context, Model
 from torchcal.pipelines.loop.records import Candidate
-from torchcal.pipelines.loop.selection import compare, rmse_mm
+from torchcal.pipelines.crossval.scores import compare, rmse_mm
 from torchcal.pipelines.loop.stages import StageBook, elm_inputs, residual_matrix
 from torchcal.pipelines.loop.steps import clipped, elm_cv
 

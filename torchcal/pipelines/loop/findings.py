@@ -5,7 +5,8 @@ from __future__ import annotations
 from torchcal.measure.data import Measurements
 from torchcal.pipelines.loop.diagnosis import Step
 from torchcal.pipelines.loop.evidence import evidence_for
-from torchcal.pipelines.loop.fit import Model, split_params
+from torchcal.pipelines.crossval.models import Model
+from torchcal.pipelines.loop.parts import split_params
 from torchcal.pipelines.loop.records import Finding
 from torchcal.pipelines.loop.stages import StageBook
 

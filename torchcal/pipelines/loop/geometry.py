@@ -22,10 +22,12 @@ from dataclasses import dataclass, field, replace
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import implausible_values, is_small
-from torchcal.pipelines.loop.fit import (PRIOR_SCALES_MM, Context, Model, effect_problem, evaluate, evaluate_prior,
-                                         fit_params, geometric_start, noise_sigma, orientation_count,
-                                         plausible_scale)
-from torchcal.pipelines.loop.selection import HUBER_K, penalised, robust_sigma
+from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, plausible_scale
+from torchcal.pipelines.crossval.models import Context, Model, effect_problem, noise_sigma, orientation_count
+from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior, fit_params
+from torchcal.problems.template import geometric_start
+from torchcal.pipelines.crossval.scores import HUBER_K, penalised
+from torchcal.measure.noise import robust_sigma
 from torchcal.pipelines.loop.steps import compare_at
 
 __all__ = ["GEOMETRIC_SETS", "GeometryChoice", "warm_start", "estimate_noise", "choose_geometry", "orientation_weight",

@@ -14,7 +14,7 @@ import torch
 from scipy.optimize import least_squares
 from torch import Tensor
 
-from torchcal.pipelines.loop.selection import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
+from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
 
 __all__ = ["LinearCV", "ALIAS_COS"]
 
@@ -89,14 +89,20 @@ class LinearCV:
             return G + torch.diag(P2), b + P2 * self._x0
         self._all = add(*self._data_all)
         self.folds = [(v, *add(G, b)) for v, G, b in self._data_folds]
+        # the folds' normal equations stacked, so that every fold (and option) is one batched solve
+        self._Gf = torch.stack([G for _, G, _ in self.folds]) if self.folds else None
+        self._bf = torch.stack([b for _, _, b in self.folds]) if self.folds else None
         return self
 
     def k_eff(self, chosen: list[int]) -> float:
         """Effective parameters of the base plus ``chosen`` under the current prior."""
-        idx = self._cols(chosen)
-        Gd = self._data_all[0][idx][:, idx]
-        G = self._all[0][idx][:, idx]
-        return float(torch.trace(torch.linalg.pinv(G, rtol=1e-12, hermitian=True) @ Gd))
+        return float(self._k_eff_batch(self._cols(chosen)[None])[0])
+
+    def _k_eff_batch(self, idx: Tensor) -> Tensor:
+        """:meth:`k_eff` of ``L`` column sets of one size, ``idx (L, k)``: ``(L,)``."""
+        ii, jj = idx[:, :, None], idx[:, None, :]
+        H = torch.linalg.pinv(self._all[0][ii, jj], rtol=1e-12, hermitian=True)
+        return (H * self._data_all[0][ii, jj].mT).sum((-1, -2))  # trace(H Gd)
 
     @staticmethod
     def _solve(G: Tensor, b: Tensor, idx: Tensor) -> Tensor:
@@ -109,14 +115,24 @@ class LinearCV:
 
     def scores(self, chosen: list[int]) -> Tensor:
         """``(n_rows,)`` cross-validated per-row scores with the groups ``chosen`` added."""
-        idx = self._cols(chosen)
-        out_err = torch.zeros(self.r.shape[0], dtype=self.A.dtype, device=self.A.device)
+        return self._scores_batch(self._cols(chosen)[None])[:, 0]
+
+    def _scores_batch(self, idx: Tensor) -> Tensor:
+        """:meth:`scores` of ``L`` column sets of one size, ``idx (L, k)``: ``(n_rows, L)``; every fold
+        and set is one batched solve (the same minimum-norm step as :meth:`_solve`)."""
+        L = idx.shape[0]
+        out_err = torch.zeros(self.r.shape[0], L, dtype=self.A.dtype, device=self.A.device)
         A3 = self.A.reshape(-1, 3, self.A.shape[1])
-        for val_obs, G, b in self.folds:
-            d = self._solve(G, b, idx)
-            pred = self.r[val_obs] + A3[val_obs][..., idx] @ d
-            out_err[val_obs] = pred.norm(dim=-1)
-        return row_scores(out_err, self.rows, self.n_rows, self.c)
+        if not self.folds:
+            return torch.stack([row_scores(out_err[:, i], self.rows, self.n_rows, self.c) for i in range(L)], 1)
+        ii, jj = idx[:, :, None], idx[:, None, :]
+        H = torch.linalg.pinv(self._Gf[:, ii, jj], rtol=1e-12, hermitian=True)  # (F, L, k, k)
+        D = -(H @ self._bf[:, idx][..., None])[..., 0]  # (F, L, k)
+        for (val_obs, _, _), d in zip(self.folds, D):
+            Av = A3[val_obs][..., idx]  # (n_v, 3, L, k)
+            pred = self.r[val_obs][..., None] + (Av * d).sum(-1)
+            out_err[val_obs] = pred.norm(dim=1)
+        return torch.stack([row_scores(out_err[:, i], self.rows, self.n_rows, self.c) for i in range(L)], 1)
 
     def coefficients(self, chosen: list[int]) -> Tensor:
         """The full-data linear step for the groups ``chosen``: ``(kb + Σ g,)`` in the columns'
@@ -225,7 +241,18 @@ class LinearCV:
             sc, k = self.add_one(chosen, [o[0] for o in single])
             for i, o in enumerate(single):
                 out[id(o)] = (sc[:, i], float(k[i]))
-        return [out.get(id(o)) or (self.scores(chosen + o), self.k_eff(chosen + o)) for o in options]
+        # the rest batched by size: one solve for every option and fold of a size
+        by_size: dict[int, list] = {}
+        for o in options:
+            if id(o) not in out:
+                idx = self._cols(chosen + o)
+                by_size.setdefault(idx.numel(), []).append((o, idx))
+        for group in by_size.values():
+            idx = torch.stack([i for _, i in group])
+            sc, k = self._scores_batch(idx), self._k_eff_batch(idx).tolist()
+            for j, (o, _) in enumerate(group):
+                out[id(o)] = (sc[:, j], k[j])
+        return [out[id(o)] for o in options]
 
     def forward(self, start: list[int], n_obs: int, baseline: tuple[Tensor, float] | None = None,
                 max_modes: int | None = None) -> tuple[list[int], list[dict], Tensor, float]:

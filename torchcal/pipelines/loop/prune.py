@@ -14,9 +14,12 @@ from __future__ import annotations
 
 from torchcal.effects import effect_params
 from torchcal.params import ParamSet
-from torchcal.pipelines.loop.fit import Context, Model, effect_problem, evaluate, prior_weights, split_params
+from torchcal.pipelines.crossval.models import Context, Model, effect_problem
+from torchcal.pipelines.crossval.evaluate import evaluate
+from torchcal.pipelines.crossval.priors import prior_weights
+from torchcal.pipelines.loop.parts import split_params
 from torchcal.pipelines.loop.linear_cv import LinearCV
-from torchcal.pipelines.loop.selection import T_EXIT, compare
+from torchcal.pipelines.crossval.scores import T_EXIT, compare
 
 __all__ = ["prune", "weakest_mode"]
 

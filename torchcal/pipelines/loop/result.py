@@ -9,7 +9,7 @@ from torchcal.measure.setup import Setup
 from torchcal.measure.trust import stage_problems
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.records import Candidate, Finding
-from torchcal.pipelines.loop.selection import OUTLIER_K, T_ACCEPT
+from torchcal.pipelines.crossval.scores import OUTLIER_K, T_ACCEPT
 from torchcal.report.loop import loop_json
 from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
 

@@ -40,7 +40,9 @@ from torchcal.pipelines.loop.covariates import derive_directions
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
-from torchcal.pipelines.loop.fit import Context, cv_mean_mm, duplicate_groups, folds_of, geometric_start, noise_sigma
+from torchcal.pipelines.crossval.models import Context, duplicate_groups, folds_of, noise_sigma
+from torchcal.pipelines.crossval.evaluate import cv_mean_mm
+from torchcal.problems.template import geometric_start
 from torchcal.pipelines.loop.geometry import (GEOMETRIC_SETS, GeometryChoice, choose_geometry,
                                               choose_orientation_weight, estimate_noise)
 from torchcal.pipelines.loop.leftover import leftover

@@ -14,7 +14,7 @@ from torchcal.measure.records import ErrorDetails, ErrorStats, Stage, StageError
 from torchcal.measure.setup import Setup
 from torchcal.measure.stats import angle_stats, error_stats, errors_by_marker
 from torchcal.params import ParamSet
-from torchcal.pipelines.loop.fit import Context, observation_model
+from torchcal.pipelines.crossval.models import Context, observation_model
 
 __all__ = ["StageBook", "elm_covariates", "elm_inputs", "residual_matrix", "stage_details", "stage_stats"]
 

@@ -7,11 +7,12 @@ from torch import Tensor
 
 from torchcal.effects import effect_params
 from torchcal.params import ParamSet
-from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
-                                         prior_weights, split_params)
+from torchcal.pipelines.crossval.models import Context, Model, effect_problem
+from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
+from torchcal.pipelines.loop.parts import assemble, split_params
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.loop.records import EffectStart
-from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised
+from torchcal.pipelines.crossval.scores import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
 __all__ = ["effect_start"]

@@ -11,10 +11,10 @@ from tqdm.auto import tqdm
 from torchcal.elm import ELM
 from torchcal.effects import build_effect
 from torchcal.measure.setup import Setup
-from torchcal.pipelines.loop.fit import (Context, Model, evaluate, evaluate_prior, noise_sigma,
-                                         observation_model, rescore)
+from torchcal.pipelines.crossval.models import Context, Model, noise_sigma, observation_model
+from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior, rescore
 from torchcal.pipelines.loop.records import Candidate, Trial
-from torchcal.pipelines.loop.selection import HUBER_K, compare, penalised, row_scores
+from torchcal.pipelines.crossval.scores import HUBER_K, compare, penalised, row_scores
 from torchcal.pipelines.loop.stages import elm_inputs, residual_matrix, stage_stats
 from torchcal.pipelines.loop.start import effect_start
 from torchcal.problems.identifiability import analyse_jacobian

@@ -8,8 +8,8 @@ import torch
 
 from torchcal.measure.observations import KIND_NAMES
 from torchcal.measure.records import Suspect
-from torchcal.pipelines.loop.fit import Context, Model, observation_model
-from torchcal.pipelines.loop.selection import OUTLIER_K
+from torchcal.pipelines.crossval.models import Context, Model, observation_model
+from torchcal.pipelines.crossval.scores import OUTLIER_K
 
 __all__ = ["suspect_rows"]
 
