@@ -1,4 +1,7 @@
-"""Read and write URDF files (kinematics only: meshes are never loaded)."""
+"""Read and write URDF files (kinematics only: meshes are never loaded).
+
+yourdfpy (and with it trimesh, a third of a second) is imported when a URDF is first parsed, not
+when torchcal is: ``--help`` and a refusal at the door never parse one."""
 from __future__ import annotations
 
 import io
@@ -8,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yourdfpy
 from lxml import etree
 
 from torchcal.kinematics.transforms import matrix_to_rpy
@@ -51,6 +53,7 @@ def _refuse_xacro(text: str, where: str) -> None:
 
 
 def _load(path_or_xml):
+    import yourdfpy
 
     kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
               load_collision_meshes=False)

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchcal.report.figures import error_figure
 from torchcal.report.html import write_html
-from torchcal.report.plotting import pyplot
+from torchcal.report.plotting import save, subplots
 from torchcal.report.sections import stage_table
 from torchcal.report.units import shown
 
@@ -40,13 +40,10 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
                      split: str = "train") -> None:
     """One figure with overlaid error histograms (mm) for several stages, as calibration papers
     show them. ``stages``: (label, errors in m)."""
-    plt = pyplot()
-
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
     data = [(lab, e.detach().double().flatten().cpu().numpy() * 1e3) for lab, e in stages if e.numel()]
     if not data:
-        plt.close(fig)
         return
+    fig, ax = subplots(figsize=(7, 4), dpi=120)
 
     hi = max(float(d.max()) for _, d in data)
     lo = min(float(np.percentile(d[d > 0], 1)) if (d > 0).any() else hi for _, d in data)
@@ -60,9 +57,7 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     ax.set_ylabel("observations")
     ax.set_title(f"{title} ({split})")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    save(fig, path)
 
 
 def calibration_json(res) -> dict:

@@ -10,7 +10,7 @@ import textwrap
 
 import numpy as np
 
-from torchcal.report.plotting import pyplot, save
+from torchcal.report.plotting import figure, save, subplots
 
 __all__ = ["error_figure", "evidence_figure", "fleet_figure", "plan_figure", "readable_axis"]
 
@@ -50,12 +50,11 @@ def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position er
     per-axis errors of every stage, before beside after; the cumulative distribution with each
     stage's 95th percentile and the noise floor; the error against the marker's distance from the
     robot base. Returns the figure (None when there is nothing to draw)."""
-    plt = pyplot()
     data = [(lab, {k: d[k].detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
                    for k in ("e", "xyz", "dist")}) for lab, d in stages if d["e"].numel()]
     if not data:
         return None
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8.5), dpi=100, layout="constrained")
+    fig, ax = subplots(2, 2, figsize=(12, 8.5), dpi=100)
     bins, log = _bins(np.concatenate([d["e"] for _, d in data]))
     colors = [f"C{i}" for i in range(len(data))]
     for (lab, d), c in zip(data, colors):
@@ -109,7 +108,9 @@ def _per_axis(a, data, colors) -> None:
                 k0 += 1
             a.set_yticks(sorted([0.0] + [s * 10.0 ** k for k in range(k0, k1 + 1) for s in (-1, 1)]))
             a.yaxis.set_major_formatter(lambda v, _: f"{v:g}")
-            a.yaxis.set_minor_locator(pyplot().NullLocator())
+            from matplotlib.ticker import NullLocator
+
+            a.yaxis.set_minor_locator(NullLocator())
     a.set_xticks([0, 1, 2], ["x", "y", "z"])
     a.axhline(0, color="k", lw=0.6)
     a.set(ylabel="error per axis, model − measured [mm]", title="per axis, every stage (instrument frame)")
@@ -127,12 +128,10 @@ def evidence_figure(name: str, ev: dict, path, joint_order: list[str]):
     an independent signature says so in its panel. Returns the figure (None when empty)."""
     if not ev:
         return None
-    plt = pyplot()
     keys = sorted(ev, key=lambda k: _joint_rank(k, joint_order))
     cols = min(3, len(keys))
     rows = (len(keys) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.7 * rows), dpi=100, squeeze=False,
-                             layout="constrained")
+    fig, axes = subplots(rows, cols, figsize=(4.4 * cols, 3.7 * rows), dpi=100, squeeze=False)
     for ax, k in zip(axes.flat, keys):
         e = ev[k]
         xl, fx = readable_axis(e["xlabel"], e["x"])
@@ -159,9 +158,8 @@ def fleet_figure(rows: list[dict], path, z_threshold: float, title: str):
     and named. ``rows``: ``{name, z (n,), robots (n,), flagged: set, z_needed}``."""
     if not rows:
         return None
-    plt = pyplot()
     n = len(rows)
-    fig, ax = plt.subplots(figsize=(10, max(3.0, 0.28 * n + 1.6)), dpi=100, layout="constrained")
+    fig, ax = subplots(figsize=(10, max(3.0, 0.28 * n + 1.6)), dpi=100)
     lim = max([z_threshold * 1.6] + [float(np.nanmax(np.abs(r["z"]))) * 1.1 for r in rows if len(r["z"])])
     named = 0
     for i, r in enumerate(rows):
@@ -194,9 +192,8 @@ def plan_figure(q: np.ndarray, limits: tuple[np.ndarray, np.ndarray], joint_name
     """What a plan covers: per joint (in joint order) its range and the selected values; the
     markers' positions in the robot base frame from above and from the side, with the working
     volume when one was given. ``q (S, dof)`` rad / m, ``points (S, M, 3)`` m."""
-    plt = pyplot()
     dof = q.shape[1]
-    fig = plt.figure(figsize=(13, max(4.2, 0.42 * dof + 1.8)), dpi=100, layout="constrained")
+    fig = figure((13, max(4.2, 0.42 * dof + 1.8)), dpi=100)
     gs = fig.add_gridspec(1, 3, width_ratios=[1.3, 1, 1])
     a = fig.add_subplot(gs[0])
     lo, hi = limits
@@ -231,8 +228,7 @@ def leftover_figure(associations: list, path):
     explains best against it (mm), titled with its share of the residual variance (R²)."""
     if not associations:
         return None
-    plt = pyplot()
-    fig, axes = plt.subplots(1, len(associations), figsize=(3.4 * len(associations), 3.2), dpi=110, squeeze=False)
+    fig, axes = subplots(1, len(associations), figsize=(3.4 * len(associations), 3.2), dpi=110, squeeze=False)
     for ax, a in zip(axes[0], associations):
         ax.scatter(a.x, [v * 1e3 for v in a.y], s=6, alpha=0.6)
         ax.set_xlabel(a.signal, fontsize=8)

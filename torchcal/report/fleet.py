@@ -26,7 +26,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from torchcal.params import display_unit
 from torchcal.report.calibration import write_json
@@ -145,6 +144,8 @@ def parameter_spread(names: list[str], results, z_threshold: float = 5.0, extra:
                  "z_scale": max(_MAD * mad, floor), "z_needed": None, "min": float(x.min()), "max": float(x.max()),
                  "outliers": []}
         if len(who) >= MIN_ROBOTS and entry["z_scale"] > 0:
+            from scipy import stats  # scipy costs start-up time; only a fleet's spread needs it
+
             z, k = sibling_z(x, np.nan_to_num(se_all, nan=0.0), floor)
             need = np.maximum(z_threshold, stats.t.isf(tail, k - 1))
             entry["z_needed"] = float(max(z_threshold, stats.t.isf(tail, len(who) - 2)))

@@ -6,8 +6,6 @@ from __future__ import annotations
 import math
 from datetime import datetime, timezone
 
-from scipy import stats
-
 from torchcal.effects.base import TIME_COVARIATES
 from torchcal.params import display_unit
 
@@ -83,5 +81,7 @@ def significant(values: list[float], ses: list[float | None], z: float = SIGNIFI
     zs = [z_score(v, s) for v, s in zip(values, ses)]
     if not zs or any(math.isnan(x) for x in zs):
         return False
+    from scipy import stats  # scipy costs start-up time; only a judged finding needs it
+
     alpha = 2 * stats.norm.sf(z)
     return bool(sum(x * x for x in zs) > stats.chi2.isf(alpha, len(zs)))
