@@ -16,7 +16,8 @@ import torch
 from torchcal.cli.common import (add_common, inputs_of, int_at_least, positive_float, probability, robot_for,
                                  run_record)
 from torchcal.pipelines.fleet.run import calibrate_fleet
-from torchcal.report.fleet import FALSE_ALARM
+from torchcal.pipelines.fleet.spread import FALSE_ALARM
+from torchcal.report.fleet import save_fleet
 from torchcal.measure.io import UnitsError, load_measurements, read_csv
 from torchcal.outputs import check_out_dir, staged_dir
 from torchcal.kinematics.urdf import load_joints
@@ -120,7 +121,7 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
                          ray_shards=a.shards, plausible={"m": a.plausible_mm * 1e-3, "rad": a.plausible_mrad * 1e-3})
     inputs = {"urdf": a.robot, **{f"data:{f.stem}": f for f in files}, **{f"test:{f.stem}": f for f in test_files}}
     with staged_dir(a.out, a.force) as d:
-        fr.save(d, figures=not a.no_figures)
+        save_fleet(fr, d, figures=not a.no_figures)
         run_record(a, d, inputs, list(argv or []))
     out = Path(a.out)
     print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s; wrote {out}{os.sep}<robot>/ and "

@@ -15,7 +15,7 @@ from torchcal.report.sections import stage_table
 from torchcal.report.units import shown
 
 __all__ = ["write_json", "histogram_figure", "error_figure", "calibration_json", "calibration_markdown",
-           "write_calibration_report"]
+           "write_calibration_report", "save_calibration"]
 
 
 def _clean(o):
@@ -125,10 +125,11 @@ def calibration_markdown(res) -> str:
 
 
 def write_calibration_report(res, out_dir) -> None:
-    """``report.md``, the error figures (``errors.png`` for the training rows, ``errors_test.png``
+    """``report.json``, ``report.md``, the error figures (``errors.png`` for the training rows, ``errors_test.png``
     for the held-out ones, where the result kept the details) and ``report.html`` into
     ``out_dir``."""
     out = Path(out_dir)
+    write_json(out / "report.json", calibration_json(res))
     for split in ("train", "test"):
         st = [(name, e.plotted(split)) for name, e in res.errors.items() if e.plotted(split) is not None]
         if st:
@@ -136,3 +137,16 @@ def write_calibration_report(res, out_dir) -> None:
                          title=f"{res.robot.name}: position error", split=split)
     (out / "report.md").write_text(calibration_markdown(res))
     write_html(out, "report.md", title=f"Calibration of {res.robot.name}")
+
+
+def save_calibration(res, out_dir, *, force: bool = False, with_instrument: bool = False, extra=None) -> Path:
+    """The calibration files (:meth:`~torchcal.pipelines.calibration_result.CalibrationResult.save`)
+    and its report (:func:`write_calibration_report`) in ``out_dir``, written together under a
+    temporary name; ``extra(tmp_dir)`` may add files before the rename."""
+
+    def reports(d: Path) -> None:
+        write_calibration_report(res, d)
+        if extra is not None:
+            extra(d)
+
+    return res.save(out_dir, force=force, with_instrument=with_instrument, extra=reports)

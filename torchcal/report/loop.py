@@ -110,7 +110,7 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     ``errors_train.png`` and one ``evidence_<stage>.png`` per accepted effect into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rep = res.report()
+    rep = loop_json(res)
     findings = loop_findings(res)
     held = res.heldout_suspects()
     rep.update({"findings": findings, "suspect_rows_test": held, "significance_z": SIGNIFICANT_Z})
