@@ -4,7 +4,7 @@ matplotlib stays off torchcal's import path (it costs about half a second and on
 it). A figure here is a bare :class:`matplotlib.figure.Figure` on an Agg canvas (:func:`figure`,
 :func:`subplots`), laid out by constrained layout: no global backend is chosen or changed, so a
 notebook's ``MPLBACKEND`` (``module://matplotlib_inline.backend_inline``) neither breaks a report
-nor is switched off by one. :func:`save` draws a figure once; :func:`overlapping_labels` is how
+nor is switched off by one. :func:`save` draws a figure once and writes those pixels; :func:`overlapping_labels` is how
 figures (and their tests) check that no two pieces of text sit on each other."""
 from __future__ import annotations
 
@@ -128,19 +128,29 @@ def _tick_labels(fig) -> list:
     return out
 
 
+def _write_png(canvas, path) -> None:
+    """The pixels ``canvas`` holds as a PNG: ``savefig`` would lay the figure out and draw it again."""
+    from PIL import Image
+
+    w, h = canvas.get_width_height(physical=True)
+    Image.frombuffer("RGBA", (w, h), canvas.buffer_rgba(), "raw", "RGBA", 0, 1).save(path, format="png")
+
+
 def save(fig, path) -> object:
     """Write ``fig`` as PNG to ``path`` and return it (its artists stay readable for checks).
 
-    One drawing, with one constrained-layout pass. Where that drawing shows two tick labels on
-    each other (an x and a y tick meeting in an axes' corner), the later one is hidden and the
-    file written again: a tick label less reads better than two on each other."""
-    _canvas(fig)
-    fig.savefig(path)
+    One drawing, which lays the figure out (constrained layout) and renders it; its pixels are
+    written as they are. Where that drawing shows two tick labels on each other (an x and a y
+    tick meeting in an axes' corner), the later one is hidden and the figure drawn again: a tick
+    label less reads better than two on each other."""
+    canvas = _canvas(fig)
+    canvas.draw()
     clash = _overlaps(fig, _tick_labels(fig), 0.5, draw=False)
     if clash:
         for _, b in clash:
             b.set_visible(False)
-        fig.savefig(path)
+        canvas.draw()
+    _write_png(canvas, path)
     if "matplotlib.pyplot" in sys.modules:  # a figure made through pyplot() is freed there too
         sys.modules["matplotlib.pyplot"].close(fig)
     return fig
