@@ -1,6 +1,7 @@
-"""What ``import torchcal`` and the command line's door load (issue 33 §3): no plotting library,
-no scipy, no URDF mesh library, no pytorch-kinematics (whose IK module loads matplotlib), checked
-on ``sys.modules`` of a fresh interpreter rather than on a clock that depends on the machine."""
+"""What ``import torchcal``, the command line's door and reading a URDF load (issue 33 §3): no
+plotting library, no scipy, no URDF mesh library, no pytorch-kinematics (whose IK module loads
+matplotlib), checked on ``sys.modules`` of a fresh interpreter rather than on a clock that depends
+on the machine."""
 from __future__ import annotations
 
 import json
@@ -43,3 +44,10 @@ def test_the_command_line_door_loads_none_of_them():
     assert "Traceback" not in r.stderr, r.stderr
     assert r.stderr.count(" rc ") == len(DOOR) and "missing.csv" in r.stderr  # every door was reached
     assert loaded == [], f"the command line's help and refusals load {loaded}"
+
+
+def test_reading_a_urdf_loads_no_mesh_library():
+    # meshes are read only where a plan checks mesh collision shapes; a robot from a URDF needs none
+    loaded, _ = _loaded_after("from torchcal import Robot\nfrom torchcal.kinematics.robots import urdf_path\n"
+                              "r = Robot.from_urdf(urdf_path('ur5e'), markers=['flange'])\nassert r.dof == 6")
+    assert loaded == [], f"reading a URDF loads {loaded}"
