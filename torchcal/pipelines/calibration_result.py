@@ -30,10 +30,10 @@ def write_instrument(robot, params: ParamSet, path) -> None:
     b = params.values[:6]
     R = so3_exp(b[3:])
     _write_json(path, {"frame": "instrument <- robot base: p_instrument = R p_base + t",
-                      "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
-                      "rotation_vector_rad": b[3:].tolist(),
-                      "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
-                              "saw it"})
+                       "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
+                       "rotation_vector_rad": b[3:].tolist(),
+                       "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
+                               "saw it"})
 
 
 @dataclass
