@@ -6,7 +6,7 @@ Each fleet: R KUKA KR5 arc robots (the shipped URDF, marker on the flange), ever
 geometric errors a fleet-wide mean (0.5 mm / 1 mrad) plus its own deviation (``--spread`` times
 that), its own tracker 3 m away, 30 poses, 0.02 mm noise (``torchcal.sim.serial.simulate_fleet``).
 ``calibrate_fleet`` flags a robot's parameter where its distance from its siblings exceeds both
-5 standard deviations and the Student-t bound for the fleet's size (``torchcal.report.fleet``).
+5 standard deviations and the Student-t bound for the fleet's size (``torchcal.pipelines.fleet.spread``).
 
 * ``healthy``: fleets of 6, 10, 20 and 40 robots, seeds 100–105: every flag is a false one.
 * ``remastered``: fleets of 6, 10 and 16 robots in which one robot's ``joint_a3.offset`` jumps by

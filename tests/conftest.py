@@ -277,3 +277,88 @@ def ur5e_csv(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("ur5e") / "train.csv"
     save_measurements(out, data)
     return out
+
+
+# ----------------------------------------------------------------------------- report pages
+#: held-out rows of :func:`report_data` moved by 8 mm along x
+MOVED = (3, 17)
+
+
+@pytest.fixture(scope="session")
+def report_data(tmp_path_factory):
+    """A compliant UR5e: 90 training rows with a `marker_std_mm` column, 30 held-out rows of the
+    same robot of which two (:data:`MOVED`) are moved 8 mm along x. Returns (folder, median of
+    the `marker_std_mm` column)."""
+    import numpy as np
+
+    from torchcal.cli.app import main as cli
+    from torchcal.kinematics.robots import urdf_path
+
+    d = tmp_path_factory.mktemp("reports_data")
+    assert cli(["simulate", "--robot", str(urdf_path("ur5e")), "--poses", "120", "--effect", "joint_compliance",
+                "--seed", "4", "--out", str(d / "all.csv")]) == 0
+    head, *rows = (d / "all.csv").read_text().splitlines()
+    spread = np.random.default_rng(0).uniform(0.015, 0.025, 90)
+    (d / "train.csv").write_text("\n".join([head + ",marker_std_mm"] + [f"{r},{float(s)!r}" for r, s in
+                                                                        zip(rows[:90], spread)]) + "\n")
+    test = rows[90:]
+    x = head.split(",").index("flange.x")
+    for i in MOVED:
+        v = test[i].split(",")
+        v[x] = repr(float(v[x]) + 0.008)
+        test[i] = ",".join(v)
+    (d / "test.csv").write_text("\n".join([head] + test) + "\n")
+    return d, float(np.median(spread))
+
+
+@pytest.fixture(scope="session")
+def looped_report(report_data, tmp_path_factory):
+    """``python -m torchcal loop`` on :func:`report_data`: its output folder."""
+    import subprocess
+    import sys
+
+    from torchcal.kinematics.robots import urdf_path
+
+    d, _ = report_data
+    out = tmp_path_factory.mktemp("reports_runs") / "loop"
+    r = subprocess.run([sys.executable, "-m", "torchcal", "loop", "--robot", str(urdf_path("ur5e")), "--data",
+                        str(d / "train.csv"), "--test", str(d / "test.csv"), "--no-elm", "--effect",
+                        "joint_compliance", "--out", str(out)],
+                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+@pytest.fixture(scope="session")
+def fleet_report_out(tmp_path_factory):
+    """``torchcal fleet`` on 10 simulated KR5s, robot 6 with joint_a3's offset moved 8 mrad: its
+    output folder."""
+    from torchcal.cli.app import main as cli
+    from torchcal.kinematics.robots import shipped, urdf_path
+    from torchcal.measure.io import save_measurements
+    from torchcal.sim.serial import SimConfig, simulate_fleet
+
+    robot = shipped("kuka_kr5_arc")
+    cfg = SimConfig(n=30, seed=5)
+    train, _, _ = simulate_fleet(robot, 10, cfg, spread=0.2e-3 / cfg.angle_error,
+                                 moved={6: {"joint_a3.offset": 8e-3}})
+    d = tmp_path_factory.mktemp("fleet")
+    (d / "train").mkdir()
+    for i, m in enumerate(train):
+        save_measurements(d / "train" / f"kr5_{i:02d}.csv", m)
+    assert cli(["fleet", "--robot", str(urdf_path("kuka_kr5_arc")), "--data", str(d / "train"),
+                "--out", str(d / "out")]) == 0
+    return d / "out"
+
+
+@pytest.fixture(scope="session")
+def chromium() -> str:
+    """The headless Chromium to render report pages with; the test is skipped, saying so, where
+    none is installed."""
+    import shutil
+
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    pytest.skip("headless Chromium is not installed (Debian: apt-get install chromium); the HTML pages are not "
+                "rendered in this run")

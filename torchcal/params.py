@@ -17,6 +17,8 @@ __all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
 _DISPLAY = {"m": (1e3, "mm"), "rad": (1e3, "mrad"),
             "rad/(N*m)": (1e6, "µrad/(N·m)"), "rad/N/m": (1e6, "µrad/(N·m)"), "rad/(N m)": (1e6, "µrad/(N·m)"),
             "rad/N": (1e6, "µrad/N"), "m/N": (1e9, "µm/kN"),
+            # lumped compliance × mass (× lever): what a joint twists per unit gravity on a mass (moment)
+            "rad*kg/(N*m)": (1e6, "µrad·kg/(N·m)"), "rad*kg/N": (1e6, "µrad·kg/N"),
             "1/K": (1e6, "µm/(m·K)"), "1/s": (3.6e9, "µm/(m·h)"), "1": (1e6, "ppm"),
             "kg": (1.0, "kg"), "kg*m": (1.0, "kg·m"), "N*m": (1.0, "N·m"), "s": (1.0, "s"), "K": (1.0, "K")}
 

@@ -20,6 +20,7 @@ from torchcal.kinematics.transforms import quat_to_matrix
 from torchcal.measure.data import Measurements
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.sim.serial import SimConfig, random_configs, random_errors, simulate
+from torchcal.report import report_json, write_report
 
 D = torch.float64
 
@@ -262,7 +263,7 @@ def test_report_shape_and_saved_files(tmp_path):
     q_test = random_configs(robot, 10, torch.Generator().manual_seed(6))
     test, _ = simulate(robot, SimConfig(n=10, noise=0.02e-3, seed=7), true_params=truth, q=q_test)
     res = calibrate(robot, data, test=test)
-    rep = res.report()
+    rep = report_json(res)
     assert rep["n_train"] == 30 and rep["n_test"] == 10
     nominal, geo = rep["stages"]
     assert nominal["name"] == "nominal" and nominal["n_params"] == 0
@@ -286,12 +287,12 @@ def test_report_shape_and_saved_files(tmp_path):
     json.dumps(rep)  # serialisable as it is
 
     # without held-out data there is no "test" entry
-    rep_no = calibrate(robot, data).report()
+    rep_no = report_json(calibrate(robot, data))
     assert rep_no["n_test"] == 0
     assert all("test" not in st for st in rep_no["stages"])
     assert [st["name"] for st in rep_no["stages"]] == ["nominal", "geometric"]
 
-    out = res.save(tmp_path / "out", with_markers=True)
+    out = write_report(res, tmp_path / "out", with_markers=True)
     for f in ("calibrated.urdf", "params.json", "report.json", "report.md", "errors.png"):
         assert (out / f).is_file() and (out / f).stat().st_size > 0, f
     assert (out / "errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -316,8 +317,8 @@ def test_report_shape_and_saved_files(tmp_path):
     p_inst = p_back @ R.T + torch.tensor(inst["translation_m"], dtype=torch.float64)
     assert float((p_inst - robot.positions(q, held)[:, 0]).abs().max()) < 1e-9
     with pytest.raises(FileExistsError, match="not empty"):
-        res.save(tmp_path / "out")  # nothing is overwritten without force
-    res.save(tmp_path / "out", force=True, with_instrument=True, with_markers=True)
+        write_report(res, tmp_path / "out")  # nothing is overwritten without force
+    write_report(res, tmp_path / "out", force=True, with_instrument=True, with_markers=True)
     back = Robot.from_urdf(out / "calibrated.urdf", markers=["marker_flange"])
     assert back.root == "instrument"
     assert float((back.positions(q)[:, 0] - robot.positions(q, held)[:, 0]).abs().max()) < 1e-9

@@ -31,6 +31,8 @@ from torchcal.kinematics.robots import shipped, urdf_path
 from torchcal.sim.serial import SimConfig, random_configs, simulate, simulate_fleet, simulated_robot
 from conftest import rank_margin
 from torchcal.kinematics.transforms import kabsch, so3_exp
+from torchcal.report import report_json
+from torchcal.report.fleet import fleet_markdown
 
 MARKERS = ["smr@flange=0,0,0", "b@link6=0.06,0.02,0.03"]
 REPO = Path(__file__).resolve().parents[2]
@@ -185,8 +187,8 @@ def test_moved_joint_offset_is_flagged():
     assert [(f["robot"], f["parameter"]) for f in fr.flags] == [("robot_006", "joint_a3.offset")]
     assert fr.flags[0]["z"] > fr.flags[0]["z_needed"] >= 5
     assert fr.spread["joint_a3.offset"]["outliers"] == ["robot_006"]
-    assert "robot_006" in fr.markdown() and fr.report()["flags"][0]["robot"] == "robot_006"
-    assert "the bound for 16 robots" in fr.markdown()  # a small fleet raises the bound above 5
+    assert "robot_006" in fleet_markdown(fr) and report_json(fr)["flags"][0]["robot"] == "robot_006"
+    assert "the bound for 16 robots" in fleet_markdown(fr)  # a small fleet raises the bound above 5
 
 
 def test_sibling_z_is_student_t_on_healthy_fleets():
@@ -194,7 +196,7 @@ def test_sibling_z_is_student_t_on_healthy_fleets():
     two-sided tail at 3 is checked against scipy), and a fleet flags with probability at most
     ``false_alarm``; one robot far from its siblings is found even when another one is too."""
     from scipy import stats
-    from torchcal.report.fleet import sibling_z
+    from torchcal.pipelines.fleet.spread import sibling_z
     rng = np.random.default_rng(3)
     for n in (6, 10):
         z = np.concatenate([sibling_z(rng.standard_normal(n), np.zeros(n))[0] for _ in range(4000)])

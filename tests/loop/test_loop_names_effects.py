@@ -26,6 +26,7 @@ from torchcal.effects import EFFECTS
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.kinematics.robots import shipped
 from torchcal.sim.serial import SimConfig, simulate_with_effects
+from torchcal.report import report_json
 
 N_TRAIN = 120
 N_TEST = 60
@@ -119,7 +120,7 @@ def test_loop_names_the_effect_and_reaches_the_noise_floor(case):
 @pytest.mark.parametrize("case", CASES)
 def test_loop_report_shape(case):
     res = _run(case)
-    rep = res.report()
+    rep = report_json(res)
     json.dumps(rep)  # plain JSON types only
     names = _effect_names(res)
     stage_names = [s["name"] for s in res.stages]

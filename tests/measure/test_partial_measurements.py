@@ -21,6 +21,7 @@ from torchcal.pipelines.loop.run import run_loop
 from torchcal.problems.calibration import EffectCalibrationProblem
 from torchcal.problems.unseen import unseen
 from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot
+from torchcal.report import report_json
 
 NOISE = 0.02e-3  # m
 
@@ -190,7 +191,7 @@ def test_geometry_from_three_planes_alone(kr5_planes):
     assert "scale" in seen and "cannot tell how large the robot is" in seen["scale"]
     assert all(f"base.{a}" in seen for a in ("x", "y", "z", "rx", "ry", "rz"))
     assert "nothing says where the robot stands" in seen["base.x"]
-    rep = res.report()
+    rep = report_json(res)
     assert set(rep["setup"]["planes"]) == {"A", "B", "C"}
     Rb, _ = robot.base_transform(sim.truth.values)
     for k, (n, d) in planes.items():

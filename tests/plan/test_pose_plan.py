@@ -16,6 +16,7 @@ from torchcal.pipelines.plan.feasible import SelfCollision, in_box, parse_box
 from torchcal.kinematics.robots import shipped, urdf_path
 from torchcal.kinematics.bounds import config_bounds
 from torchcal.sim.serial import SimConfig, random_configs, simulate
+from torchcal.report.plan import plan_markdown
 
 KR5 = str(urdf_path("kuka_kr5_arc"))
 SMR = "smr@flange=0,0,0"
@@ -138,7 +139,7 @@ def test_a_urdf_without_collision_shapes_is_said_to_be_unchecked(kr5, cands):
     with pytest.warns(UserWarning, match="self-collision not checked"):
         plan = plan_poses(kr5, 10, candidates=cands, collision_margin=0.01, refine_steps=0, exchange_passes=1)
     assert plan.feasibility["collision"]["checked"] is False
-    assert "no <collision> shapes" in plan.markdown()
+    assert "no <collision> shapes" in plan_markdown(plan)
 
 
 def test_effects_add_compliance_columns_and_balanced_backlash_directions(kr5, cands):

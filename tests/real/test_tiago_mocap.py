@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from torchcal import Robot, load_measurements, run_loop
+from torchcal.report import report_json
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "tiago_mocap"
 POINTS = [f"hand_{c}" for c in ("BL", "BR", "TR", "TL")]
@@ -46,7 +47,7 @@ def test_loop_on_tiago_beats_the_peer_toolbox(reference_protocol):
     assert len(tried) >= 3
     pen = {g["prior_mm"]: g["penalised_mm2"] for g in tried}
     assert pen[res.prior_mm] == min(pen.values())
-    rep = res.report()
+    rep = report_json(res)
     assert rep["n_train"] == 37 and rep["n_test"] == 62
 
 

@@ -6,12 +6,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
-import shutil
 import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,52 +17,29 @@ import yaml
 from torchcal import Robot
 from torchcal.cli.app import main as cli
 from torchcal.effects.compliance import JointCompliance
-from torchcal.kinematics.robots import shipped, urdf_path
-from torchcal.measure.io import save_measurements
+from torchcal.kinematics.robots import urdf_path
 from torchcal.measure.stats import error_stats, noise_floor
 from torchcal.report.figures import error_figure, evidence_figure, fleet_figure, plan_figure, readable_axis
 from torchcal.report.findings import effect_findings
 from torchcal.report.plotting import overlapping_labels
 from torchcal.report.sections import flags_section
 from torchcal.report.units import shown, with_error
-from torchcal.sim.serial import SimConfig, simulate_fleet
 
-REPO = Path(__file__).resolve().parents[2]
+from conftest import MOVED  # held-out rows of the report data moved by 8 mm
+
 UR5E, KR5 = str(urdf_path("ur5e")), str(urdf_path("kuka_kr5_arc"))
-MOVED = (3, 17)  # held-out rows moved by 8 mm
+
+
+# the compliant UR5e's data, its loop and a 10-KR5 fleet are tests/conftest.py's (the HTML checks in
+# tests/report/ read the same pages)
+@pytest.fixture(scope="module")
+def data(report_data):
+    return report_data
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    """A compliant UR5e: 90 training rows with a `marker_std_mm` column, 30 held-out rows of the
-    same robot of which two are moved 8 mm along x."""
-    d = tmp_path_factory.mktemp("reports_data")
-    assert cli(["simulate", "--robot", UR5E, "--poses", "120", "--effect", "joint_compliance", "--seed", "4",
-                "--out", str(d / "all.csv")]) == 0
-    head, *rows = (d / "all.csv").read_text().splitlines()
-    spread = np.random.default_rng(0).uniform(0.015, 0.025, 90)
-    (d / "train.csv").write_text("\n".join([head + ",marker_std_mm"] + [f"{r},{float(s)!r}" for r, s in
-                                                                        zip(rows[:90], spread)]) + "\n")
-    test = rows[90:]
-    x = head.split(",").index("flange.x")
-    for i in MOVED:
-        v = test[i].split(",")
-        v[x] = repr(float(v[x]) + 0.008)
-        test[i] = ",".join(v)
-    (d / "test.csv").write_text("\n".join([head] + test) + "\n")
-    return d, float(np.median(spread))
-
-
-@pytest.fixture(scope="module")
-def looped(data, tmp_path_factory):
-    """``python -m torchcal loop`` on the data above."""
-    d, _ = data
-    out = tmp_path_factory.mktemp("reports_runs") / "loop"
-    r = subprocess.run([sys.executable, "-m", "torchcal", "loop", "--robot", UR5E, "--data", str(d / "train.csv"),
-                        "--test", str(d / "test.csv"), "--no-elm", "--effect", "joint_compliance", "--out", str(out)],
-                       capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
-    assert r.returncode == 0, r.stderr
-    return out
+def looped(looped_report):
+    return looped_report
 
 
 # ----------------------------------------------------------------------------- every output directory
@@ -95,18 +68,8 @@ def test_calibrate_and_fleet_write_calibration_yaml_and_report_html(data, tmp_pa
 
 
 @pytest.fixture(scope="module")
-def fleet_out(tmp_path_factory):
-    """``torchcal fleet`` on 10 simulated KR5s, robot 6 with joint_a3's offset moved 8 mrad."""
-    robot = shipped("kuka_kr5_arc")
-    cfg = SimConfig(n=30, seed=5)
-    train, _, _ = simulate_fleet(robot, 10, cfg, spread=0.2e-3 / cfg.angle_error,
-                                 moved={6: {"joint_a3.offset": 8e-3}})
-    d = tmp_path_factory.mktemp("fleet")
-    (d / "train").mkdir()
-    for i, m in enumerate(train):
-        save_measurements(d / "train" / f"kr5_{i:02d}.csv", m)
-    assert cli(["fleet", "--robot", KR5, "--data", str(d / "train"), "--out", str(d / "out")]) == 0
-    return d / "out"
+def fleet_out(fleet_report_out):
+    return fleet_report_out
 
 
 def test_fleet_writes_each_robots_files_and_a_spread_figure(fleet_out):
@@ -272,7 +235,13 @@ def test_error_figure_shows_every_axis_before_and_after(tmp_path):
     per_axis = next(a for a in fig.axes if a.get_title().startswith("per axis"))
     assert [t.get_text() for t in per_axis.get_xticklabels()] == ["x", "y", "z"]
     assert len([p for p in per_axis.patches]) == 9  # 3 stages × 3 axes
-    assert [t.get_text() for t in per_axis.get_legend().get_texts()] == ["before", "geometric", "full"]
+    # one legend for the four panels, outside every panel: it covers none of the boxes
+    assert per_axis.get_legend() is None and len(fig.legends) == 1
+    keys = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert [k.split(":")[0] for k in keys] == ["before", "geometric", "full", "noise floor 0.030 mm"]
+    fig.canvas.draw()
+    legend, boxes = fig.legends[0].get_window_extent(), per_axis.get_window_extent()
+    assert legend.y1 < boxes.y0 or legend.x0 > boxes.x1 or legend.y0 > boxes.y1
     assert not overlapping_labels(fig)
 
 
@@ -311,22 +280,14 @@ def test_plan_writes_a_coverage_figure(tmp_path):
 
 
 # ----------------------------------------------------------------------------- the HTML page
-def _chromium() -> str:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        if shutil.which(name):
-            return shutil.which(name)
-    pytest.skip("headless Chromium is not installed (Debian: apt-get install chromium); the HTML page is not "
-                "rendered in this run")
-
-
-def test_report_html_renders_in_headless_chromium(looped, tmp_path):
-    browser = _chromium()
+def test_report_html_renders_in_headless_chromium(looped, tmp_path, chromium):
+    browser = chromium
     page = (looped / "report.html").as_uri()
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", f"--user-data-dir={tmp_path / 'p'}"]
     dom = subprocess.run([browser, *flags, "--dump-dom", page], capture_output=True, text=True, timeout=120).stdout
     assert "<title>Calibration loop: ur5e</title>" in dom
     assert dom.count("<table>") >= 5 and dom.count('src="data:image/png;base64,') >= 3
-    assert 'href="#fig-evidence_joint_compliance"' in dom and 'id="fig-evidence_joint_compliance"' in dom
+    assert 'href="#fig-evidence_joint_compliance_' in dom and 'id="fig-evidence_joint_compliance_' in dom
     assert "src=\"http" not in dom and "<script" not in dom  # self-contained
     shot = tmp_path / "shot.png"
     subprocess.run([browser, *flags, "--window-size=1280,1800", f"--screenshot={shot}", page], capture_output=True,

@@ -42,7 +42,8 @@ from torchcal.optim import is_population, solvers
 from torchcal.pipelines.calibrate import calibrate
 from torchcal.pipelines.calibration_result import write_instrument
 from torchcal.pipelines.loop.run import run_loop
-from torchcal.report.loop import write_loop_report
+from torchcal.report.calibration import save_calibration
+from torchcal.report.loop import loop_json, write_loop_report
 from torchcal.sim.serial import SimConfig, simulate_with_effects, write_dataset
 from torchcal.threads import set_threads
 from torchcal.version import __version__
@@ -86,8 +87,8 @@ def _calibrate(a, argv) -> int:
     logger.info(f"calibration done in {time.perf_counter() - t0:.1f} s")
     if res.problems():
         return _refuse("calibrate", res.problems())
-    out = res.save(a.out, force=a.force, with_instrument=a.with_instrument, with_markers=a.with_markers,
-                   extra=lambda d: run_record(a, d, _inputs(a), argv))
+    out = save_calibration(res, a.out, force=a.force, with_instrument=a.with_instrument, with_markers=a.with_markers,
+                           extra=lambda d: run_record(a, d, _inputs(a), argv))
     print(f"{robot.name}: {res.n_train} training rows" + (f", {res.n_test} held out" if res.n_test else ""))
     _print_stages(res.stages, test is not None)
     print(f"{len(res.unidentifiable)} parameters not identifiable (see {out / 'report.md'}); wrote {out}/")
@@ -133,7 +134,7 @@ def _loop(a, argv) -> int:
                                  std_errors=se)
         write_instrument(robot, geo, d / "instrument.json")
         prov = run_record(a, d, _inputs(a), argv)
-        model = res.model()
+        model = res.model(meta={"report": loop_json(res)})
         model.meta.update({"provenance": prov, "options": (d / "run.yaml").read_text()})
         save(model, d / "model")
     out = Path(a.out)

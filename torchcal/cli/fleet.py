@@ -19,7 +19,8 @@ from torchcal.cli.conventions import add_progress, progress_on
 from torchcal.cli.common import (add_common, inputs_of, int_at_least, positive_float, probability, robot_for,
                                  run_record)
 from torchcal.pipelines.fleet.run import calibrate_fleet
-from torchcal.report.fleet import FALSE_ALARM
+from torchcal.pipelines.fleet.spread import FALSE_ALARM
+from torchcal.report.fleet import save_fleet
 from torchcal.measure.io import UnitsError, load_measurements, read_csv
 from torchcal.outputs import check_out_dir, staged_dir
 from torchcal.kinematics.urdf import load_joints
@@ -160,7 +161,7 @@ def fleet_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     logger.info(f"calibrated {len(fr)} robots in {fr.wall_time_s:.2f} s; writing each robot's report"
                 + (" and figures" if not a.no_figures else "") + " …")
     with staged_dir(a.out, a.force) as d, _robot_bar(progress_on(a), len(fr)) as tick:
-        fr.save(d, figures=not a.no_figures, on_robot=tick, with_markers=a.with_markers)
+        save_fleet(fr, d, figures=not a.no_figures, on_robot=tick, with_markers=a.with_markers)
         run_record(a, d, inputs, list(argv or []))
     out = Path(a.out)
     print(f"{robot.name}: {len(fr)} robots calibrated in {fr.wall_time_s:.2f} s (all told "

@@ -17,6 +17,7 @@ from torchcal.cli.common import (add_common, inputs_of, int_at_least, nonnegativ
                                  positive_float)
 from torchcal.outputs import check_out_file, provenance
 from torchcal.pipelines.plan.run import check_plannable, plan_paths, plan_poses, plannable_effects
+from torchcal.report.plan import save_plan
 from torchcal.pipelines.plan.design import CRITERIA
 from torchcal.pipelines.plan.feasible import parse_box
 from torchcal.kinematics.robot import Robot
@@ -95,7 +96,7 @@ def plan_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     plan = plan_poses(robot, a.select, n_candidates=a.candidates, criterion=a.criterion, effects=a.effect,
                       reachable=a.reachable, collision_margin=margin, urdf_path=a.robot, noise=a.noise_mm * 1e-3,
                       margin=a.margin, refine_steps=a.refine_steps, seed=a.seed, progress=progress_on(a))
-    plan.save(a.out, force=a.force, meta={"provenance": provenance({"urdf": a.robot}, ["torchcal", *(argv or [])])})
+    save_plan(plan, a.out, force=a.force, meta={"provenance": provenance({"urdf": a.robot}, ["torchcal", *(argv or [])])})
     f = plan.feasibility
     print(f"{robot.name}: {plan.q.shape[0]} poses from {f['clear']} feasible candidates ({f['drawn']} drawn); "
           f"{plan.criterion} = {plan.value:.4g} (random subsets: median {plan.stages['random_median']:.4g}); condition "

@@ -62,8 +62,10 @@ class JointCompliance(GravityDeformation):
     def param_info(self):
         if not self.lumped:
             return super().param_info()
+        # compliance rad/(N·m) times a mass (kg) or a first mass moment (kg·m): the twist per unit of
+        # gravity_features' torque per kg (N·m/kg) or per kg·m (N/kg)
         return [(f"{j}.{l}.{t}", u) for j in self.joints for l in self._lump_links()
-                for t, u in (("m", "rad/N"), ("mx", "rad/N/m"), ("my", "rad/N/m"), ("mz", "rad/N/m"))]
+                for t, u in (("m", "rad*kg/(N*m)"), ("mx", "rad*kg/N"), ("my", "rad*kg/N"), ("mz", "rad*kg/N"))]
 
     def modes(self):
         if not self.lumped:

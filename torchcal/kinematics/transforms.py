@@ -3,15 +3,15 @@
 Rotations are ``(..., 3, 3)`` matrices, translations ``(..., 3)`` in metres, angles in radians.
 The roll-pitch-yaw convention is URDF's: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
 
-Quaternion conversions come from ``pytorch_kinematics.transforms`` (same ``(w, x, y, z)`` order,
-equal to 1e-15). The functions on the kinematics' hot path stay written here: ``rpy_to_matrix``
+Quaternions are ``(w, x, y, z)``, converted as pytorch3d / pytorch-kinematics convert them (equal to
+1e-15); written here because importing ``pytorch_kinematics`` loads its IK module and with it
+matplotlib and scipy, seconds of start-up for four lines of algebra. The functions on the kinematics' hot path stay written here: ``rpy_to_matrix``
 (pytorch-kinematics' ``euler_angles_to_matrix(..., "ZYX")`` gives the same matrices but takes
 about 1.4x as long on the small batches FK builds), and ``so3_exp``/``so3_log`` with their series
 near 0 and the stable branch near π that the parameter Jacobian relies on.
 """
 from __future__ import annotations
 
-import pytorch_kinematics.transforms as pk_transforms
 import torch
 from torch import Tensor
 
@@ -185,15 +185,32 @@ def kabsch(src: Tensor, dst: Tensor, weights: Tensor | None = None) -> tuple[Ten
 
 
 def quat_to_matrix(qt: Tensor) -> Tensor:
-    """``(..., 4)`` quaternion ``(w, x, y, z)`` (any non-zero norm) ``-> (..., 3, 3)``
-    (pytorch-kinematics' ``quaternion_to_matrix``)."""
-    return pk_transforms.quaternion_to_matrix(qt)
+    """``(..., 4)`` quaternion ``(w, x, y, z)`` (any non-zero norm) ``-> (..., 3, 3)``."""
+    r, i, j, k = qt.unbind(-1)
+    two_s = 2.0 / (qt * qt).sum(-1)
+    o = torch.stack((1 - two_s * (j * j + k * k), two_s * (i * j - k * r), two_s * (i * k + j * r),
+                     two_s * (i * j + k * r), 1 - two_s * (i * i + k * k), two_s * (j * k - i * r),
+                     two_s * (i * k - j * r), two_s * (j * k + i * r), 1 - two_s * (i * i + j * j)), -1)
+    return o.reshape(qt.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat(R: Tensor) -> Tensor:
-    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0``
-    (pytorch-kinematics' ``matrix_to_quaternion``, accurate near every angle, then standardised)."""
-    return pk_transforms.standardize_quaternion(pk_transforms.matrix_to_quaternion(R))
+    """``(..., 3, 3) -> (..., 4)`` unit quaternion ``(w, x, y, z)`` with ``w >= 0``, accurate near
+    every angle: of the four ways to read it, the one with the largest divisor is taken."""
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"matrix_to_quat needs (..., 3, 3) rotation matrices, got {tuple(R.shape)}")
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
+    q_abs = torch.stack([1.0 + m00 + m11 + m22, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22,
+                         1.0 - m00 - m11 + m22], -1).clamp(min=0.0).sqrt()
+    # row c is the quaternion times its c-th component (w, x, y, z)
+    by_c = torch.stack([torch.stack([q_abs[..., 0] ** 2, m21 - m12, m02 - m20, m10 - m01], -1),
+                        torch.stack([m21 - m12, q_abs[..., 1] ** 2, m10 + m01, m02 + m20], -1),
+                        torch.stack([m02 - m20, m10 + m01, q_abs[..., 2] ** 2, m12 + m21], -1),
+                        torch.stack([m10 - m01, m20 + m02, m21 + m12, q_abs[..., 3] ** 2], -1)], -2)
+    candidates = by_c / (2.0 * q_abs[..., None].clamp(min=0.1))
+    best = q_abs.argmax(-1)[..., None, None].expand(*R.shape[:-2], 1, 4)
+    q = candidates.gather(-2, best).squeeze(-2)
+    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def similarity(src: Tensor, dst: Tensor, scale: bool = True) -> tuple[Tensor, float]:

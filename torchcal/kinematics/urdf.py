@@ -1,27 +1,23 @@
-"""Read and write URDF files (kinematics only: meshes are never loaded)."""
+"""Read and write URDF files (kinematics only: meshes are never loaded).
+
+The URDF is read with lxml, strictly (a truncated file is an error, not a robot with fewer joints),
+into the few elements kinematics uses: joints, links, inertials and collision shapes. A parser
+that builds scene graphs (yourdfpy) imports a mesh library (trimesh, and with it much of scipy:
+about a second) that no command here uses; the tests compare with yourdfpy instead."""
 from __future__ import annotations
 
-import io
 import os
 import re
 from pathlib import Path
 
 import numpy as np
 import torch
-import yourdfpy
 
-from torchcal.kinematics.transforms import matrix_to_rpy
+from torchcal.kinematics.transforms import matrix_to_rpy, rpy_to_matrix
 from torchcal.kinematics.tree import JointSpec
 from torchcal.kinematics.urdf_check import is_urdf_text, parse_checked, strip_bom
 
 __all__ = ["load_joints", "urdf_links", "write_urdf", "read_inertials", "read_collisions", "read_urdf_text"]
-
-
-def _strict_parse(text: str, where: str) -> None:
-    """yourdfpy parses in lxml's recover mode, which silently drops whatever follows an XML
-    error (a truncated file loses its last joints) and reads numbers leniently: parse strictly
-    and check every element first (:mod:`torchcal.kinematics.urdf_check`)."""
-    parse_checked(text, where)
 
 
 def read_urdf_text(path) -> str:
@@ -46,9 +42,13 @@ def _refuse_xacro(text: str, where: str) -> None:
                          "(xacro robot.urdf.xacro > robot.urdf) and give the URDF it writes")
 
 
-def _load(path_or_xml):
-    kw = dict(build_scene_graph=False, load_meshes=False, build_collision_scene_graph=False,
-              load_collision_meshes=False)
+_FIX = ("Check that it is well-formed XML with a <robot> root and <link>/<joint> elements")
+
+
+def _root(path_or_xml):
+    """The ``<robot>`` element of a URDF given as a path or an XML string, parsed strictly and
+    checked element by element (:mod:`torchcal.kinematics.urdf_check`); content is never taken for
+    a path."""
     if is_urdf_text(path_or_xml):
         text, where = strip_bom(path_or_xml), "string"
         _refuse_xacro(text, "the URDF string")
@@ -56,13 +56,22 @@ def _load(path_or_xml):
         p = Path(path_or_xml)
         if not (p.is_file() or p.is_dir()):
             raise FileNotFoundError(f"URDF file not found: {p} (give the path to a .urdf file)")
-        text, where = read_urdf_text(p), str(p)  # read once: yourdfpy parses the text that was checked
-    _strict_parse(text, where)
-    try:
-        return yourdfpy.URDF.load(io.BytesIO(text.encode()), **kw)
-    except Exception as e:  # yourdfpy/lxml raise many types; say what the user can fix
-        raise ValueError(f"could not parse URDF {where}: {e}. Check that it is well-formed XML with a <robot> root "
-                         "and <link>/<joint> elements") from e
+        text, where = read_urdf_text(p), str(p)
+    root = parse_checked(text, where)
+    if root.tag != "robot":
+        raise ValueError(f"could not parse URDF {where}: its root element is <{root.tag}>, not <robot>. {_FIX}")
+    return root, where
+
+
+def _floats(text: str | None, n: int | None = None) -> np.ndarray:
+    v = np.array([float(x) for x in (text or "").split()], dtype=float)
+    if n is not None and v.size != n:
+        raise ValueError(f"{text!r} holds {v.size} numbers, not {n}")
+    return v
+
+
+def _float(text: str | None) -> float | None:
+    return None if text is None else float(text)
 
 
 def _or(value, default: float) -> float:
@@ -70,31 +79,57 @@ def _or(value, default: float) -> float:
     return default if value is None else float(value)
 
 
-def load_joints(path_or_xml) -> tuple[str, list[JointSpec], object]:
-    """Parse a URDF (path or XML string). Returns (robot name, joints in file order, the
-    yourdfpy object for writing back). Meshes referenced with ``package://`` need not exist."""
-    u = _load(path_or_xml)
-    joints = []
-    for j in u.robot.joints:
-        lim = j.limit
-        joints.append(JointSpec(
-            name=j.name, type=j.type, parent=j.parent, child=j.child,
-            origin=np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float),
-            axis=np.array([1.0, 0.0, 0.0]) if j.axis is None else np.asarray(j.axis, dtype=float),
-            # by presence: a multiplier of 0 is a joint that does not follow, not a missing value
-            mimic=None if j.mimic is None else (j.mimic.joint, _or(j.mimic.multiplier, 1.0), _or(j.mimic.offset, 0.0)),
-            lower=None if lim is None or lim.lower is None else float(lim.lower),
-            upper=None if lim is None or lim.upper is None else float(lim.upper),
-            velocity=None if lim is None or lim.velocity is None else float(lim.velocity),
-            effort=None if lim is None or lim.effort is None else float(lim.effort)))
+def _origin(el) -> np.ndarray:
+    """``(4, 4)`` transform of an ``<origin xyz rpy>`` (identity where absent; URDF's
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
+    T = np.eye(4)
+    if el is not None:
+        T[:3, :3] = rpy_to_matrix(torch.as_tensor(_floats(el.get("rpy", "0 0 0"), 3))).numpy()
+        T[:3, 3] = _floats(el.get("xyz", "0 0 0"), 3)
+    return T
+
+
+def _link_of(el, tag: str) -> str:
+    ref = el.find(tag)
+    if ref is None or not ref.get("link"):
+        raise ValueError(f"joint {el.get('name')!r} has no <{tag} link=\"...\"/>")
+    return ref.get("link")
+
+
+def _joint(el) -> JointSpec:
+    lim, mimic, axis = el.find("limit"), el.find("mimic"), el.find("axis")
+    get = (lambda k: None) if lim is None else (lambda k: _float(lim.get(k)))
+    return JointSpec(
+        name=el.get("name"), type=el.get("type"), parent=_link_of(el, "parent"), child=_link_of(el, "child"),
+        origin=_origin(el.find("origin")),
+        axis=np.array([1.0, 0.0, 0.0]) if axis is None else _floats(axis.get("xyz", "1 0 0"), 3),
+        mimic=None if mimic is None else (mimic.get("joint"), float(mimic.get("multiplier", 1.0)),
+                                          float(mimic.get("offset", 0.0))),
+        lower=get("lower"), upper=get("upper"), velocity=get("velocity"), effort=get("effort"))
+
+
+def _read(path_or_xml, what):
+    """``what(root)`` on a parsed URDF; a malformed element is refused with the file and the fix."""
+    root, where = _root(path_or_xml)
+    try:
+        return what(root)
+    except (ValueError, TypeError, AttributeError) as e:  # a missing element or attribute, a bad number
+        raise ValueError(f"could not parse URDF {where[:200]!r}: {e}. {_FIX}") from None
+
+
+def load_joints(path_or_xml) -> tuple[str, list[JointSpec], None]:
+    """Parse a URDF (path or XML string). Returns (robot name, joints in file order, None: the
+    place of a parser object that nothing reads). Meshes referenced with ``package://`` need not
+    exist."""
+    name, joints = _read(path_or_xml, lambda r: (r.get("name"), [_joint(j) for j in r.findall("joint")]))
     if not joints:
         raise ValueError("the URDF has no joints; torchcal needs at least one joint")
-    return u.robot.name, joints, u
+    return name, joints, None
 
 
 def urdf_links(path_or_xml) -> list[str]:
     """Names of all links in a URDF."""
-    return [l.name for l in _load(path_or_xml).robot.links]
+    return _read(path_or_xml, lambda r: [l.get("name") for l in r.findall("link")])
 
 
 def _fmt(v) -> str:
@@ -156,15 +191,36 @@ def write_urdf(name: str, joints: list[JointSpec], path: str | os.PathLike | Non
 def read_inertials(path_or_xml) -> dict[str, dict]:
     """Link inertials of a URDF: link name -> dict(mass kg, com (3,) m in the link frame).
     Links without an ``<inertial>`` or with zero mass are left out."""
-    u = _load(path_or_xml)
-    out = {}
-    for l in u.robot.links:
-        inert = l.inertial
-        if inert is None or inert.mass is None or float(inert.mass) <= 0:
-            continue
-        T = np.eye(4) if inert.origin is None else np.asarray(inert.origin, dtype=float)
-        out[l.name] = {"mass": float(inert.mass), "com": T[:3, 3].copy()}
-    return out
+
+    def inertials(root) -> dict[str, dict]:
+        out = {}
+        for link in root.findall("link"):
+            inert = link.find("inertial")
+            mass = None if inert is None or inert.find("mass") is None else _float(inert.find("mass").get("value"))
+            if mass is not None and mass > 0:
+                out[link.get("name")] = {"mass": mass, "com": _origin(inert.find("origin"))[:3, 3].copy()}
+        return out
+
+    return _read(path_or_xml, inertials)
+
+
+def _shape(c) -> dict | None:
+    g = c.find("geometry")
+    s = {"origin": _origin(c.find("origin"))}
+    box, cyl, sph, mesh = (None if g is None else g.find(k) for k in ("box", "cylinder", "sphere", "mesh"))
+    if box is not None:
+        s.update(kind="box", size=_floats(box.get("size"), 3))
+    elif cyl is not None:
+        s.update(kind="cylinder", radius=float(cyl.get("radius")), length=float(cyl.get("length")))
+    elif sph is not None:
+        s.update(kind="sphere", radius=float(sph.get("radius")))
+    elif mesh is not None:
+        sc = mesh.get("scale")
+        s.update(kind="mesh", filename=str(mesh.get("filename")),
+                 scale=np.ones(3) if sc is None else np.broadcast_to(_floats(sc), (3,)).copy())
+    else:
+        return None
+    return s
 
 
 def read_collisions(path_or_xml) -> dict[str, list[dict]]:
@@ -172,23 +228,14 @@ def read_collisions(path_or_xml) -> dict[str, list[dict]]:
     ``"cylinder"``, ``"sphere"`` or ``"mesh"``), ``origin`` (4, 4) in the link frame (m), and
     ``size`` (3,) m, ``radius`` / ``length`` m, or ``filename`` and ``scale`` (3,). Mesh files
     are not opened here. Links without ``<collision>`` are left out."""
-    u = _load(path_or_xml)
-    out: dict[str, list[dict]] = {}
-    for l in u.robot.links:
-        for c in l.collisions:
-            g = c.geometry
-            s = {"origin": np.eye(4) if c.origin is None else np.asarray(c.origin, dtype=float)}
-            if g.box is not None:
-                s.update(kind="box", size=np.asarray(g.box.size, dtype=float))
-            elif g.cylinder is not None:
-                s.update(kind="cylinder", radius=float(g.cylinder.radius), length=float(g.cylinder.length))
-            elif g.sphere is not None:
-                s.update(kind="sphere", radius=float(g.sphere.radius))
-            elif g.mesh is not None:
-                sc = g.mesh.scale
-                s.update(kind="mesh", filename=str(g.mesh.filename),
-                         scale=np.ones(3) if sc is None else np.broadcast_to(np.asarray(sc, dtype=float), (3,)).copy())
-            else:
-                continue
-            out.setdefault(l.name, []).append(s)
-    return out
+
+    def collisions(root) -> dict[str, list[dict]]:
+        out: dict[str, list[dict]] = {}
+        for link in root.findall("link"):
+            for c in link.findall("collision"):
+                s = _shape(c)
+                if s is not None:
+                    out.setdefault(link.get("name"), []).append(s)
+        return out
+
+    return _read(path_or_xml, collisions)

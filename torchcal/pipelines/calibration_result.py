@@ -1,8 +1,11 @@
 """What :func:`~torchcal.pipelines.calibrate.calibrate` found (:class:`CalibrationResult`): the
 identified parameters with their standard errors, one status per candidate parameter, the stages'
-error statistics, and the files that save it."""
+error statistics, and the calibration files that save it (the report files are
+:mod:`torchcal.report.calibration`'s: ``torchcal.report.write_report(result, out)`` writes both)."""
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,9 +16,12 @@ from torchcal.optim import Result
 from torchcal.outputs import staged_dir
 from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason
-from torchcal.report.calibration import calibration_json, calibration_markdown, write_calibration_report, write_json
 
 __all__ = ["CalibrationResult", "write_instrument"]
+
+
+def _write_json(path, obj: dict) -> None:
+    Path(path).write_text(json.dumps(obj, indent=2) + "\n")
 
 
 def write_instrument(robot, params: ParamSet, path) -> None:
@@ -23,11 +29,11 @@ def write_instrument(robot, params: ParamSet, path) -> None:
     metres and rotation as a unit quaternion (w, x, y, z)."""
     b = params.values[:6]
     R = so3_exp(b[3:])
-    write_json(path, {"frame": "instrument <- robot base: p_instrument = R p_base + t",
-                      "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
-                      "rotation_vector_rad": b[3:].tolist(),
-                      "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
-                              "saw it"})
+    _write_json(path, {"frame": "instrument <- robot base: p_instrument = R p_base + t",
+                       "translation_m": b[:3].tolist(), "quaternion_wxyz": matrix_to_quat(R).tolist(),
+                       "rotation_vector_rad": b[3:].tolist(),
+                       "note": "the calibrated URDF is in the robot's own base frame; this is where the instrument "
+                               "saw it"})
 
 
 @dataclass
@@ -98,35 +104,26 @@ class CalibrationResult:
             out[n] = ("fixed" if fixed else "tied", why)
         return out
 
-    def report(self) -> dict:
-        """The JSON-serialisable report (:func:`~torchcal.report.calibration.calibration_json`)."""
-        return calibration_json(self)
-
-    def markdown(self) -> str:
-        """``report.md`` (:func:`~torchcal.report.calibration.calibration_markdown`)."""
-        return calibration_markdown(self)
-
     def save(self, out_dir, *, force: bool = False, with_instrument: bool = False, with_markers: bool = False,
              extra=None) -> Path:
-        """Write ``calibrated.urdf`` (in the robot's own base frame; ``with_instrument``: the
-        instrument frame as its root; ``with_markers``: a link per marker; the joints whose change
-        exceeds its standard error) and ``calibration.yaml``, ``instrument.json``, ``params.json``,
-        ``report.json``, ``report.md``, ``report.html`` and the error figures into ``out_dir``, built
-        under a temporary name.
+        """Write the calibration: ``calibrated.urdf`` (in the robot's own base frame;
+        ``with_instrument``: the instrument frame as its root; ``with_markers``: a link per marker; only
+        the joints whose change exceeds its standard error), ``calibration.yaml``,
+        ``instrument.json`` and ``params.json`` into ``out_dir``, built under a temporary name.
         Refused when ``out_dir`` holds anything (unless ``force``) and when :meth:`problems`
-        says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename."""
+        says the result cannot be trusted. ``extra(tmp_dir)`` may add files before the rename
+        (:func:`torchcal.report.write_report` adds the report files so)."""
         if self.problems():
             raise ValueError("not saved, this calibration is not fit to use: " + "; ".join(self.problems()))
         with staged_dir(out_dir, force) as out:
             self.robot.export_calibration(self.params, out, with_instrument=with_instrument, with_markers=with_markers,
                                           std_errors=self.std_errors)
             write_instrument(self.robot, self.params, out / "instrument.json")
-            write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
-                                             "values": self.params.values.tolist(),
-                                             "free": self.params.free.tolist(),
-                                             "std_errors": self.std_errors})
-            write_json(out / "report.json", self.report())
-            write_calibration_report(self, out)
+            fin = [None if s is None or not math.isfinite(s) else s for s in self.std_errors.values()]
+            _write_json(out / "params.json", {"names": self.params.names, "units": self.params.units,
+                                              "values": self.params.values.tolist(),
+                                              "free": self.params.free.tolist(),
+                                              "std_errors": dict(zip(self.std_errors, fin))})
             if extra is not None:
                 extra(out)
         return Path(out_dir)

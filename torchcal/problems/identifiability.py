@@ -45,7 +45,6 @@ import warnings
 from typing import Mapping, Sequence
 
 import numpy as np
-import scipy.linalg
 import torch
 from torch import Tensor
 
@@ -207,6 +206,8 @@ def _tiered_qr(An: np.ndarray, tiers: list[list[int]], rtol: float) -> tuple[lis
         # a tiny boost, largest for the earliest column, makes the earlier one win every time.
         # Scaling a column changes neither the span nor (at 1e-10) any rank decision.
         boost = 1.0 + TIE_BOOST * np.arange(len(tier), 0, -1, dtype=float)
+        import scipy.linalg  # scipy costs start-up time; only a rank decision needs it
+
         Qt, Rt, piv = scipy.linalg.qr(B * boost, mode="economic", pivoting=True)
         d = np.abs(np.diag(Rt)) / boost[piv[: min(Rt.shape)]]
         if tol is None:  # relative to the first R-diagonal entry overall

@@ -10,12 +10,12 @@ from torch import Tensor
 
 from torchcal.report.figures import error_figure
 from torchcal.report.html import write_html
-from torchcal.report.plotting import pyplot
+from torchcal.report.plotting import save, subplots
 from torchcal.report.sections import stage_table
 from torchcal.report.units import shown
 
 __all__ = ["write_json", "histogram_figure", "error_figure", "calibration_json", "calibration_markdown",
-           "write_calibration_report"]
+           "write_calibration_report", "save_calibration"]
 
 
 def _clean(o):
@@ -40,13 +40,10 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
                      split: str = "train") -> None:
     """One figure with overlaid error histograms (mm) for several stages, as calibration papers
     show them. ``stages``: (label, errors in m)."""
-    plt = pyplot()
-
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
     data = [(lab, e.detach().double().flatten().cpu().numpy() * 1e3) for lab, e in stages if e.numel()]
     if not data:
-        plt.close(fig)
         return
+    fig, ax = subplots(figsize=(7, 4), dpi=120)
 
     hi = max(float(d.max()) for _, d in data)
     lo = min(float(np.percentile(d[d > 0], 1)) if (d > 0).any() else hi for _, d in data)
@@ -60,9 +57,7 @@ def histogram_figure(stages: list[tuple[str, Tensor]], path, title: str = "Posit
     ax.set_ylabel("observations")
     ax.set_title(f"{title} ({split})")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    save(fig, path)
 
 
 def calibration_json(res) -> dict:
@@ -130,10 +125,11 @@ def calibration_markdown(res) -> str:
 
 
 def write_calibration_report(res, out_dir) -> None:
-    """``report.md``, the error figures (``errors.png`` for the training rows, ``errors_test.png``
+    """``report.json``, ``report.md``, the error figures (``errors.png`` for the training rows, ``errors_test.png``
     for the held-out ones, where the result kept the details) and ``report.html`` into
     ``out_dir``."""
     out = Path(out_dir)
+    write_json(out / "report.json", calibration_json(res))
     for split in ("train", "test"):
         st = [(name, e.plotted(split)) for name, e in res.errors.items() if e.plotted(split) is not None]
         if st:
@@ -141,3 +137,17 @@ def write_calibration_report(res, out_dir) -> None:
                          title=f"{res.robot.name}: position error", split=split)
     (out / "report.md").write_text(calibration_markdown(res))
     write_html(out, "report.md", title=f"Calibration of {res.robot.name}")
+
+
+def save_calibration(res, out_dir, *, force: bool = False, with_instrument: bool = False, with_markers: bool = False,
+                     extra=None) -> Path:
+    """The calibration files (:meth:`~torchcal.pipelines.calibration_result.CalibrationResult.save`)
+    and its report (:func:`write_calibration_report`) in ``out_dir``, written together under a
+    temporary name; ``extra(tmp_dir)`` may add files before the rename."""
+
+    def reports(d: Path) -> None:
+        write_calibration_report(res, d)
+        if extra is not None:
+            extra(d)
+
+    return res.save(out_dir, force=force, with_instrument=with_instrument, with_markers=with_markers, extra=reports)

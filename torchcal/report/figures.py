@@ -10,9 +10,10 @@ import textwrap
 
 import numpy as np
 
-from torchcal.report.plotting import pyplot, save
+from torchcal.report.plotting import figure, save, subplots
 
-__all__ = ["error_figure", "evidence_figure", "fleet_figure", "plan_figure", "readable_axis"]
+__all__ = ["error_figure", "evidence_figure", "fleet_figure", "plan_figure", "readable_axis", "joint_rank",
+           "leftover_figure"]
 
 _LOG_SPAN = 30.0  # stages this far apart only show together on a logarithmic axis
 
@@ -36,6 +37,21 @@ def readable_axis(label: str, values) -> tuple[str, float]:
     return label, 1.0
 
 
+def _plain_log(ax, which: str) -> None:
+    """A logarithmic axis labelled in plain text (``0.01, 0.1, 1``; 1, 2 and 5 per decade on a
+    span of few decades): the default mathtext labels and the minor ticks between cost more than
+    the rest of a figure's text. Call it once the data are drawn."""
+    from matplotlib.ticker import LogLocator, NullLocator
+
+    getattr(ax, f"set_{which}scale")("log")
+    axis = getattr(ax, f"{which}axis")
+    lo, hi = sorted(getattr(ax, f"get_{which}lim")())
+    few = hi < 300 * max(lo, 1e-300)  # 2.5 decades: room for three labels in each
+    axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0) if few else (1.0,), numticks=12))
+    axis.set_major_formatter(lambda v, _: f"{v:g}")
+    axis.set_minor_locator(NullLocator())
+
+
 def _bins(e_all: np.ndarray):
     hi = float(e_all.max())
     lo = float(np.percentile(e_all[e_all > 0], 1)) if (e_all > 0).any() else hi
@@ -50,37 +66,39 @@ def error_figure(stages: list[tuple[str, dict]], path, title: str = "Position er
     per-axis errors of every stage, before beside after; the cumulative distribution with each
     stage's 95th percentile and the noise floor; the error against the marker's distance from the
     robot base. Returns the figure (None when there is nothing to draw)."""
-    plt = pyplot()
     data = [(lab, {k: d[k].detach().double().cpu().numpy() * (1e3 if k in ("e", "xyz") else 1.0)
                    for k in ("e", "xyz", "dist")}) for lab, d in stages if d["e"].numel()]
     if not data:
         return None
-    fig, ax = plt.subplots(2, 2, figsize=(12, 8.5), dpi=100, layout="constrained")
+    fig, ax = subplots(2, 2, figsize=(12, 8.5), dpi=100)
     bins, log = _bins(np.concatenate([d["e"] for _, d in data]))
     colors = [f"C{i}" for i in range(len(data))]
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    keys = []  # one legend for the four panels, below them: it covers no data
     for (lab, d), c in zip(data, colors):
         p95 = float(np.percentile(d["e"], 95))
-        ax[0, 0].hist(d["e"], bins=bins, alpha=0.55, color=c, label=lab)
+        ax[0, 0].hist(d["e"], bins=bins, alpha=0.55, color=c)
         xs = np.sort(d["e"])
-        ax[1, 0].plot(xs, np.arange(1, len(xs) + 1) / len(xs), color=c,
-                      label=f"{lab}: mean {d['e'].mean():.3f}, p95 {p95:.3f} mm")
+        ax[1, 0].plot(xs, np.arange(1, len(xs) + 1) / len(xs), color=c)
         ax[1, 0].axvline(p95, ls=":", lw=1, color=c)
-        ax[1, 1].scatter(d["dist"], d["e"], s=5, alpha=0.5, color=c, label=lab)
+        ax[1, 1].scatter(d["dist"], d["e"], s=5, alpha=0.5, color=c)
+        keys.append(Patch(facecolor=c, alpha=0.55, label=f"{lab}: mean {d['e'].mean():.3f} mm, p95 {p95:.3f} mm"))
     if log:
-        ax[0, 0].set_xscale("log")
-        ax[1, 0].set_xscale("log")
-        ax[1, 1].set_yscale("log")
+        for a, which in ((ax[0, 0], "x"), (ax[1, 0], "x"), (ax[1, 1], "y")):
+            _plain_log(a, which)
     if noise_floor_mm is not None:
-        ax[1, 0].axvline(noise_floor_mm, color="k", lw=1.2, label=f"noise floor {noise_floor_mm:.3f} mm")
+        ax[1, 0].axvline(noise_floor_mm, color="k", lw=1.2)
+        keys.append(Line2D([], [], color="k", lw=1.2, label=f"noise floor {noise_floor_mm:.3f} mm"))
     _per_axis(ax[0, 1], data, colors)
     ax[0, 0].set(xlabel="Euclidean error of each observation [mm]", ylabel="observations", title="error histogram")
     ax[1, 0].set(xlabel="Euclidean position error [mm]", ylabel="fraction of observations",
                  title="cumulative distribution, 95th percentile dotted")
     ax[1, 1].set(xlabel="marker distance from the robot base [m]", ylabel="Euclidean position error [mm]",
                  title="error against reach")
-    for a in (ax[0, 0], ax[1, 0], ax[1, 1]):
-        a.legend(fontsize=7)
     fig.suptitle(f"{title} ({split})")
+    fig.legend(handles=keys, loc="outside lower center", ncols=2, fontsize=8, frameon=False)
     return save(fig, path)
 
 
@@ -95,7 +113,6 @@ def _per_axis(a, data, colors) -> None:
                       flierprops={"markersize": 2})
         for patch in b["boxes"]:
             patch.set(facecolor=c, alpha=0.55)
-        a.plot([], [], color=c, lw=6, alpha=0.55, label=lab)
     first = np.concatenate([x[np.isfinite(x)] for x in data[0][1]["xyz"].T])
     last = np.concatenate([x[np.isfinite(x)] for x in data[-1][1]["xyz"].T])
     if first.size and last.size:
@@ -109,14 +126,17 @@ def _per_axis(a, data, colors) -> None:
                 k0 += 1
             a.set_yticks(sorted([0.0] + [s * 10.0 ** k for k in range(k0, k1 + 1) for s in (-1, 1)]))
             a.yaxis.set_major_formatter(lambda v, _: f"{v:g}")
-            a.yaxis.set_minor_locator(pyplot().NullLocator())
+            from matplotlib.ticker import NullLocator
+
+            a.yaxis.set_minor_locator(NullLocator())
     a.set_xticks([0, 1, 2], ["x", "y", "z"])
     a.axhline(0, color="k", lw=0.6)
+    # the stages' colours are the figure's legend, above the panels: none covers the z boxes
     a.set(ylabel="error per axis, model − measured [mm]", title="per axis, every stage (instrument frame)")
-    a.legend(fontsize=7)
 
 
-def _joint_rank(label: str, order: list[str]) -> tuple[int, str]:
+def joint_rank(label: str, order: list[str]) -> tuple[int, str]:
+    """Sort key of a mode label (``joint.mode``) in the robot's joint order ``order``."""
     head = label.split(".")[0]
     return (order.index(head) + 1 if head in order else (0 if head in ("base", "uniform") else len(order) + 1)), label
 
@@ -127,12 +147,10 @@ def evidence_figure(name: str, ev: dict, path, joint_order: list[str]):
     an independent signature says so in its panel. Returns the figure (None when empty)."""
     if not ev:
         return None
-    plt = pyplot()
-    keys = sorted(ev, key=lambda k: _joint_rank(k, joint_order))
+    keys = sorted(ev, key=lambda k: joint_rank(k, joint_order))
     cols = min(3, len(keys))
     rows = (len(keys) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(4.4 * cols, 3.7 * rows), dpi=100, squeeze=False,
-                             layout="constrained")
+    fig, axes = subplots(rows, cols, figsize=(4.4 * cols, 3.7 * rows), dpi=100, squeeze=False)
     for ax, k in zip(axes.flat, keys):
         e = ev[k]
         xl, fx = readable_axis(e["xlabel"], e["x"])
@@ -149,7 +167,8 @@ def evidence_figure(name: str, ev: dict, path, joint_order: list[str]):
         ax.axis("off")
     axes[0][0].legend(fontsize=7)
     notes = sorted({e["note"] for e in ev.values() if e.get("note")})
-    fig.suptitle("\n".join([f"evidence for {name}"] + [textwrap.fill(n, 110) for n in notes]), fontsize=10)
+    width = min(110, int(14 * 4.4 * cols))  # characters of a 10 pt line across the figure
+    fig.suptitle("\n".join([f"evidence for {name}"] + [textwrap.fill(n, width) for n in notes]), fontsize=10)
     return save(fig, path)
 
 
@@ -159,10 +178,12 @@ def fleet_figure(rows: list[dict], path, z_threshold: float, title: str):
     and named. ``rows``: ``{name, z (n,), robots (n,), flagged: set, z_needed}``."""
     if not rows:
         return None
-    plt = pyplot()
     n = len(rows)
-    fig, ax = plt.subplots(figsize=(10, max(3.0, 0.28 * n + 1.6)), dpi=100, layout="constrained")
-    lim = max([z_threshold * 1.6] + [float(np.nanmax(np.abs(r["z"]))) * 1.1 for r in rows if len(r["z"])])
+    fig, ax = subplots(figsize=(10, max(3.0, 0.28 * n + 1.6)), dpi=100)
+    # the x range holds every robot and every bound drawn: a bound beyond the edge would make a robot
+    # near the edge look flagged
+    lim = max([z_threshold * 1.6] + [float(np.nanmax(np.abs(r["z"]))) * 1.1 for r in rows if len(r["z"])]
+              + [float(r["z_needed"]) * 1.1 for r in rows if r.get("z_needed") is not None])
     named = 0
     for i, r in enumerate(rows):
         z = np.asarray(r["z"], dtype=float)
@@ -185,7 +206,7 @@ def fleet_figure(rows: list[dict], path, z_threshold: float, title: str):
     ax.set_ylim(-0.8, n - 0.2)
     ax.set_xlabel("distance from the robot's siblings in their standard deviations (z)")
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     return save(fig, path)
 
 
@@ -194,9 +215,8 @@ def plan_figure(q: np.ndarray, limits: tuple[np.ndarray, np.ndarray], joint_name
     """What a plan covers: per joint (in joint order) its range and the selected values; the
     markers' positions in the robot base frame from above and from the side, with the working
     volume when one was given. ``q (S, dof)`` rad / m, ``points (S, M, 3)`` m."""
-    plt = pyplot()
     dof = q.shape[1]
-    fig = plt.figure(figsize=(13, max(4.2, 0.42 * dof + 1.8)), dpi=100, layout="constrained")
+    fig = figure((13, max(4.2, 0.42 * dof + 1.8)), dpi=100)
     gs = fig.add_gridspec(1, 3, width_ratios=[1.3, 1, 1])
     a = fig.add_subplot(gs[0])
     lo, hi = limits
@@ -231,12 +251,14 @@ def leftover_figure(associations: list, path):
     explains best against it (mm), titled with its share of the residual variance (R²)."""
     if not associations:
         return None
-    plt = pyplot()
-    fig, axes = plt.subplots(1, len(associations), figsize=(3.4 * len(associations), 3.2), dpi=110, squeeze=False)
+    fig, axes = subplots(1, len(associations), figsize=(max(3.4 * len(associations), 5.0), 3.4), dpi=110,
+                         squeeze=False)
     for ax, a in zip(axes[0], associations):
         ax.scatter(a.x, [v * 1e3 for v in a.y], s=6, alpha=0.6)
-        ax.set_xlabel(a.signal, fontsize=8)
+        # a signal's name can be long (a covariate, joint.mode): wrapped to its panel's width
+        ax.set_xlabel(textwrap.fill(a.signal, 34), fontsize=8)
         ax.set_ylabel(f"residual {a.axis} [mm]", fontsize=8)
+        ax.tick_params(labelsize=7)
         ax.set_title(f"R² = {a.r2:.3f}", fontsize=9)
     fig.suptitle("what the residual still follows", fontsize=10)
     return save(fig, path)

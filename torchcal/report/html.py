@@ -18,11 +18,14 @@ body{font:15px/1.45 system-ui,-apple-system,"Segoe UI",sans-serif;max-width:1180
 color:#1d232a}
 h1{font-size:1.7em;border-bottom:2px solid #ccd3da;padding-bottom:.2em}h2{font-size:1.3em;margin-top:1.8em;
 border-bottom:1px solid #e1e5ea}h3{font-size:1.1em}
-table{border-collapse:collapse;margin:.8em 0;font-size:13px;display:block;overflow-x:auto}
-th,td{border:1px solid #d0d6dc;padding:3px 8px;text-align:right;white-space:nowrap}
+table{border-collapse:collapse;margin:.8em 0;font-size:13px;max-width:100%}
+th,td{border:1px solid #d0d6dc;padding:3px 8px;text-align:right}
+td:first-child,td:last-child{overflow-wrap:anywhere}
 th{background:#eef1f4}td:first-child,th:first-child{text-align:left}
-code{background:#f2f4f6;padding:0 3px;border-radius:3px}pre{background:#f2f4f6;padding:.6em;overflow-x:auto}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #e1e5ea}figcaption{font-size:13px;color:#55606b}
+code{background:#f2f4f6;padding:0 3px;border-radius:3px;overflow-wrap:anywhere}
+pre{background:#f2f4f6;padding:.6em;white-space:pre-wrap;overflow-wrap:anywhere}
+figure{display:inline-block;vertical-align:top;margin:1em 1em 0 0;max-width:100%}
+figure img{max-width:100%;border:1px solid #e1e5ea}figcaption{font-size:13px;color:#55606b}
 a{color:#0b5cad}li{margin:.2em 0}
 """
 

@@ -5,10 +5,11 @@ evidence figure."""
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from torchcal.report.calibration import write_json
-from torchcal.report.figures import error_figure, evidence_figure, leftover_figure
+from torchcal.report.figures import error_figure, evidence_figure, joint_rank, leftover_figure
 from torchcal.report.findings import effect_findings
 from torchcal.report.html import write_html
 from torchcal.report.sections import (candidates_section, flags_section, leftover_section, orientation_table,
@@ -66,6 +67,32 @@ def _safe(n: str) -> str:
     return "".join(c if c.isalnum() or c in "_-" else "_" for c in n)
 
 
+def _evidence_figures(name: str, ev: dict, out: Path, order: list[str]) -> dict[str, str]:
+    """One evidence figure per mode (``evidence_<effect>_<mode>.png``), so that each finding links to
+    its own: mode label -> file name, in joint order."""
+    figs = {}
+    for k in sorted(ev, key=lambda k: joint_rank(k, order)):
+        f = f"evidence_{_safe(name)}_{_safe(k)}.png"
+        if evidence_figure(name, {k: ev[k]}, out / f, order) is not None:
+            figs[k] = f
+    return figs
+
+
+def _own_figure(sentence: str, figs: dict[str, str]) -> str | None:
+    """The figure of the mode a stated finding speaks of: the mode, or its joint, named earliest in
+    the sentence (the only one where the effect has one)."""
+    hits = []
+    for k, f in figs.items():
+        for word in (k, k.split(".")[0]):
+            m = re.search(r"(?<![\w.])" + re.escape(word) + r"(?![\w])", sentence)
+            if m:
+                hits.append((m.start(), -len(word), f))
+                break
+    if hits:
+        return min(hits)[2]
+    return next(iter(figs.values())) if len(figs) == 1 else None
+
+
 def _effect_section(res, findings: list[dict], ev_figs: dict) -> list[str]:
     L = ["## What was found", ""]
     if not res.accepted:
@@ -79,22 +106,24 @@ def _effect_section(res, findings: list[dict], ev_figs: dict) -> list[str]:
         tg = a.get("test_gain_mm")
         stage = a.get("stage", "+" + a["name"])
         key = stage.lstrip("+")
-        fig = f"evidence_{_safe(key)}.png" if ev_figs.get(key) else None
+        figs = ev_figs.get(key) or {}
         L += [f"### {stage}", ""]
         if a.get("extends"):
             L += [f"Extends the accepted {', '.join(a['extends'])}: its modes are kept and these are added: "
                   f"{', '.join(a.get('added_modes') or [])}.", ""]
         f = by_stage.get(stage, {})
-        link = f" ([evidence]({fig}))" if fig else ""
-        L += [f"- {x}{link}" for x in f.get("stated", [])]
+        for x in f.get("stated", []):
+            own = _own_figure(x, figs)
+            L.append(f"- {x}" + (f" ([evidence]({own}))" if own else ""))
         if not f.get("stated"):
             L.append("- no mode of it is significant on its own: the gain comes from the modes together")
         if f.get("not_significant"):
             L += ["- measured but not significant, so not stated as findings: " + "; ".join(f["not_significant"])]
         L += [f"- cross-validated gain {a['cv_gain_mm']:+.4f} mm (RMSE); held-out gain "
               f"{'–' if tg is None else f'{tg:+.4f} mm (mean)'}", f"- evidence: {a['evidence']}"]
-        if fig:
-            L += ["", f"![evidence for {key}]({fig})"]
+        if figs:
+            L.append("")
+            L += [f"![evidence for {key}: {k}]({fig})" for k, fig in figs.items()]
         se = a.get("standard_errors", {})
         units = a.get("units", {})
         L += ["", "| parameter | value ± standard error | z = value / s.e. |", "|---|---|---|"]
@@ -110,7 +139,7 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     ``errors_train.png`` and one ``evidence_<stage>.png`` per accepted effect into ``out_dir``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    rep = res.report()
+    rep = loop_json(res)
     findings = loop_findings(res)
     held = res.heldout_suspects()
     rep.update({"findings": findings, "suspect_rows_test": held, "significance_z": SIGNIFICANT_Z})
@@ -124,8 +153,7 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     write_json(out / "report.json", rep)
     figs = {s: _histograms(res, out / f"errors_{s}.png", s) for s in ("train", "test")}
     order = [jt.name for jt in res.robot.joints]
-    ev_figs = {n: evidence_figure(n, ev, out / f"evidence_{_safe(n)}.png", order) is not None
-               for n, ev in res.evidence.items()}
+    ev_figs = {n: _evidence_figures(n, ev, out, order) for n, ev in res.evidence.items()}
 
     floor = "no noise floor known" if res.noise_floor_mm is None else (
         f"noise floor {res.noise_floor_mm:.4f} mm, {res.noise_floor_source or 'source not recorded'}")

@@ -1,19 +1,62 @@
-"""Matplotlib for report figures, drawn without a display.
+"""Matplotlib for report figures, drawn without a display and without pyplot.
 
 matplotlib stays off torchcal's import path (it costs about half a second and only figures need
-it): :func:`pyplot` imports it on the first figure, with the non-interactive Agg backend. Every
-figure module draws through it; :func:`overlapping_labels` is how figures (and their tests)
-check that no two pieces of text sit on each other."""
+it). A figure here is a bare :class:`matplotlib.figure.Figure` on an Agg canvas (:func:`figure`,
+:func:`subplots`), laid out by constrained layout: no global backend is chosen or changed, so a
+notebook's ``MPLBACKEND`` (``module://matplotlib_inline.backend_inline``) neither breaks a report
+nor is switched off by one. :func:`save` draws a figure once and writes those pixels; :func:`overlapping_labels` is how
+figures (and their tests) check that no two pieces of text sit on each other."""
 from __future__ import annotations
 
-__all__ = ["pyplot", "overlapping_labels", "save"]
+import importlib.util
+import os
+import sys
+
+__all__ = ["figure", "subplots", "pyplot", "overlapping_labels", "save"]
+
+
+def _matplotlib():
+    """``matplotlib``, imported so that an ``MPLBACKEND`` naming a module this interpreter does not
+    have (a notebook kernel's, leaked into a shell) does not make the import fail: report figures
+    never use that backend."""
+    if "matplotlib" in sys.modules:
+        return sys.modules["matplotlib"]
+    wanted = os.environ.get("MPLBACKEND", "")
+    missing = wanted.startswith("module://") and importlib.util.find_spec(wanted[9:].split(".")[0]) is None
+    if missing:
+        del os.environ["MPLBACKEND"]
+    try:
+        import matplotlib
+    finally:
+        if missing:
+            os.environ["MPLBACKEND"] = wanted
+    return matplotlib
+
+
+def figure(figsize: tuple[float, float], dpi: float = 100, layout: str | None = "constrained"):
+    """A new figure of ``figsize`` inches on its own Agg canvas, constrained layout by default."""
+    _matplotlib()
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, dpi=dpi, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], dpi: float = 100,
+             layout: str | None = "constrained", **kw):
+    """``(figure, axes)`` as ``pyplot.subplots`` gives them, on an Agg canvas (see :func:`figure`)."""
+    fig = figure(figsize, dpi, layout)
+    return fig, fig.subplots(nrows, ncols, **kw)
 
 
 def pyplot():
-    """The ``matplotlib.pyplot`` module, set to the Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
+    """The ``matplotlib.pyplot`` module, on the Agg backend unless pyplot is already in use (a
+    notebook's own backend is left alone). Report figures use :func:`subplots` instead."""
+    mpl = _matplotlib()
+    if "matplotlib.pyplot" not in sys.modules:
+        mpl.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt
@@ -45,13 +88,20 @@ def _idle_tick_labels(fig) -> list[int]:
     return out
 
 
-def _overlaps(fig, texts: list, pad: float) -> list[tuple]:
-    canvas = fig.canvas
-    if not hasattr(canvas, "get_renderer"):  # a figure pyplot has closed keeps a bare canvas
+def _canvas(fig):
+    if not hasattr(fig.canvas, "get_renderer"):  # a figure pyplot has closed keeps a bare canvas
         from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-        canvas = FigureCanvasAgg(fig)
-    canvas.draw()
+        FigureCanvasAgg(fig)
+    return fig.canvas
+
+
+def _overlaps(fig, texts: list, pad: float, draw: bool = True) -> list[tuple]:
+    """Pairs of ``texts`` whose boxes overlap by more than ``pad`` pixels; ``draw=False`` reads the
+    boxes of the last drawing (the one :func:`save` just made) instead of drawing again."""
+    canvas = _canvas(fig)
+    if draw:
+        canvas.draw()
     r = canvas.get_renderer()
     boxes = [(t, t.get_window_extent(r)) for t in texts if t.get_visible()]
     bad = []
@@ -78,17 +128,29 @@ def _tick_labels(fig) -> list:
     return out
 
 
+def _write_png(canvas, path) -> None:
+    """The pixels ``canvas`` holds as a PNG: ``savefig`` would lay the figure out and draw it again."""
+    from PIL import Image
+
+    w, h = canvas.get_width_height(physical=True)
+    Image.frombuffer("RGBA", (w, h), canvas.buffer_rgba(), "raw", "RGBA", 0, 1).save(path, format="png")
+
+
 def save(fig, path) -> object:
-    """Write ``fig`` as PNG to ``path``, free its memory and return it (its artists stay
-    readable for checks). Where two tick labels collide (an x and a y tick meeting in an axes'
-    corner), the later one is hidden: a tick label less reads better than two on each other."""
-    plt = pyplot()
-    for _ in range(3):  # hiding one may let the layout move the others
-        clash = _overlaps(fig, _tick_labels(fig), 0.5)
-        if not clash:
-            break
+    """Write ``fig`` as PNG to ``path`` and return it (its artists stay readable for checks).
+
+    One drawing, which lays the figure out (constrained layout) and renders it; its pixels are
+    written as they are. Where that drawing shows two tick labels on each other (an x and a y
+    tick meeting in an axes' corner), the later one is hidden and the figure drawn again: a tick
+    label less reads better than two on each other."""
+    canvas = _canvas(fig)
+    canvas.draw()
+    clash = _overlaps(fig, _tick_labels(fig), 0.5, draw=False)
+    if clash:
         for _, b in clash:
             b.set_visible(False)
-    fig.savefig(path)
-    plt.close(fig)
+        canvas.draw()
+    _write_png(canvas, path)
+    if "matplotlib.pyplot" in sys.modules:  # a figure made through pyplot() is freed there too
+        sys.modules["matplotlib.pyplot"].close(fig)
     return fig

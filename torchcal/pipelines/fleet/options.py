@@ -42,7 +42,7 @@ class FleetOptions(Options):
             robot's parameter is flagged (:mod:`torchcal.report.fleet`).
         false_alarm: the chance that a fleet of healthy robots raises any flag; with few robots the
             bound it sets (Student-t, Bonferroni over robots and parameters) exceeds ``z_threshold``
-            (None: the report's default, :data:`torchcal.report.fleet.FALSE_ALARM`, 5 %).
+            (None: the report's default, :data:`torchcal.pipelines.fleet.spread.FALSE_ALARM`, 5 %).
         plausible: the largest plausible error per unit (``{"m": metres, "rad": radians}``), as for
             :func:`torchcal.pipelines.calibrate` (a robot's parameter its data pin down worse is
             fixed; ``{}``: none is).

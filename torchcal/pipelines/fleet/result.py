@@ -1,15 +1,15 @@
 """What a fleet calibration returns: every robot's result, the fleet's values and free flags, the
-spread of each parameter across the fleet and the robots flagged, in m and rad."""
+spread of each parameter across the fleet and the robots flagged, in m and rad. A record:
+:mod:`torchcal.report.fleet` writes its files (``torchcal.report.write_report(fleet, out)``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.pipelines.calibration_result import CalibrationResult
-from torchcal.report.fleet import FALSE_ALARM, fleet_markdown, fleet_report, save_fleet
+from torchcal.pipelines.fleet.spread import FALSE_ALARM
 
 __all__ = ["FleetResult"]
 
@@ -25,7 +25,7 @@ class FleetResult:
             error statistics per stage); index the result by robot id or position.
         values: ``(R, K)`` identified parameters; ``free``: ``(R, K)`` which were fitted.
         spread: per parameter, its distribution over the fleet and the robots flagged as outliers
-            (:func:`~torchcal.report.fleet.parameter_spread`); ``flags``: those robots, worst first.
+            (:func:`~torchcal.pipelines.fleet.spread.parameter_spread`); ``flags``: those robots, worst first.
         z_threshold, false_alarm: the flag rule (a robot's ``|z|`` beyond ``z_threshold`` and beyond
             the bound at which healthy fleets raise any flag with probability ``false_alarm``).
         prior: the hierarchical prior (fleet mean, scales, noise) when one was used.
@@ -56,17 +56,3 @@ class FleetResult:
                 raise KeyError(f"no robot {key!r} in this fleet; robots: {self.names[:5]}…")
             key = self.names.index(key)
         return self.results[key]
-
-    def report(self) -> dict:
-        """The fleet report (``fleet.json``): parameter spread, flags, prior, timings."""
-        return fleet_report(self)
-
-    def markdown(self) -> str:
-        """The fleet report as Markdown (``fleet.md``)."""
-        return fleet_markdown(self)
-
-    def save(self, out_dir, figures: bool = True, on_robot=None, with_markers: bool = False) -> Path:
-        """Write ``<robot>/calibrated.urdf`` (``with_markers``: a link per marker), ``report.md``,
-        ``report.json`` (and error histograms with ``figures``) per robot, and ``fleet.md``,
-        ``fleet.json`` in ``out_dir``; ``on_robot(id)`` after each robot."""
-        return save_fleet(self, out_dir, figures, on_robot, with_markers)

@@ -7,7 +7,7 @@ identifiable parameters (:mod:`torchcal.pipelines.fleet.identify`), and fits all
 block-diagonal Levenberg-Marquardt (:func:`~torchcal.optim.lm_batched.lm_batched`): each robot's
 parameters, Jacobian, damping and stopping test are its own, and the result for each robot is what
 ``calibrate(robot, data, method="lm", prior=None)`` gives it. On top of that it reports how every parameter
-spreads over the fleet and flags robots far from their siblings (:mod:`torchcal.report.fleet`),
+spreads over the fleet and flags robots far from their siblings (:mod:`torchcal.pipelines.fleet.spread`),
 and optionally couples the robots: a hierarchical prior around the fleet mean, joint compliance
 with a payload shared by the fleet (:mod:`torchcal.pipelines.fleet.coupled`).
 
@@ -36,7 +36,7 @@ from torchcal.pipelines.fleet.options import FleetOptions
 from torchcal.pipelines.fleet.result import FleetResult
 from torchcal.pipelines.fleet.views import FleetResults
 from torchcal.problems.template import candidate_template
-from torchcal.report.fleet import FALSE_ALARM, parameter_spread
+from torchcal.pipelines.fleet.spread import FALSE_ALARM, parameter_spread
 from torchcal.threads import threads_by_size
 
 __all__ = ["calibrate_fleet", "FleetData", "FleetOptions", "validate_fleet"]

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.optimize import least_squares
 from torch import Tensor
 
 from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
@@ -165,6 +164,8 @@ class LinearCV:
             x = -(torch.linalg.pinv(G, rtol=1e-12, hermitian=True) @ (Aw.T @ self._rw + Pn * Pn * (x0 * n)))
             res = torch.cat([self._rw + Aw @ x, Pn * (x0 * n + x)])
             return x / n, res
+
+        from scipy.optimize import least_squares  # scipy costs start-up time; only this fit needs it
 
         best = None
         for s0 in starts:

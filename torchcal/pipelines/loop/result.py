@@ -10,7 +10,6 @@ from torchcal.measure.trust import stage_problems
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.records import Candidate, Finding
 from torchcal.pipelines.crossval.scores import OUTLIER_K, T_ACCEPT
-from torchcal.report.loop import loop_json
 from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
 
 __all__ = ["LoopResult"]
@@ -18,7 +17,8 @@ __all__ = ["LoopResult"]
 
 @dataclass
 class LoopResult:
-    """Outcome of :func:`run_loop`; :meth:`report` has the JSON shape of ``report.json``.
+    """Outcome of :func:`run_loop`, a record: :func:`torchcal.report.write_report` writes its
+    report files, :func:`torchcal.report.report_json` gives ``report.json``'s content.
 
     Attributes:
         params: geometry + accepted effects, fitted on all training rows.
@@ -100,12 +100,9 @@ class LoopResult:
                 f"exceeds {T_ACCEPT} and mean*(1+2k/n_obs) decreases (k: effective parameters); a family's modes "
                 f"are added one by one under the same rule with the threshold raised for the number of modes tried")
 
-    def report(self) -> dict:
-        """The JSON-serialisable report (:func:`~torchcal.report.loop.loop_json`)."""
-        return loop_json(self)
-
-    def model(self, *, force: bool = False):
-        """A deployable :class:`~torchcal.deploy.model.CalibratedModel`; refused (``ValueError``) when
+    def model(self, *, force: bool = False, meta: dict | None = None):
+        """A deployable :class:`~torchcal.deploy.model.CalibratedModel` carrying ``meta`` (the
+        command line stores the run's report and provenance there); refused (``ValueError``) when
         :meth:`problems` says the model cannot be trusted, unless ``force``."""
 
         if self.problems() and not force:
@@ -118,4 +115,4 @@ class LoopResult:
                              "residual for one marker: run the loop with that marker only")
         return CalibratedModel(self.robot, geo, effects=list(self.effects), residual=residual,
                                covariates=self.elm_covariates if residual is not None else None,
-                               meta={"report": self.report()})
+                               meta=dict(meta or {}))

@@ -30,7 +30,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
 from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
@@ -102,6 +101,7 @@ def _find_mesh(filename: str, base: Path | None) -> Path | None:
 
 def _mesh_box(path: Path, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # trimesh comes with yourdfpy; imported here because only URDFs with mesh collisions need it
+    import trimesh
 
     lo, hi = np.asarray(trimesh.load(str(path), force="mesh").bounds, dtype=float) * scale
     lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)  # a negative scale mirrors the mesh
