@@ -26,6 +26,8 @@ from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of,
                                  setup_logging)
 from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.fleet import add_fleet_parser
+from torchcal.cli.formats import add_format_options
+from torchcal.cli.instrument import add_import_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
@@ -175,6 +177,7 @@ def _data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plausible-mrad", type=positive_float, default=10.0,
                    help="largest plausible turn of a joint origin or zero offset (mrad; default 10)")
     p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    add_format_options(p)
     add_common(p)
 
 
@@ -233,6 +236,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     add_plan_parser(sub)
     add_fleet_parser(sub)
     add_bag_parser(sub)
+    add_import_parser(sub)
     return ap, sub.choices
 
 

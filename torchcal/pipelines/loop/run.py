@@ -30,6 +30,7 @@ from torchcal.effects import EFFECTS
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import Observations
+from torchcal.measure.placeholders import constant_orientations, without_constant_orientations
 from torchcal.measure.registration import gross_errors
 from torchcal.measure.setup import Setup, check_heldout, needs_setup
 from torchcal.measure.stats import noise_floor
@@ -123,11 +124,12 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     names = _check(robot, train, test, opt)
     t0 = time.perf_counter()
     say = say_fn(opt.log)
+    train, test = _placeholders(train, test, say)
     _directions(train, test, say)
     timings: dict[str, float] = {}
 
     # 1. nominal: base registration only; the planes and fixed points located from it
-    ctx, book, geo0 = _nominal(robot, train, test, opt, say)
+    ctx, book, geo0, orientation = _nominal(robot, train, test, opt, say)
     timings["nominal"] = time.perf_counter() - t0
 
     # 2. noise, then 3. geometry: nested sets, each from the one before, then the full set under priors
@@ -157,7 +159,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     suspects = suspect_rows(ctx, current, sigma, say)
     timings["total"] = time.perf_counter() - t0
     return _result(ctx, d, geo, book, opt, say, elm=elm_model, accepted=accepted, evidence=evidence,
-                   removed=removed, suspects=suspects, sigma=sigma, timings=timings)
+                   removed=removed, suspects=suspects, sigma=sigma, timings=timings, orientation=orientation)
 
 
 def _check(robot, train: Measurements, test: Measurements | None, opt: LoopOptions) -> list[str]:
@@ -172,6 +174,17 @@ def _check(robot, train: Measurements, test: Measurements | None, opt: LoopOptio
     return names
 
 
+def _placeholders(train: Measurements, test: Measurements | None, say):
+    """The rows without an orientation that never changes (the instrument's placeholder)."""
+    const = constant_orientations(train)
+    if not const:
+        return train, test
+    say(f"the orientation of {', '.join(const)} is the same in every row: the instrument's placeholder (a "
+        "position-only tracker), not a measurement; left out")
+    return (without_constant_orientations(train, const),
+            None if test is None else without_constant_orientations(test, const))
+
+
 def _directions(train: Measurements, test: Measurements | None, say) -> None:
     derived = derive_directions(train)
     if derived is not None:
@@ -181,8 +194,8 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
 
 
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):
-    """The run's context (folds, set-up, orientation weight), its stage book and the nominal
-    model (base registration only), whose stage opens the book."""
+    """The run's context (folds, set-up, orientation weight), its stage book, the nominal model
+    (base registration only), whose stage opens the book, and how the orientation weight was chosen."""
     fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, duplicate_groups(train))
     if test is not None:
         check_heldout(train, test)
@@ -195,11 +208,12 @@ def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOpt
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
                "robot base"))
     ctx = Context(robot, train, fl, None, 1.0, setup, soft=opt.soft, plausible=check_plausible(opt.plausible))
-    rot_w = ctx.rot_weight = choose_orientation_weight(ctx, robot, train, setup, opt.orientation_weight, say)
+    rot_w, orientation = choose_orientation_weight(ctx, robot, train, setup, opt.orientation_weight, say)
+    ctx.rot_weight = rot_w
     geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup, rot_w is not None)
     book = StageBook(robot, train, test, setup, rot_w)
     book.add("nominal", 0, geo0, [])
-    return ctx, book, geo0
+    return ctx, book, geo0, orientation
 
 
 def _geometry(ctx: Context, geo0, say) -> tuple[Context, GeometryChoice]:
@@ -215,7 +229,7 @@ def _geometry(ctx: Context, geo0, say) -> tuple[Context, GeometryChoice]:
 
 
 def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, opt: LoopOptions, say, *, elm, accepted,
-            evidence, removed, suspects, sigma, timings) -> LoopResult:
+            evidence, removed, suspects, sigma, timings, orientation) -> LoopResult:
     """What is left against the noise floor, the warnings, and the result."""
     train, current = ctx.data, d.current
     noise_mm, noise_source = noise_floor(train, opt.noise_mm)
@@ -230,7 +244,8 @@ def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, op
     best = geo.best
     return LoopResult(robot=ctx.robot, params=current.params, effects=current.effects, elm=elm, stages=book.stages,
                       accepted=accepted, candidates=d.candidates,
-                      geometric={"chosen": best.label, "sets": geo.sets, "prior_mm": best.prior_mm},
+                      geometric={"chosen": best.label, "sets": geo.sets, "prior_mm": best.prior_mm,
+                                 "orientation": orientation},
                       n_train=len(train), n_test=0 if book.test is None else len(book.test), noise_floor_mm=noise_mm,
                       noise_floor_source=noise_source, timings=timings, errors=book.errors, evidence=evidence,
                       elm_covariates=elm_covariates(train), geometric_fits=geo.fits, noise_sigma_mm=1e3 * sigma,
