@@ -102,6 +102,10 @@ def main() -> None:
         out["loop_s"] = time.perf_counter() - t
         out["loop_mm"] = res.stages[-1].test.mean
         out["loop_effects"] = [e.name for e in res.effects]
+        out["loop_stages_mm"] = {s.name: s.test.mean for s in res.stages}
+        out["orientation"] = res.geometric.get("orientation")
+        for s in res.stages:
+            print(f"  loop stage {s.name:<28} {s.n_params:>4} params  held out {s.test.mean:.3f} mm")
         print(f"loop {out['loop_mm']:.3f} mm held out in {out['loop_s']:.0f} s; effects {out['loop_effects']}")
     print(json.dumps(out))
 

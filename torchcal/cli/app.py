@@ -105,7 +105,7 @@ def _loop(a, argv) -> int:
     progress = a.progress if a.progress is not None else (sys.stderr.isatty() and not a.quiet)
     res = run_loop(robot, train, test, candidates=a.candidates, folds=a.folds, seed=a.seed, elm=not a.no_elm,
                    noise_mm=a.noise_mm, orientation_weight=a.orientation_weight, soft=not a.no_soft,
-                   plausible=_plausible(a), progress=progress, log=None)
+                   plausible=_plausible(a), progress=progress, log=None, reregister=a.reregister)
     for k, v in res.timings.items():
         logger.info(f"stage {k}: {v:.1f} s")
     if res.problems():
@@ -129,6 +129,9 @@ def _loop(a, argv) -> int:
         save(model, d / "model")
     out = Path(a.out)
     _print_stages(res.stages, test is not None)
+    if res.heldout is not None and res.heldout.reregistered_mm is not None:
+        print(f"held out: {res.heldout.final_mm:.4f} mm as measured, {res.heldout.reregistered_mm:.4f} mm with the "
+              "instrument frame registered anew on the held-out rows (mean)")
     found = list(dict.fromkeys(e["name"] for e in res.accepted))  # an effect that gained modes later: once
     print(f"effects found: {found or 'none'}; report in {out / 'report.md'}; calibrated "
           f"URDF {out / 'calibrated.urdf'}" + (" (geometric part)" if res.effects else "") + f"; model in {out / 'model'}")
@@ -213,6 +216,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     lp.add_argument("--no-soft", action="store_true",
                     help="choose a family's modes one by one only (default: a family may also be kept whole under a "
                          "prior whose scale cross-validation chooses)")
+    lp.add_argument("--reregister", action="store_true",
+                    help="register the instrument frame anew on the held-out rows (--test from another session, the "
+                         "tracker set up anew) and report that figure beside the first")
     lp.add_argument("--command", help=argparse.SUPPRESS)
     _data_options(lp)
     lp.set_defaults(func=_loop)

@@ -46,7 +46,8 @@ def loop_json(res) -> dict:
             "parameters": res.parameters,
             "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
             "residual_elm": res.elm is not None, "timings_s": res.timings,
-            "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed}
+            "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed,
+            "heldout_check": None if getattr(res, "heldout", None) is None else res.heldout.to_json()}
 
 
 def loop_findings(res) -> list[dict]:

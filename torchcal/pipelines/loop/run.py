@@ -46,6 +46,7 @@ from torchcal.pipelines.loop.geometry import (GEOMETRIC_SETS, GeometryChoice, ch
                                               choose_orientation_weight, estimate_noise)
 from torchcal.pipelines.loop.leftover import leftover
 from torchcal.pipelines.loop.result import LoopResult
+from torchcal.pipelines.loop.sessions import check_heldout_rows, hold_session_terms, other_session
 from torchcal.pipelines.loop.stages import StageBook, elm_covariates, residual_matrix
 from torchcal.pipelines.loop.steps import parameter_table
 from torchcal.pipelines.loop.suspects import suspect_rows
@@ -81,6 +82,9 @@ class LoopOptions(Options):
         progress: a progress bar over the diagnosis candidates (tqdm).
         log: a print-like function for progress lines (``None`` to stay quiet); lines also go
             to the ``torchcal.loop`` logger.
+        reregister: register the instrument frame anew on the held-out rows (a tracker set up
+            anew for another session) and report that figure beside the first; held-out rows this
+            explains are not refused (:mod:`~torchcal.pipelines.loop.sessions`).
     """
     candidates: list[str] | None = None
     folds: int = 5
@@ -93,6 +97,7 @@ class LoopOptions(Options):
     plausible: dict | None = None
     progress: bool = False
     log: object = print
+    reregister: bool = False
 
 
 def say_fn(log):
@@ -126,6 +131,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     say = say_fn(opt.log)
     train, test = _placeholders(train, test, say)
     _directions(train, test, say)
+    session, test, held = _session(train, test)
     timings: dict[str, float] = {}
 
     # 1. nominal: base registration only; the planes and fixed points located from it
@@ -154,12 +160,19 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
         d.candidates.append(elm_line)
     timings["residual_elm"] = time.perf_counter() - t3
 
-    # 6. suspects: listed, never dropped
+    # 6. suspects: listed, never dropped; the held-out rows: another session, a moved instrument?
     sigma = noise_sigma(ctx, current)
     suspects = suspect_rows(ctx, current, sigma, say)
+    heldout = None if book.test is None else check_heldout_rows(
+        ctx, current.params, current.effects, elm_model, book.test, geo_model.params, session=session, held_at=held,
+        reregister=opt.reregister)
+    for line in [] if heldout is None else heldout.words():
+        say(line)
     timings["total"] = time.perf_counter() - t0
-    return _result(ctx, d, geo, book, opt, say, elm=elm_model, accepted=accepted, evidence=evidence,
-                   removed=removed, suspects=suspects, sigma=sigma, timings=timings, orientation=orientation)
+    res = _result(ctx, d, geo, book, opt, say, elm=elm_model, accepted=accepted, evidence=evidence,
+                  removed=removed, suspects=suspects, sigma=sigma, timings=timings, orientation=orientation)
+    res.heldout = heldout
+    return res
 
 
 def _check(robot, train: Measurements, test: Measurements | None, opt: LoopOptions) -> list[str]:
@@ -183,6 +196,15 @@ def _placeholders(train: Measurements, test: Measurements | None, say):
         "position-only tracker), not a measurement; left out")
     return (without_constant_orientations(train, const),
             None if test is None else without_constant_orientations(test, const))
+
+
+def _session(train: Measurements, test: Measurements | None):
+    """Why the held-out rows come from another session (None: the training one); the held-out rows
+    with the session drivers (time, row order) held at the training rows' median then, and those values."""
+    session = None if test is None else other_session(train, test)
+    if session is None:
+        return None, test, {}
+    return (session, *hold_session_terms(train, test))
 
 
 def _directions(train: Measurements, test: Measurements | None, say) -> None:
