@@ -194,11 +194,18 @@ def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, g
     if given is not None:
         say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {given:.4g} mm (given)")
         return given, {"chosen": given, "rule": "given"}
-    w = orientation_weight(ctx, robot, train, setup)
+    try:
+        w = orientation_weight(ctx, robot, train, setup)
+    except ValueError as e:  # the orientations drive every parameter out of the fit: they place nothing
+        say(f"{n} measured orientations left out: fitted with the positions, they leave no parameter to fit ({e})")
+        return None, {"chosen": 0.0, "rule": f"no weight could be estimated: {e}"}
     tried = {}
     for cand in (0.0, w / 10, w):
         at = replace(ctx, rot_weight=cand or None)
-        m = evaluate(at, "orientation weight", geometric_start(robot, train, None, setup, cand > 0), [], None)
+        try:
+            m = evaluate(at, "orientation weight", geometric_start(robot, train, None, setup, cand > 0), [], None)
+        except ValueError:
+            continue  # a weight whose fit fails is no choice
         tried[cand] = cv_mean_mm(at, m)
     best = min(tried, key=tried.get)
     words = ", ".join(f"{k:.4g} mm/mrad: {v:.4f} mm" for k, v in tried.items())
@@ -206,5 +213,5 @@ def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, g
         f"model ({words}); " + ("positions alone place the markers best: orientations left out" if best == 0 else
                                 f"fitted with the positions: 1 mrad counts like {best:.4g} mm"))
     record = {"chosen": best, "estimated": w, "rule": "lowest cross-validated mean position error of the full "
-              "geometric model", "cv_mean_mm": {f"{k:.6g}": v for k, v in tried.items()}}
+              "geometric model", "tried": [{"weight_mm_per_mrad": k, "cv_mean_mm": v} for k, v in tried.items()]}
     return (best or None), record
