@@ -54,9 +54,15 @@ FORMAT = InstrumentFormat(sep=";", decimal=",", rot_units="deg", euler="XYZ", co
 COMPLIANT = ["shoulder_lift_joint", "elbow_joint"]
 
 
-def load(d: Path, holdout: float, seed: int):
+def read(d: Path):
+    """The UR10 with the probe point as an unknown point on the flange, and every row of the export."""
     robot = Robot.from_urdf(ur10_urdf(), markers=[MARKER])
-    data = load_measurements(d / FILE, robot, units=["mm"], fmt=FORMAT)
+    return robot, load_measurements(d / FILE, robot, units=["mm"], fmt=FORMAT)
+
+
+def load(d: Path, holdout: float, seed: int):
+    """The robot, and the rows split into training rows and a seeded random ``holdout`` part."""
+    robot, data = read(d)
     train, test = data.split(holdout, seed=seed)
     return robot, train, test
 

@@ -2,13 +2,41 @@
 options checked, and a bag's joint names as the URDF's."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["check_bag_path", "open_bag", "check_options", "joint_renamer", "BAG_SHAPES"]
+from torchcal.options import Options
+
+__all__ = ["BagReadOptions", "check_bag_path", "open_bag", "check_options", "joint_renamer", "BAG_SHAPES"]
 
 INSTALL_HINT = "pip install 'torchcal[ros]'"
 BAG_SHAPES = ("a bag is a ROS 1 .bag file, a ROS 2 bag directory (metadata.yaml beside its .db3 or .mcap files), "
               "or one ROS 2 .db3 / .mcap file")
+
+
+@dataclass(frozen=True)
+class BagReadOptions(Options):
+    """The settings of :func:`~torchcal.measure.rosbag.read_bag`.
+
+    Attributes:
+        joints: the ``sensor_msgs/JointState`` topic.
+        still_s: least time (s) the joints stand still for a row. ``still_tol``: how far (rad or m,
+            max − min per joint) they may move then. ``settle_s``: marker samples in the first
+            ``settle_s`` seconds of a window are left out (vibration after a stop).
+        min_samples: least marker samples in a window for the marker to count as seen there.
+        stamps: ``"header"`` or ``"bag"`` (see :mod:`torchcal.measure.rosbag`).
+        progress: a progress bar over the messages.
+        joint_map: the bag's joint names as the URDF's: a prefix to take off (``"ur_"``) or a
+            dict ``{bag name: URDF name}``; None: as they are.
+    """
+    joints: str = "/joint_states"
+    still_s: float = 0.5
+    still_tol: float = 5e-5
+    settle_s: float = 0.0
+    min_samples: int = 3
+    stamps: str = "header"
+    progress: bool = False
+    joint_map: object = None
 
 
 def check_bag_path(bag: Path) -> None:

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from torchcal.measure.bag_files import INSTALL_HINT, joint_renamer
+from torchcal.measure.bag_files import INSTALL_HINT, BagReadOptions, joint_renamer
 from torchcal.measure.bag_files import check_options as _check_options, open_bag as _open
 from torchcal.measure.data import Measurements
 from torchcal.measure.still import mean_quaternion, still_windows
@@ -265,9 +265,7 @@ def _marker_samples(s: MarkerSource, c: _Collector) -> tuple[np.ndarray, np.ndar
     return t[o], p[o].reshape(-1, 3), None if r is None else r[o]
 
 
-def read_bag(bag, robot, markers, *, joints: str = "/joint_states", still_s: float = 0.5,
-             still_tol: float = 5e-5, settle_s: float = 0.0, min_samples: int = 3, stamps: str = "header",
-             progress: bool = False, joint_map: dict | str | None = None) -> BagImport:
+def read_bag(bag, robot, markers, settings: BagReadOptions | None = None, **kw) -> BagImport:
     """Still poses of a ROS bag as measurement rows (see the module docstring).
 
     Args:
@@ -275,26 +273,23 @@ def read_bag(bag, robot, markers, *, joints: str = "/joint_states", still_s: flo
         robot: the :class:`~torchcal.kinematics.robot.Robot`; its joint names (the URDF's) name the
             joint columns.
         markers: :class:`MarkerSource` or strings ``NAME=/topic`` / ``NAME=tf:PARENT,CHILD``.
-        joints: the ``sensor_msgs/JointState`` topic.
-        still_s: least time (s) the joints stand still for a row. ``still_tol``: how far (rad or m,
-            max − min per joint) they may move then. ``settle_s``: marker samples in the first
-            ``settle_s`` seconds of a window are left out (vibration after a stop).
-        min_samples: least marker samples in a window for the marker to count as seen there.
-        stamps: ``"header"`` or ``"bag"`` (see the module docstring).
-        joint_map: the bag's joint names as the URDF's: a prefix to take off (``"ur_"``) or a
-            dict ``{bag name: URDF name}``.
+        settings: a :class:`~torchcal.measure.bag_files.BagReadOptions` (the topic of the joints, what
+            counts as still, the time base, the joint names' map); ``kw``: any of its fields
+            (``read_bag(bag, robot, markers, still_s=1.0)``).
     Returns a :class:`BagImport`; ``.data`` holds ``q (K, dof)`` rad / m and ``positions (K, M, 3)``
     m. Raises ``ValueError`` saying what is wrong and how to fix it; ``ModuleNotFoundError``
     without rosbags.
     """
-    _check_options(still_s, still_tol, settle_s, min_samples, stamps)
+    o = BagReadOptions.build(settings, **kw)
+    joints, still_s, still_tol, settle_s, min_samples = o.joints, o.still_s, o.still_tol, o.settle_s, o.min_samples
+    _check_options(still_s, still_tol, settle_s, min_samples, o.stamps)
     sources = [s if isinstance(s, MarkerSource) else MarkerSource.parse(s) for s in markers]
     names = [s.name for s in sources]
     if not sources or len(set(names)) != len(names):
         raise ValueError(f"give each marker once, with a distinct name (got {names})")
     bag = Path(bag)
     joint_names = list(robot.joint_names)
-    c, t0 = _collect(bag, joints, sources, joint_names, stamps == "header", progress, joint_renamer(joint_map))
+    c, t0 = _collect(bag, joints, sources, joint_names, o.stamps == "header", o.progress, joint_renamer(o.joint_map))
     if len(c.jt) < 2:
         raise ValueError(f"{bag}: no message on {joints} names all of the URDF's joints {joint_names} (it names "
                          f"{sorted(c.seen)}); the JointState names must be the URDF's joint names: map them with "
