@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchcal import Robot, load_measurements, run_loop  # noqa: E402
 from torchcal.effects import JointCompliance, effect_params  # noqa: E402
+from torchcal.effects.joint import CyclicJointError  # noqa: E402
 from torchcal.measure.instrument import InstrumentFormat  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402
 from torchcal.pipelines.loop.fit import Context, fit_params, geometric_start  # noqa: E402
@@ -73,10 +74,13 @@ def nominal(robot, train, test) -> float:
     return stage_stats(robot, geometric_start(robot, train, ["base.*"]), [], test)[0].mean
 
 
-def plain(robot, train, test) -> float:
-    """Least squares of every geometric error and two joints' compliance, positions only."""
+def plain(robot, train, test, harmonics: int = 0) -> float:
+    """Least squares of every geometric error and two joints' compliance, positions only (and,
+    with ``harmonics``, a cyclic error of every joint's angle, harmonics 1 to that order)."""
     ctx = Context(robot, train, [], None, 1.0)
     effects = [JointCompliance(robot, COMPLIANT)]
+    if harmonics:
+        effects.append(CyclicJointError(robot, harmonics=harmonics))
     start = ParamSet.concat(geometric_start(robot, train, None), effect_params(effects))
     p = fit_params(ctx, start, effects, train, None, reduce=True)
     return stage_stats(robot, p, effects, test)[0].mean
@@ -88,6 +92,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the held-out third and of the loop's folds")
     ap.add_argument("--holdout", type=float, default=1 / 3)
     ap.add_argument("--no-loop", action="store_true", help="the nominal model and the plain fit only")
+    ap.add_argument("--harmonics", type=int, nargs="*", default=[],
+                    help="also the plain fit with a cyclic error of every joint, harmonics 1 to each order given")
     args = ap.parse_args()
     torch.set_num_threads(1)
     d = Path(args.data)
@@ -102,6 +108,9 @@ def main() -> None:
     out["plain_s"] = time.perf_counter() - t
     print(f"nominal {out['nominal_mm']:.3f} mm   plain fit (geometry + {', '.join(COMPLIANT)} compliance) "
           f"{out['plain_mm']:.3f} mm held out")
+    for h in args.harmonics:
+        out[f"plain_harmonics_{h}_mm"] = plain(robot, train, test, h)
+        print(f"plain fit + cyclic error of every joint, harmonics 1-{h}: {out[f'plain_harmonics_{h}_mm']:.3f} mm")
     if not args.no_loop:
         t = time.perf_counter()
         res = run_loop(robot, train, test, seed=args.seed)

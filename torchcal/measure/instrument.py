@@ -72,8 +72,8 @@ class InstrumentFormat(Options):
             ok = len(e) == 3 and (e.isupper() or e.islower()) and set(e.lower()) <= set("xyz") \
                 and e[0].lower() != e[1].lower() and e[1].lower() != e[2].lower()
             if not ok:
-                raise ValueError(f"euler {e!r} is not an Euler sequence: three axes of x, y, z, no axis twice in a row, "
-                                 "all upper case (intrinsic, e.g. 'XYZ') or all lower case (extrinsic, e.g. 'xyz')")
+                raise ValueError(f"euler {e!r} is not an Euler sequence: three axes of x, y, z, no axis twice in a "
+                                 "row, all upper case (intrinsic, e.g. 'XYZ') or all lower case (extrinsic, 'xyz')")
 
     @property
     def is_plain(self) -> bool:

@@ -131,6 +131,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     say = say_fn(opt.log)
     train, test = _placeholders(train, test, say)
     _directions(train, test, say)
+    as_measured = test
     session, test, held = _session(train, test)
     timings: dict[str, float] = {}
 
@@ -145,7 +146,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
 
     # 4. diagnosis
     t2 = time.perf_counter()
-    d = diagnose(ctx, geo.best, names, test, say, opt.progress)
+    d = diagnose(ctx, geo.best, names, test, say, opt.progress, as_measured=as_measured)
     ctx, current = d.ctx, d.current
     timings["diagnosis"] = time.perf_counter() - t2
     geo_model = geo.best if d.steps else current

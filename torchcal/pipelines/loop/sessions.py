@@ -130,8 +130,9 @@ class HeldOutCheck:
                        ", ".join(f"{k} = {v:.6g}" for k, v in self.held_at.items()) + ")")
         if self.reregistered_mm is not None:
             out.append(f"held-out mean error {self.final_mm:.4f} mm as measured; {self.reregistered_mm:.4f} mm with "
-                       f"the instrument frame registered anew on the held-out rows (moved {self.frame_shift_mm:.3f} mm, "
-                       f"turned {self.frame_turn_mrad:.3f} mrad; 6 values fitted on those rows)")
+                       "the instrument frame registered anew on the held-out rows (moved "
+                       f"{self.frame_shift_mm:.3f} mm, turned {self.frame_turn_mrad:.3f} mrad; 6 values fitted on "
+                       "those rows)")
         causes = self.causes()
         if causes:
             out.append("why the held-out rows fit worse: " + "; ".join(causes))
