@@ -33,9 +33,14 @@ def test_rows_of_one_file_are_one_session_and_time_is_held_at_the_training_media
     d, _ = simulate(robot, SimConfig(n=20, seed=0))
     a, b = _with(d, "s.csv", time=torch.arange(20.0)).split(0.3, seed=0)
     assert other_session(a, b) is None
+    assert other_session(a, _with(b, "s2.csv")) is None  # interleaved times: one session in two files
     later = _with(b, "s2.csv", time=b.covariates["time"] + 1e4)
-    assert "another file" in other_session(a, later)
-    assert "does not overlap" in other_session(a, _with(later, "s.csv"))
+    assert "does not overlap" in other_session(a, later)
+    untimed = {k: v for k, v in a.covariates.items() if k != "time"}
+    a2 = a._with(a.q, a.positions, list(a.marker_names), None, untimed, None, {})
+    b2 = b._with(b.q, b.positions, list(b.marker_names), None, {}, None, {})
+    a2.source, b2.source = "s.csv", "s2.csv"
+    assert "another file" in other_session(a2, b2)
     held, at = hold_session_terms(a, later)
     med = float(a.covariates["time"].median())
     assert at == {"time": pytest.approx(med)} and torch.allclose(held.covariates["time"], torch.full((len(b),), med,

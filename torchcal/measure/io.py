@@ -67,7 +67,8 @@ def read_csv(path, what: str = "measurement file", sep: str = ",") -> tuple[list
                          "from the first line, as they are: delete comment lines above the header, and the '#' before "
                          "a header (numpy.savetxt writes one unless comments='')")
     if len(rows[0]) == 1 and rows[0][0].count(";") >= 2 and sep != ";":
-        raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales): read it with "
+        raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales); torchcal reads "
+                         "comma-separated files unless told otherwise: read it with "
                          + advice("InstrumentFormat(sep=';', decimal=',')", "--sep ';' --decimal ','")
                          + " (the decimal mark as the file writes it), or convert it once with `torchcal import`")
     if len(rows[0]) == 1 and rows[0][0].count("\t") >= 1 and sep != "\t":

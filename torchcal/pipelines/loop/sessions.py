@@ -46,15 +46,18 @@ def is_session_driver(column: str) -> bool:
 
 def other_session(train: Measurements, test: Measurements) -> str | None:
     """Why the held-out rows come from another session (in words), or None when they are rows of
-    the training session (a random part of the same file)."""
-    if train.source and test.source and Path(train.source).resolve() != Path(test.source).resolve():
-        return f"they come from another file ({test.source}) than the training rows ({train.source})"
+    the training session. A time column both have decides (ranges that do not overlap: another
+    session; interleaved times: the same one, even from two files); without one, rows from another
+    file are another session."""
     for c in TIME_COVARIATES:
         if c in train.covariates and c in test.covariates:
             a, b = train.covariates[c], test.covariates[c]
             if float(b.min()) > float(a.max()) or float(b.max()) < float(a.min()):
                 return f"their {c} ({float(b.min()):.6g}–{float(b.max()):.6g}) does not overlap the training rows' " \
                        f"({float(a.min()):.6g}–{float(a.max()):.6g})"
+            return None
+    if train.source and test.source and Path(train.source).resolve() != Path(test.source).resolve():
+        return f"they come from another file ({test.source}) than the training rows ({train.source})"
     return None
 
 
