@@ -119,6 +119,7 @@ def main() -> None:
         out["loop_effects"] = [e.name for e in res.effects]
         out["loop_stages_mm"] = {s.name: s.test.mean for s in res.stages}
         out["orientation"] = res.geometric.get("orientation")
+        out["loop_timings_s"] = res.timings
         for s in res.stages:
             print(f"  loop stage {s.name:<28} {s.n_params:>4} params  held out {s.test.mean:.3f} mm")
         print(f"loop {out['loop_mm']:.3f} mm held out in {out['loop_s']:.0f} s; effects {out['loop_effects']}")
