@@ -31,6 +31,8 @@ from torchcal.cli.correct import add_correct_parser
 from torchcal.cli.runtime import StdoutLost, Terminated, command_runtime, stdout_lost_message
 from torchcal.cli.strict import check_command_line, strict_parsers
 from torchcal.cli.fleet import add_fleet_parser
+from torchcal.cli.formats import add_format_options
+from torchcal.cli.instrument import add_import_parser
 from torchcal.cli.plan import add_plan_parser
 from torchcal.deploy.persist import save
 from torchcal.effects import EFFECTS
@@ -113,7 +115,7 @@ def _loop(a, argv) -> int:
     effects = None if a.effect is None else [e for e in a.effect if e != "none"]
     res = run_loop(robot, train, test, candidates=effects, folds=a.folds, seed=a.seed, elm=not a.no_elm,
                    noise_mm=a.noise_floor_mm, orientation_weight=a.orientation_weight, soft=not a.no_soft,
-                   plausible=_plausible(a), progress=progress_on(a), log=None)
+                   plausible=_plausible(a), progress=progress_on(a), log=None, reregister=a.reregister)
     for k, v in res.timings.items():
         logger.info(f"stage {k}: {v:.1f} s")
     if res.problems():
@@ -139,6 +141,9 @@ def _loop(a, argv) -> int:
         save(model, d / "model")
     out = Path(a.out)
     _print_stages(res.stages, test is not None)
+    if res.heldout is not None and res.heldout.reregistered_mm is not None:
+        print(f"held out: {res.heldout.final_mm:.4f} mm as measured, {res.heldout.reregistered_mm:.4f} mm with the "
+              "instrument frame registered anew on the held-out rows (mean)")
     found = list(dict.fromkeys(e["name"] for e in res.accepted))  # an effect that gained modes later: once
     print(f"effects found: {found or 'none'}; report in {out / 'report.md'}; calibrated "
           f"URDF {out / 'calibrated.urdf'}" + (" (geometric part)" if res.effects else "") + f"; model in {out / 'model'}")
@@ -189,6 +194,7 @@ def _data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plausible-mrad", type=positive_float, default=10.0,
                    help="largest plausible turn of a joint origin or zero offset (mrad)")
     p.add_argument("--out", required=True, help="output directory (refused if it holds anything; see --force)")
+    add_format_options(p)
     add_common(p)
 
 
@@ -240,6 +246,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     lp.add_argument("--no-soft", action="store_true",
                     help="choose a family's modes one by one only (default: a family may also be kept whole under a "
                          "prior whose scale cross-validation chooses)")
+    lp.add_argument("--reregister", action="store_true",
+                    help="register the instrument frame anew on the held-out rows (--test from another session, the "
+                         "tracker set up anew) and report that figure beside the first")
     lp.add_argument("--command", help=argparse.SUPPRESS)
     _data_options(lp)
     lp.set_defaults(func=_loop)
@@ -267,6 +276,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict]:
     add_plan_parser(sub)
     add_fleet_parser(sub)
     add_bag_parser(sub)
+    add_import_parser(sub)
     for p in sub.choices.values():  # every command's --help shows every default
         p.formatter_class = DefaultsFormatter
     strict_parsers(ap, sub.choices)

@@ -16,6 +16,7 @@ import torch
 from torchcal.cli.conventions import add_progress, progress_on
 from torchcal.cli.common import add_common, int_at_least, nonnegative_float, positive_float
 from torchcal.kinematics.robot import Robot
+from torchcal.measure.instrument import parse_column_map
 from torchcal.measure.io import save_measurements
 from torchcal.measure.rosbag import MarkerSource, read_bag
 from torchcal.outputs import check_out_file
@@ -58,6 +59,12 @@ def add_bag_parser(sub) -> argparse.ArgumentParser:
                    help="time of each message: its header stamp (bag time where it has none) or the bag's receive "
                         "time")
     add_progress(p, "the bag's messages")
+    names = p.add_mutually_exclusive_group()
+    names.add_argument("--strip-prefix", metavar="PREFIX",
+                       help="take PREFIX off the bag's joint names (ur_shoulder_pan_joint -> shoulder_pan_joint with "
+                            "--strip-prefix ur_)")
+    names.add_argument("--joint-map", action="append", metavar="BAG_NAME=URDF_NAME",
+                       help="the URDF's name of a joint the bag names otherwise (repeatable)")
     add_common(p, units=False)
     p.set_defaults(func=bag_main)
     return p
@@ -71,7 +78,8 @@ def bag_main(a: argparse.Namespace, argv: list[str] | None = None) -> int:
     progress = progress_on(a)
     try:
         res = read_bag(a.bag, robot, a.marker, joints=a.joints, still_s=a.still_s, still_tol=a.still_tol,
-                       settle_s=a.settle_s, min_samples=a.min_samples, stamps=a.stamps, progress=progress)
+                       settle_s=a.settle_s, min_samples=a.min_samples, stamps=a.stamps, progress=progress,
+                       joint_map=a.strip_prefix or parse_column_map(a.joint_map) or None)
     except ModuleNotFoundError as e:
         print(f"torchcal import-bag: error: {e}", file=sys.stderr)
         return 2

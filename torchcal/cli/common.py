@@ -24,7 +24,8 @@ from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker, parse_marker
 from torchcal.kinematics.urdf import urdf_links
 from torchcal.measure.columns import marker_columns_in
-from torchcal.measure.io import UNITS, load_measurements, read_csv
+from torchcal.cli.formats import format_of
+from torchcal.measure.io import UNITS, load_measurements, read_table
 from torchcal.outputs import atomic_write_text, provenance
 
 __all__ = ["int_at_least", "positive_float", "nonnegative_float", "fraction", "probability", "add_common", "expand_config",
@@ -356,11 +357,11 @@ def parse_markers(specs: list[str], units: list[str] | None) -> list[Marker]:
     return out
 
 
-def robot_for(urdf, markers: list[str] | None, data_path, units: list[str]) -> Robot:
+def robot_for(urdf, markers: list[str] | None, data_path, units: list[str], fmt=None) -> Robot:
     """The robot with its markers: those declared, or else the marker columns of the CSV
-    ``data_path`` that are links of the URDF."""
+    ``data_path`` (an instrument's export written as ``fmt`` says) that are links of the URDF."""
     if not markers:
-        header, _ = read_csv(data_path)
+        header, _ = read_table(data_path, fmt)
         cols = marker_columns_in(header)
         links = set(urdf_links(urdf))
         unknown = [c for c in cols if c not in links]
@@ -376,10 +377,10 @@ def robot_for(urdf, markers: list[str] | None, data_path, units: list[str]) -> R
 def robot_and_data(a: argparse.Namespace):
     """The robot (markers declared, or the data's marker columns that are links) and the
     training and held-out measurements, in metres and radians."""
-    units = list(getattr(a, "units", []) or [])
-    robot = robot_for(a.robot, a.marker, a.data, units)
-    train = load_measurements(a.data, robot, units=units)
-    test = load_measurements(a.test, robot, units=units) if a.test else None
+    units, fmt = list(getattr(a, "units", []) or []), format_of(a)
+    robot = robot_for(a.robot, a.marker, a.data, units, fmt)
+    train = load_measurements(a.data, robot, units=units, fmt=fmt)
+    test = load_measurements(a.test, robot, units=units, fmt=fmt) if a.test else None
     if test is None and getattr(a, "holdout", 0):
         train, test = train.split(a.holdout, seed=a.seed)
     return robot, train, test

@@ -33,19 +33,20 @@ from torchcal.advice import advice
 from torchcal.measure.checks import check_motion, check_robot
 from torchcal.measure.columns import PLANE, POS, QUAT, DIST, Columns, sort_columns
 from torchcal.measure.data import Measurements
+from torchcal.measure.instrument import InstrumentFormat, translate
 from torchcal.measure.units import UNITS, UnitsError, convert_units
 from torchcal.outputs import atomic_write_text
 
-__all__ = ["load_measurements", "save_measurements", "read_csv", "UNITS", "UnitsError"]
+__all__ = ["load_measurements", "save_measurements", "read_csv", "read_table", "UNITS", "UnitsError"]
 
 logger = logging.getLogger("torchcal")
 _ABSURD = 1e6  # |value| beyond any joint (rad, m, deg) or instrument reading (m, mm)
 
 
-def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list[str]]]:
-    """Header and rows of a comma-separated file, checked: an Excel byte-order mark is dropped,
-    a semicolon-separated file (Excel in many locales) is named as such, every row has the
-    header's number of cells, column names are unique."""
+def read_csv(path, what: str = "measurement file", sep: str = ",") -> tuple[list[str], list[list[str]]]:
+    """Header and rows of a ``sep``-separated file, checked: an Excel byte-order mark is dropped,
+    a semicolon-separated file (Excel in many locales) read as comma-separated is named as such,
+    every row has the header's number of cells, column names are unique."""
     p = Path(path)
     if p.is_dir():
         inside = sorted(x.name for x in p.glob("*.csv"))[:5]
@@ -56,7 +57,7 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
     rows, lines = CsvRows(), []
     try:
         with open(p, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: strip Excel's BOM
-            reader, end = csv.reader(fh), 0
+            reader, end = csv.reader(fh, delimiter=sep), 0
             for r in reader:
                 # blank lines are skipped, but every message names the line in the file as an editor shows it
                 if r and not (len(r) == 1 and not r[0].strip()):
@@ -72,11 +73,12 @@ def read_csv(path, what: str = "measurement file") -> tuple[list[str], list[list
         raise ValueError(f"{p}: line {lines[0]} starts with '#' ({','.join(rows[0])[:60]!r}); torchcal reads the column names "
                          "from the first line, as they are: delete comment lines above the header, and the '#' before "
                          "a header (numpy.savetxt writes one unless comments='')")
-    if len(rows[0]) == 1 and rows[0][0].count(";") >= 2:
+    if len(rows[0]) == 1 and rows[0][0].count(";") >= 2 and sep != ";":
         raise ValueError(f"{p} is separated by semicolons (as Excel writes CSV in many locales); torchcal reads "
-                         "comma-separated files with '.' as the decimal point: save it as 'CSV UTF-8 (comma "
-                         "delimited)' or convert it, e.g. pandas.read_csv(path, sep=';', decimal=',').to_csv(out)")
-    if len(rows[0]) == 1 and rows[0][0].count("\t") >= 1:
+                         "comma-separated files unless told otherwise: read it with "
+                         + advice("InstrumentFormat(sep=';', decimal=',')", "--sep ';' --decimal ','")
+                         + " (the decimal mark as the file writes it), or convert it once with `torchcal import`")
+    if len(rows[0]) == 1 and rows[0][0].count("\t") >= 1 and sep != "\t":
         raise ValueError(f"{p} is separated by tabs; torchcal reads comma-separated files: save it as CSV (comma "
                          "delimited) or convert it, e.g. pandas.read_csv(path, sep='\\t').to_csv(out, index=False)")
     header = [h.strip() for h in rows[0]]
@@ -109,6 +111,15 @@ class _Source(str):
         return self.lines[int(i)]
 
 
+def read_table(path, fmt: InstrumentFormat | None = None, what: str = "measurement file"
+               ) -> tuple[list[str], list[list[str]]]:
+    """Header and rows in torchcal's format: :func:`read_csv`, then an instrument's export
+    translated (:func:`~torchcal.measure.instrument.translate`) when ``fmt`` says how it is written."""
+    if fmt is None or fmt.is_plain:
+        return read_csv(path, what)
+    return translate(path, *read_csv(path, what, sep=fmt.sep), fmt)
+
+
 def _number(cell: str, line: int, col: str, path) -> float:
     s = cell.strip()
     if s == "" or s.lower() == "nan":
@@ -120,7 +131,7 @@ def _number(cell: str, line: int, col: str, path) -> float:
 
 
 def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | None = None,
-                      units: list[str] | tuple[str, ...] = ()) -> Measurements:
+                      units: list[str] | tuple[str, ...] = (), fmt: InstrumentFormat | None = None) -> Measurements:
     """Read a measurement CSV and check it against ``robot``.
 
     Every actuated joint of the robot must have a column (named as in the URDF), every marker
@@ -134,6 +145,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
             joints are in millimetres. Both are converted. Without them, values that look like
             degrees or millimetres raise :class:`UnitsError`, which says how to convert: a wrong
             unit gives a wrong calibration, not a warning.
+        fmt: how an instrument's own export is written (separator, decimal mark, column names,
+            Euler angles: :class:`~torchcal.measure.instrument.InstrumentFormat`); default torchcal's CSV.
     Raises ``ValueError`` saying exactly what is wrong; warns about rows that repeat another
     row exactly (they count twice; cross-validation keeps them in one fold).
     """
@@ -142,7 +155,7 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     bad_units = [u for u in units if u not in UNITS]
     if bad_units:
         raise ValueError(f"unknown unit(s) {bad_units}; declare 'deg' (joint angles) and/or 'mm' (positions)")
-    header, rows = read_csv(path)
+    header, rows = read_table(path, fmt)
     if not rows:
         raise ValueError(f"{path}: the file has a header but no rows")
     path = _Source(path, rows)

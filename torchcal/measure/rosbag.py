@@ -41,13 +41,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from torchcal.measure.bag_files import INSTALL_HINT, BagReadOptions, joint_renamer
+from torchcal.measure.bag_files import check_options as _check_options, open_bag as _open
 from torchcal.measure.data import Measurements
 from torchcal.measure.still import mean_quaternion, still_windows
 from torchcal.measure.tfchain import chain_samples
 
 __all__ = ["MarkerSource", "BagImport", "read_bag", "bag_to_measurements", "GEOMETRY_TYPES", "INSTALL_HINT"]
 
-INSTALL_HINT = "pip install 'torchcal[ros]'"
 _JOINT_STATE = "sensor_msgs/msg/JointState"
 _TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 _TF_TOPICS = ("/tf", "/tf_static")
@@ -148,8 +149,9 @@ def _runs(t: np.ndarray, used: np.ndarray) -> list[tuple[float, float, int]]:
 class _Collector:
     """Samples gathered from the bag's messages, with the time each one is given."""
 
-    def __init__(self, joint_names: list[str], header: bool):
+    def __init__(self, joint_names: list[str], header: bool, rename=None):
         self.joint_names, self.header = joint_names, header
+        self.rename = rename or (lambda n: n)  # a bag's joint name -> the URDF's
         self.jt, self.jq = [], []  # joint sample times (s), values (dof,)
         self.geo = defaultdict(lambda: ([], [], []))  # topic -> times, positions, quaternions
         self.tf = defaultdict(lambda: ([], [], []))  # (parent, child) -> times, positions, quaternions
@@ -166,7 +168,7 @@ class _Collector:
         return t_ns * 1e-9
 
     def joints(self, topic: str, msg, t_ns: int) -> None:
-        names = tuple(msg.name)
+        names = tuple(self.rename(n) for n in msg.name)
         idx = self._index.get(names)
         if idx is None:
             idx = self._index[names] = [names.index(j) if j in names else -1 for j in self.joint_names]
@@ -206,22 +208,6 @@ def _quat(r) -> np.ndarray:
     return np.array([r.w, r.x, r.y, r.z], dtype=np.float64)
 
 
-def _open(bag: Path):
-    """A ``rosbags`` AnyReader (not yet opened) and its error type, or the reason why not."""
-    try:
-        from rosbags.highlevel import AnyReader, AnyReaderError
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise ModuleNotFoundError(f"reading ROS bags needs the rosbags package: {INSTALL_HINT}") from None
-    if not bag.exists():
-        raise FileNotFoundError(f"bag not found: {bag}")
-    store = get_typestore(Stores.ROS1_NOETIC if bag.suffix == ".bag" else Stores.ROS2_HUMBLE)
-    try:
-        return AnyReader([bag], default_typestore=store), AnyReaderError
-    except AnyReaderError as e:
-        raise ValueError(f"{bag}: rosbags cannot read it: {e}") from None
-
-
 def _check_topics(bag: Path, topics: dict, joints: str, sources: list[MarkerSource]) -> None:
     """Refuse a missing topic or one of the wrong type, saying what the bag holds."""
     def of(types) -> list[str]:
@@ -244,9 +230,9 @@ def _check_topics(bag: Path, topics: dict, joints: str, sources: list[MarkerSour
 
 
 def _collect(bag: Path, joints: str, sources: list[MarkerSource], joint_names: list[str], header: bool,
-             progress: bool) -> tuple[_Collector, float]:
+             progress: bool, rename=None) -> tuple[_Collector, float]:
     reader, reader_error = _open(bag)
-    c = _Collector(joint_names, header)
+    c = _Collector(joint_names, header, rename)
     try:
         with reader:
             topics = reader.topics
@@ -279,17 +265,7 @@ def _marker_samples(s: MarkerSource, c: _Collector) -> tuple[np.ndarray, np.ndar
     return t[o], p[o].reshape(-1, 3), None if r is None else r[o]
 
 
-def _check_options(still_s, still_tol, settle_s, min_samples, stamps) -> None:
-    if not (still_s > 0 and still_tol > 0 and settle_s >= 0 and min_samples >= 1):
-        raise ValueError(f"still_s ({still_s}) and still_tol ({still_tol}) must be positive, settle_s ({settle_s}) "
-                         f"zero or more, min_samples ({min_samples}) at least 1")
-    if stamps not in ("header", "bag"):
-        raise ValueError(f"stamps must be 'header' (the messages' header stamps) or 'bag' (receive time), got {stamps!r}")
-
-
-def read_bag(bag, robot, markers, *, joints: str = "/joint_states", still_s: float = 0.5,
-             still_tol: float = 5e-5, settle_s: float = 0.0, min_samples: int = 3, stamps: str = "header",
-             progress: bool = False) -> BagImport:
+def read_bag(bag, robot, markers, settings: BagReadOptions | None = None, **kw) -> BagImport:
     """Still poses of a ROS bag as measurement rows (see the module docstring).
 
     Args:
@@ -297,27 +273,27 @@ def read_bag(bag, robot, markers, *, joints: str = "/joint_states", still_s: flo
         robot: the :class:`~torchcal.kinematics.robot.Robot`; its joint names (the URDF's) name the
             joint columns.
         markers: :class:`MarkerSource` or strings ``NAME=/topic`` / ``NAME=tf:PARENT,CHILD``.
-        joints: the ``sensor_msgs/JointState`` topic.
-        still_s: least time (s) the joints stand still for a row. ``still_tol``: how far (rad or m,
-            max − min per joint) they may move then. ``settle_s``: marker samples in the first
-            ``settle_s`` seconds of a window are left out (vibration after a stop).
-        min_samples: least marker samples in a window for the marker to count as seen there.
-        stamps: ``"header"`` or ``"bag"`` (see the module docstring).
+        settings: a :class:`~torchcal.measure.bag_files.BagReadOptions` (the topic of the joints, what
+            counts as still, the time base, the joint names' map); ``kw``: any of its fields
+            (``read_bag(bag, robot, markers, still_s=1.0)``).
     Returns a :class:`BagImport`; ``.data`` holds ``q (K, dof)`` rad / m and ``positions (K, M, 3)``
     m. Raises ``ValueError`` saying what is wrong and how to fix it; ``ModuleNotFoundError``
     without rosbags.
     """
-    _check_options(still_s, still_tol, settle_s, min_samples, stamps)
+    o = BagReadOptions.build(settings, **kw)
+    joints, still_s, still_tol, settle_s, min_samples = o.joints, o.still_s, o.still_tol, o.settle_s, o.min_samples
+    _check_options(still_s, still_tol, settle_s, min_samples, o.stamps)
     sources = [s if isinstance(s, MarkerSource) else MarkerSource.parse(s) for s in markers]
     names = [s.name for s in sources]
     if not sources or len(set(names)) != len(names):
         raise ValueError(f"give each marker once, with a distinct name (got {names})")
     bag = Path(bag)
     joint_names = list(robot.joint_names)
-    c, t0 = _collect(bag, joints, sources, joint_names, stamps == "header", progress)
+    c, t0 = _collect(bag, joints, sources, joint_names, o.stamps == "header", o.progress, joint_renamer(o.joint_map))
     if len(c.jt) < 2:
         raise ValueError(f"{bag}: no message on {joints} names all of the URDF's joints {joint_names} (it names "
-                         f"{sorted(c.seen)}); the JointState names must be the URDF's joint names")
+                         f"{sorted(c.seen)}); the JointState names must be the URDF's joint names: map them with "
+                         "joint_map (--strip-prefix PREFIX or --joint-map BAG_NAME=URDF_NAME)")
     order = np.argsort(c.jt, kind="stable")
     tj, qj = np.asarray(c.jt)[order], np.stack(c.jq)[order]
     samples = {s.name: _marker_samples(s, c) for s in sources}

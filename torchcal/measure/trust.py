@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from torchcal.measure.records import Stage
 
-__all__ = ["stage_problems", "FOREIGN_RATIO"]
+__all__ = ["stage_problems", "FOREIGN_RATIO", "FOREIGN"]
 
 # held-out rows this many times worse than the training rows do not come from the same robot
 FOREIGN_RATIO = 20.0
+FOREIGN = "the held-out rows do not belong to this robot's model"
 
 
 def stage_problems(stages: list[Stage]) -> list[str]:
@@ -25,7 +26,7 @@ def stage_problems(stages: list[Stage]) -> list[str]:
     if test is not None and test.n:
         tr, te = fin.median, test.median
         if te > FOREIGN_RATIO * max(tr, 1e-9):
-            out.append(f"the held-out rows do not belong to this robot's model: their median error ({te:.4g} mm) is "
+            out.append(f"{FOREIGN}: their median error ({te:.4g} mm) is "
                        f"{te / max(tr, 1e-9):.0f}× the training rows' ({tr:.4g} mm); are they from another robot, "
                        "another set-up (the instrument moved), or another marker?")
     return out

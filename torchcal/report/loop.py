@@ -47,7 +47,8 @@ def loop_json(res) -> dict:
             "parameters": res.parameters,
             "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
             "residual_elm": res.elm is not None, "timings_s": res.timings,
-            "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed}
+            "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed,
+            "heldout_check": None if getattr(res, "heldout", None) is None else res.heldout.to_json()}
 
 
 def loop_findings(res) -> list[dict]:
@@ -188,6 +189,14 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
         L.append(f"| {g['name']} | {k:.1f} | {g['cv_rmse_mm']:.4f} | {'–' if t is None else f'{t:.1f}'} | {acc} |")
     L += ["", f"Chosen: **{res.geometric['chosen']}**. A larger set is taken only when it passes the rule below, "
               "which is what guards a small data set against over-fitting."]
+    o = res.geometric.get("orientation") or {}
+    if o.get("tried"):
+        L += ["", f"Orientation weight: **{o['chosen']:.4g} mm/mrad** (0: orientations left out), the "
+                  f"{o['rule']} among " + ", ".join(f"{t['weight_mm_per_mrad']:.4g} ({t['cv_mean_mm']:.4f} mm)"
+                                                    for t in o["tried"]) + "."]
+    h = getattr(res, "heldout", None)
+    if h is not None and h.words():
+        L += ["", "## The held-out rows", ""] + [f"- {w}" for w in h.words()]
     if res.prior_mm is not None:
         mm, _ = shown(res.prior_mm * 1e-3, "m")
         L += ["", f"The full set carries a Gaussian prior on every geometric error (not the instrument frame nor the "

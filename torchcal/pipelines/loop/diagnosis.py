@@ -45,11 +45,12 @@ class Diagnosis:
 
 
 def diagnose(ctx: Context, start: Model, names: list[str], test: Measurements | None, say,
-             progress: bool = False) -> Diagnosis:
+             progress: bool = False, as_measured: Measurements | None = None) -> Diagnosis:
     """The rounds from the geometric model ``start`` over the candidate effects ``names``
-    (``test``: held-out rows, only measured: each candidate's held-out gain)."""
+    (``test``: held-out rows, only measured: each candidate's held-out gain; ``as_measured``: the
+    same rows before another session's time was held, whose covariates the flags judge)."""
     d = Diagnosis(ctx, start)
-    pool = _applicable(d, names, test)
+    pool = _applicable(d, names, test if as_measured is None else as_measured)
     bar = progress_bar(progress)
     tabu: dict[str, set[str]] = {}  # effect -> modes pruned in this run
     for rnd in range(1, MAX_ROUNDS + 1):

@@ -24,7 +24,7 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.fitting import implausible_values, is_small
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, plausible_scale
 from torchcal.pipelines.crossval.models import Context, Model, effect_problem, noise_sigma, orientation_count
-from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior, fit_params
+from torchcal.pipelines.crossval.evaluate import cv_mean_mm, evaluate, evaluate_prior, fit_params
 from torchcal.problems.template import geometric_start
 from torchcal.pipelines.crossval.scores import HUBER_K, penalised
 from torchcal.measure.noise import robust_sigma
@@ -175,21 +175,45 @@ def choose_geometry(ctx: Context, robot, data: Measurements, setup, probe: Model
     return out
 
 
-def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, given: float | None, say) -> float | None:
-    """The orientation weight (m/rad) the fits use: ``given``, or estimated from the residuals
-    (:func:`~torchcal.pipelines.loop.geometry.orientation_weight`) when the rows measure
-    orientations; None when they do not or ``given`` is 0."""
+def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, given: float | None, say
+                              ) -> tuple[float | None, dict]:
+    """The orientation weight (m/rad) the fits use, and why: ``given``; else, when the rows measure
+    orientations, the weight among 0 (positions alone), a tenth of and the estimated
+    ``σ_position / σ_rotation`` (:func:`orientation_weight`) whose full geometric model has the lowest
+    cross-validated mean *position* error: an orientation is fitted only where it helps to place the
+    markers, never because it is there. None when orientations are not used. The record says
+    each candidate's CV figure and the rule (report.json's ``geometric_set.orientation``)."""
     n = orientation_count(train, 1.0)
     if given is not None and not (math.isfinite(given) and given >= 0):
         raise ValueError(f"orientation_weight must be a finite number of m/rad, 0 or more, got {given!r}")
     if n == 0:
         if given:
             say("orientation weight given, but the training rows measure no orientation (<marker>.qw/.qx/.qy/.qz)")
-        return None
+        return None, {}
     if given == 0:
-        say(f"{n} measured orientations ignored (orientation weight 0)")
-        return None
-    w = given if given is not None else orientation_weight(ctx, robot, train, setup)
-    say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {w:.4g} mm"
-        + (" (given)" if given is not None else " (σ_position / σ_rotation of the residuals)"))
-    return w
+        say(f"{n} measured orientations ignored (orientation weight 0, given)")
+        return None, {"chosen": 0.0, "rule": "given"}
+    if given is not None:
+        say(f"{n} measured orientations fitted with the positions: 1 mrad counts like {given:.4g} mm (given)")
+        return given, {"chosen": given, "rule": "given"}
+    try:
+        w = orientation_weight(ctx, robot, train, setup)
+    except ValueError as e:  # the orientations drive every parameter out of the fit: they place nothing
+        say(f"{n} measured orientations left out: fitted with the positions, they leave no parameter to fit ({e})")
+        return None, {"chosen": 0.0, "rule": f"no weight could be estimated: {e}"}
+    tried = {}
+    for cand in (0.0, w / 10, w):
+        at = replace(ctx, rot_weight=cand or None)
+        try:
+            m = evaluate(at, "orientation weight", geometric_start(robot, train, None, setup, cand > 0), [], None)
+        except ValueError:
+            continue  # a weight whose fit fails is no choice
+        tried[cand] = cv_mean_mm(at, m)
+    best = min(tried, key=tried.get)
+    words = ", ".join(f"{k:.4g} mm/mrad: {v:.4f} mm" for k, v in tried.items())
+    say(f"{n} measured orientations: weight chosen by the cross-validated mean position error of the full geometric "
+        f"model ({words}); " + ("positions alone place the markers best: orientations left out" if best == 0 else
+                                f"fitted with the positions: 1 mrad counts like {best:.4g} mm"))
+    record = {"chosen": best, "estimated": w, "rule": "lowest cross-validated mean position error of the full "
+              "geometric model", "tried": [{"weight_mm_per_mrad": k, "cv_mean_mm": v} for k, v in tried.items()]}
+    return (best or None), record

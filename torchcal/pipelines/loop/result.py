@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from torchcal.deploy.model import CalibratedModel
 from torchcal.measure.records import Stage, StageErrors, Suspect
 from torchcal.measure.setup import Setup
-from torchcal.measure.trust import stage_problems
+from torchcal.measure.trust import FOREIGN, stage_problems
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.records import Candidate, Finding
 from torchcal.pipelines.crossval.scores import OUTLIER_K, T_ACCEPT
@@ -57,6 +57,7 @@ class LoopResult:
     parameters: list = field(default_factory=list)     # [{name, value, unit, std_error}] of the final model
     observability: dict = field(default_factory=dict)  # condition number, O1-O4 of its identified set
     setup: Setup | None = None  # planes and fixed points the rows measured against (None: positions only)
+    heldout: object = None  # HeldOutCheck: another session, a moved instrument, an effect extrapolating
     leftover: object = None     # Leftover: the final model against the noise floor, what the residual follows
     removed: list = field(default_factory=list)  # modes accepted once, then explained by later findings
     plausible: dict | None = None  # the largest plausible joint error per unit the run judged with
@@ -73,6 +74,14 @@ class LoopResult:
         its own training rows, held-out rows that do not belong to this robot, or joints moved or
         turned by more than a plausible error. Empty when none."""
         out = stage_problems(self.stages)
+        h = self.heldout
+        if h is not None:
+            if h.reregister and h.explained_by_reregistration:  # the instrument moved; the robot's model holds
+                out = [p for p in out if not p.startswith(FOREIGN)]
+            elif h.causes():
+                hint = "; registering the instrument frame anew on them explains them: rerun with reregister=True " \
+                    "(--reregister)" if h.explained_by_reregistration else ""
+                out = [p + " Found: " + "; ".join(h.causes()) + hint if p.startswith(FOREIGN) else p for p in out]
         bad = implausible_values(self.params, self.robot, self.plausible)
         if bad:
             out.append(implausible_reason(bad, dict(zip(self.params.names, self.params.units)),

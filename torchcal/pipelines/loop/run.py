@@ -30,6 +30,7 @@ from torchcal.effects import EFFECTS
 from torchcal.measure.checks import check_enough, check_fit_inputs
 from torchcal.measure.data import Measurements
 from torchcal.measure.observations import Observations
+from torchcal.measure.placeholders import constant_orientations, without_constant_orientations
 from torchcal.measure.registration import gross_errors
 from torchcal.measure.setup import Setup, check_heldout, needs_setup
 from torchcal.measure.stats import noise_floor
@@ -47,6 +48,7 @@ from torchcal.pipelines.loop.geometry import (GEOMETRIC_SETS, GeometryChoice, ch
                                               choose_orientation_weight, estimate_noise)
 from torchcal.pipelines.loop.leftover import leftover
 from torchcal.pipelines.loop.result import LoopResult
+from torchcal.pipelines.loop.sessions import check_heldout_rows, hold_session_terms, other_session
 from torchcal.pipelines.loop.stages import StageBook, elm_covariates, residual_matrix
 from torchcal.pipelines.loop.steps import parameter_table
 from torchcal.pipelines.loop.suspects import suspect_rows
@@ -82,6 +84,9 @@ class LoopOptions(Options):
         progress: a progress bar over the diagnosis candidates (tqdm).
         log: a print-like function for progress lines (``None`` to stay quiet); lines also go
             to the ``torchcal.loop`` logger.
+        reregister: register the instrument frame anew on the held-out rows (a tracker set up
+            anew for another session) and report that figure beside the first; held-out rows this
+            explains are not refused (:mod:`~torchcal.pipelines.loop.sessions`).
     """
     candidates: list[str] | None = None
     folds: int = 5
@@ -94,6 +99,7 @@ class LoopOptions(Options):
     plausible: dict | None = None
     progress: bool = False
     log: object = print
+    reregister: bool = False
 
 
 def say_fn(log):
@@ -125,11 +131,14 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     names = _check(robot, train, test, opt)
     t0 = time.perf_counter()
     say = say_fn(opt.log)
+    train, test = _placeholders(train, test, say)
     _directions(train, test, say)
+    as_measured = test
+    session, test, held = _session(train, test)
     timings: dict[str, float] = {}
 
     # 1. nominal: base registration only; the planes and fixed points located from it
-    ctx, book, geo0 = _nominal(robot, train, test, opt, say)
+    ctx, book, geo0, orientation = _nominal(robot, train, test, opt, say)
     timings["nominal"] = time.perf_counter() - t0
 
     # 2. noise, then 3. geometry: nested sets, each from the one before, then the full set under priors
@@ -139,7 +148,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
 
     # 4. diagnosis
     t2 = time.perf_counter()
-    d = diagnose(ctx, geo.best, names, test, say, opt.progress)
+    d = diagnose(ctx, geo.best, names, test, say, opt.progress, as_measured=as_measured)
     ctx, current = d.ctx, d.current
     timings["diagnosis"] = time.perf_counter() - t2
     geo_model = geo.best if d.steps else current
@@ -154,12 +163,19 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
         d.candidates.append(elm_line)
     timings["residual_elm"] = time.perf_counter() - t3
 
-    # 6. suspects: listed, never dropped
+    # 6. suspects: listed, never dropped; the held-out rows: another session, a moved instrument?
     sigma = noise_sigma(ctx, current)
     suspects = suspect_rows(ctx, current, sigma, say)
+    heldout = None if book.test is None else check_heldout_rows(
+        ctx, current.params, current.effects, elm_model, book.test, geo_model.params, session=session, held_at=held,
+        reregister=opt.reregister)
+    for line in [] if heldout is None else heldout.words():
+        say(line)
     timings["total"] = time.perf_counter() - t0
-    return _result(ctx, d, geo, book, opt, say, elm=elm_model, accepted=accepted, evidence=evidence,
-                   removed=removed, suspects=suspects, sigma=sigma, timings=timings)
+    res = _result(ctx, d, geo, book, opt, say, elm=elm_model, accepted=accepted, evidence=evidence,
+                  removed=removed, suspects=suspects, sigma=sigma, timings=timings, orientation=orientation)
+    res.heldout = heldout
+    return res
 
 
 def _check(robot, train: Measurements, test: Measurements | None, opt: LoopOptions) -> list[str]:
@@ -174,6 +190,26 @@ def _check(robot, train: Measurements, test: Measurements | None, opt: LoopOptio
     return names
 
 
+def _placeholders(train: Measurements, test: Measurements | None, say):
+    """The rows without an orientation that never changes (the instrument's placeholder)."""
+    const = constant_orientations(train)
+    if not const:
+        return train, test
+    say(f"the orientation of {', '.join(const)} is the same in every row: the instrument's placeholder (a "
+        "position-only tracker), not a measurement; left out")
+    return (without_constant_orientations(train, const),
+            None if test is None else without_constant_orientations(test, const))
+
+
+def _session(train: Measurements, test: Measurements | None):
+    """Why the held-out rows come from another session (None: the training one); the held-out rows
+    with the session drivers (time, row order) held at the training rows' median then, and those values."""
+    session = None if test is None else other_session(train, test)
+    if session is None:
+        return None, test, {}
+    return (session, *hold_session_terms(train, test))
+
+
 def _directions(train: Measurements, test: Measurements | None, say) -> None:
     derived = derive_directions(train)
     if derived is not None:
@@ -183,8 +219,8 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
 
 
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):
-    """The run's context (folds, set-up, orientation weight), its stage book and the nominal
-    model (base registration only), whose stage opens the book."""
+    """The run's context (folds, set-up, orientation weight), its stage book, the nominal model
+    (base registration only), whose stage opens the book, and how the orientation weight was chosen."""
     fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, duplicate_groups(train))
     if test is not None:
         check_heldout(train, test)
@@ -197,11 +233,12 @@ def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOpt
             + ("" if int(train.seen.sum()) >= 3 else "; no position measured, so the instrument frame is the "
                "robot base"))
     ctx = Context(robot, train, fl, None, 1.0, setup, soft=opt.soft, plausible=check_plausible(opt.plausible))
-    rot_w = ctx.rot_weight = choose_orientation_weight(ctx, robot, train, setup, opt.orientation_weight, say)
+    rot_w, orientation = choose_orientation_weight(ctx, robot, train, setup, opt.orientation_weight, say)
+    ctx.rot_weight = rot_w
     geo0 = geometric_start(robot, train, GEOMETRIC_SETS[0][1], setup, rot_w is not None)
     book = StageBook(robot, train, test, setup, rot_w)
     book.add("nominal", 0, geo0, [])
-    return ctx, book, geo0
+    return ctx, book, geo0, orientation
 
 
 def _geometry(ctx: Context, geo0, say) -> tuple[Context, GeometryChoice]:
@@ -217,7 +254,7 @@ def _geometry(ctx: Context, geo0, say) -> tuple[Context, GeometryChoice]:
 
 
 def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, opt: LoopOptions, say, *, elm, accepted,
-            evidence, removed, suspects, sigma, timings) -> LoopResult:
+            evidence, removed, suspects, sigma, timings, orientation) -> LoopResult:
     """What is left against the noise floor, the warnings, and the result."""
     train, current = ctx.data, d.current
     noise_mm, noise_source = noise_floor(train, opt.noise_mm)
@@ -232,7 +269,8 @@ def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, op
     best = geo.best
     return LoopResult(robot=ctx.robot, params=current.params, effects=current.effects, elm=elm, stages=book.stages,
                       accepted=accepted, candidates=d.candidates,
-                      geometric={"chosen": best.label, "sets": geo.sets, "prior_mm": best.prior_mm},
+                      geometric={"chosen": best.label, "sets": geo.sets, "prior_mm": best.prior_mm,
+                                 "orientation": orientation},
                       n_train=len(train), n_test=0 if book.test is None else len(book.test), noise_floor_mm=noise_mm,
                       noise_floor_source=noise_source, timings=timings, errors=book.errors, evidence=evidence,
                       elm_covariates=elm_covariates(train), geometric_fits=geo.fits, noise_sigma_mm=1e3 * sigma,
