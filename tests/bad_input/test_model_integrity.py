@@ -89,3 +89,10 @@ def test_a_mirrored_target_frame_is_refused():
     T[1, :3, 0] *= -1  # one axis flipped: orthonormal, det = -1
     with pytest.raises(ValueError, match=r"target 1 has a mirrored rotation part \(det = -1"):
         target_frames(robot, T)
+
+
+def test_a_targets_file_with_blank_lines_names_the_right_line(saved, tmp_path, torchcal_cli):
+    t = tmp_path / "targets.csv"
+    t.write_text("x,y,z\n0.3,0.2,0.5\n\n\n0.3,abc,0.5\n")  # the bad cell is on line 5 of the file
+    rc, _, err = torchcal_cli("correct", "--model", saved, "--targets", t, "--out", tmp_path / "cmd.csv")
+    assert rc == 2 and "targets.csv, line 5, column 'y'" in err, err

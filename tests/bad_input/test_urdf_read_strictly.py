@@ -40,6 +40,14 @@ BAD = [
      r"link name 'link1' is used again \(first on line \d+\)"),
     ("a zero axis", lambda s: s.replace('<axis xyz="0.0 0.0 1.0"/>', '<axis xyz="0 0 0"/>', 1), "zero axis"),
     ("a limit of inf", lambda s: re.sub(r'lower="[^"]*"', 'lower="-inf"', s, count=1), r"lower=\"-inf\""),
+    ("a joint loop", lambda s: s.replace("</robot>", '<joint name="cyc" type="fixed"><parent link="flange"/>'
+                                         '<child link="link0"/></joint></robot>'), r"its own ancestor"),
+    ("a link that belongs to nothing", lambda s: s.replace("</robot>", '<link name="lonely"/></robot>'),
+     r"have no parent joint: the URDF is 2 trees"),
+    ("limits the wrong way round", lambda s: re.sub(r'lower="[^"]*" upper="[^"]*"', 'lower="1" upper="-1"', s, count=1),
+     r'lower="1" is above upper="-1"'),
+    ("a joint without a type", lambda s: re.sub(r'(<joint name="shoulder_pan_joint") type="[^"]*"', r"\1", s, count=1),
+     "has no type attribute"),
     ("a link with two parents", lambda s: s.replace("</robot>", '<joint name="extra" type="fixed"><parent link="link0"/>'
                                                     '<child link="link2"/></joint></robot>'),
      r"link 'link2' already has the parent joint"),

@@ -51,6 +51,7 @@ def read_targets(path, robot, covariates: list[str] | None = None):
     if not rows:
         raise ValueError(f"{path}: needs a header row (x,y,z[,qw,qx,qy,qz]) and at least one target row")
     col = {h: i for i, h in enumerate(header)}
+    lines = rows.lines  # the file's line of each row (blank lines are no rows)
     missing = [c for c in _POS if c not in col]
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; the targets need x,y,z in metres "
@@ -61,7 +62,7 @@ def read_targets(path, robot, covariates: list[str] | None = None):
 
     def num(name: str) -> Tensor:
         vals = []
-        for i, r in enumerate(rows, start=2):
+        for i, r in zip(lines, rows):
             cell = r[col[name]].strip()
             try:
                 v = float(cell)
@@ -82,7 +83,7 @@ def read_targets(path, robot, covariates: list[str] | None = None):
         n = qt.norm(dim=-1)
         if bool(((n - 1).abs() > 1e-3).any()):
             i = int(torch.nonzero((n - 1).abs() > 1e-3)[0])
-            raise ValueError(f"{path}, line {i + 2}: quaternion norm {float(n[i]):.4f}, expected 1 "
+            raise ValueError(f"{path}, line {lines[i]}: quaternion norm {float(n[i]):.4f}, expected 1 "
                              "(qw,qx,qy,qz of a unit quaternion)")
         T = torch.eye(4, dtype=robot.dtype, device=robot.device).repeat(p.shape[0], 1, 1)
         T[:, :3, :3] = quat_to_matrix(qt)

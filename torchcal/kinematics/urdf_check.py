@@ -111,7 +111,13 @@ def _names(elements, kind: str, w: _Where) -> dict:
     return seen
 
 
+_URDF_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
+
+
 def _check_joint(j, links: dict, joints: dict, parent_of: dict, w: _Where) -> None:
+    if j.get("type") not in _URDF_TYPES:
+        w.refuse(j, f"type {j.get('type')!r} is not a URDF joint type" if j.get("type") else "has no type attribute",
+                 f"give type=\"…\", one of {', '.join(_URDF_TYPES)}")
     parent, child = _one(j, "parent", w), _one(j, "child", w)
     for role, link in (("parent", parent), ("child", child)):
         if link not in links:
@@ -129,6 +135,10 @@ def _check_joint(j, links: dict, joints: dict, parent_of: dict, w: _Where) -> No
         vals = _numbers(axis.get("xyz"))
         if vals is not None and math.sqrt(sum(v * v for v in vals)) < 1e-12:
             w.refuse(axis, f'xyz="{axis.get("xyz")}" is a zero axis', 'give the unit axis of motion, e.g. xyz="0 0 1"')
+    lim = j.find("limit")
+    if lim is not None and lim.get("lower") is not None and lim.get("upper") is not None \
+            and float(lim.get("lower")) > float(lim.get("upper")):
+        w.refuse(lim, f'lower="{lim.get("lower")}" is above upper="{lim.get("upper")}"', "swap them")
     mimic = j.find("mimic")
     if mimic is not None and mimic.get("joint") not in joints:
         w.refuse(mimic, f"joint {j.get('name')!r} mimics {mimic.get('joint')!r}, which is not in the URDF",
@@ -141,6 +151,8 @@ def check_urdf_tree(root, source: str) -> None:
     w = _Where(source)
     if root.tag != "robot":
         w.refuse(root, "the root element is not <robot>", "a URDF's root element is <robot name=\"…\">")
+    if not root.get("name"):
+        w.refuse(root, "has no name attribute", "give the robot a name: <robot name=\"my_robot\">")
     links = _names(root.findall("link"), "link", w)
     joints = _names(root.findall("joint"), "joint", w)
     for el in list(links.values()) + list(joints.values()):
@@ -150,6 +162,23 @@ def check_urdf_tree(root, source: str) -> None:
     parent_of: dict = {}
     for j in joints.values():
         _check_joint(j, links, joints, parent_of, w)
+    _check_tree(root, links, parent_of, w)
+
+
+def _check_tree(root, links: dict, parent_of: dict, w: _Where) -> None:
+    """One root, and no link its own ancestor."""
+    for link in links:
+        seen, at = {link}, link
+        while at in parent_of:
+            at = parent_of[at].find("parent").get("link")
+            if at in seen:
+                w.refuse(parent_of[link], f"link {link!r} is its own ancestor (the joints form a loop)",
+                         "a URDF is a tree: remove the joint that closes the loop")
+            seen.add(at)
+    roots = [n for n in links if n not in parent_of]
+    if len(roots) > 1:
+        w.refuse(root, f"the links {roots[:4]} have no parent joint: the URDF is {len(roots)} trees, not one",
+                 "join each to the robot with a joint, or delete the links that belong to nothing")
 
 
 def parse_checked(text: str, source: str):

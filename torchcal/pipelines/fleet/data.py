@@ -11,6 +11,7 @@ from torch import Tensor
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.transforms import kabsch, so3_log
 from torchcal.measure.checks import check_fit_inputs, check_motion_arrays
+from torchcal.measure.memory import check_memory
 from torchcal.measure.records import ErrorDetails, Suspect
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
@@ -232,6 +233,10 @@ def validate_fleet(robot: Robot, data, names=None, test=None, min_rows: int = 3)
             check_fit_inputs(robot, d, t, enough=i == fewest, motion=False)
         except (ValueError, TypeError) as e:
             raise type(e)(f"robot {n!r}: {e}") from None
+    # the batched fit holds every robot's Jacobian at once: judge the memory of the whole fleet
+    rows = sum(len(d) for d in datasets) + sum(len(t) for t in (tests or []) if t is not None)
+    check_memory(rows, len(robot.marker_names), robot.n_params, who=f"fleet fit ({len(datasets)} robots)",
+                 itemsize=torch.finfo(robot.dtype).bits // 8)
     return names, datasets, tests
 
 
