@@ -25,6 +25,7 @@ from torchcal.sim.base import Simulated
 from torchcal.sim.covariates import warmup_temperature
 from torchcal.sim.instrument import orientation_readings, outlier_shifts
 from torchcal.sim.joint_terms import JointTerm, as_joint_terms
+from torchcal.sim.physsim_drifts import apply_carriage, evaluate_drifts, instrument_motion, level_columns
 from torchcal.sim.physsim_gravity import subtree_wrenches
 from torchcal.sim.physsim_truth import error_support, robot_truth
 from torchcal.sim.physsim_urdf import (MOVING_TYPES, homogeneous, joints_above, parse_marker, parse_urdf,
@@ -80,7 +81,7 @@ class PhysicalRobot:
                  t_ref_c: float = 20.0, backlash=None, cyclic=None, noise_m: float = 0.02e-3,
                  gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True, joint_terms=None, marker_rpy=None,
                  marker_rotation_error_rad: float = 0.0, pose_markers=None, rot_noise_rad: float = 0.0,
-                 marker_true_m=None):
+                 marker_true_m=None, drifts=None):
         text = str(urdf) if str(urdf).lstrip().startswith("<") else Path(urdf).read_text()
         self.name, joints, self._bodies = parse_urdf(text)
         self._j = {j.name: j for j in joints}
@@ -123,6 +124,8 @@ class PhysicalRobot:
             raise ValueError(f"pose_markers / marker_rpy / marker_true_m: {unknown} are not markers "
                              f"({self.marker_names})")
         self.rot_noise_rad = float(rot_noise_rad)
+        self.drifts = list(drifts or [])  # parameters changing with a driver (physsim_drifts)
+        self._first_row = 0  # the measuring order of the rows reach() is asked for
         self.noise_m, self.gravity = float(noise_m), np.asarray(gravity, dtype=float)
         self.payload_kg, self.payload_com_m = float(payload_kg), np.asarray(payload_com_m, dtype=float)
         self.payload_link = payload_link or self.markers[0][1]
@@ -196,7 +199,8 @@ class PhysicalRobot:
             out[j.name] = th
         return out
 
-    def _fk(self, th: dict, cov: dict, N: int, bend: dict | None = None) -> dict[str, np.ndarray]:
+    def _fk(self, th: dict, cov: dict, N: int, bend: dict | None = None, carriage: dict | None = None
+            ) -> dict[str, np.ndarray]:
         """Link poses in the base frame: link -> ``(N, 4, 4)``; ``cov``: column -> ``(N,)``."""
         T = {self.root: np.broadcast_to(np.eye(4), (N, 4, 4))}
         for j in self._order:
@@ -214,6 +218,8 @@ class PhysicalRobot:
                 A[:, :3, :3] = A[:, :3, :3] @ rotation_exp(j.axis * th[j.name][:, None])
             if bend is not None and j.name in bend and not seat:
                 A[:, :3, :3] = A[:, :3, :3] @ bend[j.name]
+            if carriage and j.name in carriage:  # the guide's straightness and pitch along the travel
+                A = apply_carriage(A, carriage[j.name])
             T[j.child] = A
         return T
 
@@ -235,7 +241,8 @@ class PhysicalRobot:
         """Covariate columns as ``(N,)`` arrays, see :meth:`_columns_read` for those not given."""
         cov = {**self._columns_read(), "temperature": self.t_ref_c if temperature is None else temperature}
         cov.update(covariates or {})
-        return {k: np.broadcast_to(np.asarray(v, dtype=float), (N,)) for k, v in cov.items()}
+        return {k: np.broadcast_to(np.asarray(v, dtype=str if k.startswith("level:") else float), (N,))
+                for k, v in cov.items()}
 
     def _state(self, q, temperature, directions, covariates=None):
         q = self._check_q(q)
@@ -262,7 +269,10 @@ class PhysicalRobot:
         rotations ``(N, M, 3, 3)`` (link frame times the marker's true rotation); arguments as
         :meth:`reach`."""
         th, cov, T = self._state(q, temperature, directions, covariates)
-        tilt = None
+        tilt, dr = None, self._drifts(q, th, cov, T)
+        if dr["offset"] or dr["carriage"]:
+            th = {n: v + dr["offset"].get(n, 0.0) for n, v in th.items()}
+            T = self._fk(th, cov, len(q), carriage=dr["carriage"])
         if self.torsion or self.lateral or self.base_tilt is not None:
             W = self._wrenches(T)
 
@@ -276,21 +286,37 @@ class PhysicalRobot:
                     for n, c in self.lateral.items()}  # the moment in that frame's axes
             for n, k in self.torsion.items():
                 th[n] = th[n] + k * W["joints"][n]["tau_Nm"]
-            T = self._fk(th, cov, len(T[self.root]), bend)
+            T = self._fk(th, cov, len(T[self.root]), bend, dr["carriage"])
             if self.base_tilt is not None:
                 M = W["base"]["M_Nm"]
                 tilt = rotation_exp(np.stack([self.base_tilt[0] * M[:, 0], self.base_tilt[1] * M[:, 1], 0 * M[:, 0]], -1))
-        p = np.stack([T[ln][:, :3, :3] @ x + T[ln][:, :3, 3] for (_, ln, _), x in zip(self.markers, self._marker_true)],
-                     1)
+        p = np.stack([(T[ln][:, :3, :3] @ x if m not in dr["marker"] else
+                       np.einsum("nij,nj->ni", T[ln][:, :3, :3], x + dr["marker"][m])) + T[ln][:, :3, 3]
+                      for (m, ln, _), x in zip(self.markers, self._marker_true)], 1)
         Rm = np.stack([T[ln][:, :3, :3] @ Rk for (_, ln, _), Rk in zip(self.markers, self._marker_rot)], 1)
         if tilt is not None:
             p = np.einsum("nij,nmj->nmi", tilt, p)
             Rm = np.einsum("nij,nmjk->nmik", tilt, Rm)
-        R, t = self.instrument_in_base[:3, :3], self.instrument_in_base[:3, 3]
+        Ti = self.instrument_in_base if dr["instrument"] is None else instrument_motion(dr["instrument"]) @ \
+            self.instrument_in_base
+        R, t = Ti[..., :3, :3], Ti[..., :3, 3]
+        if Ti.ndim == 3:  # an instrument frame that moves from row to row
+            return np.einsum("nji,nmj->nmi", R, p - t[:, None]), np.einsum("nji,nmjk->nmik", R, Rm)
         return (p - t) @ R, np.einsum("ji,nmjk->nmik", R, Rm)
 
+    def _drifts(self, q, th: dict, cov: dict, T: dict) -> dict:
+        """The drifts' values at these rows (:func:`~torchcal.sim.physsim_drifts.evaluate_drifts`)."""
+        rows = self._first_row + np.arange(len(q))
+        torque = None
+        if any(d.driver.startswith("torque:") for d in self.drifts):
+            W = self._wrenches(T)
+            torque = {n: W["joints"][n]["tau_Nm"] for n in self.joint_names if n in W["joints"]}
+        cmd = {n: q[:, k] for k, n in enumerate(self.joint_names)}
+        return evaluate_drifts(self.drifts, cmd, cov, rows, torque, len(q))
+
     def measure(self, q, *, temperature=None, covariates=None, outlier_fraction: float = 0.0,
-                outlier_mm=(5.0, 20.0), orientation_fraction: float = 1.0) -> Sample:
+                outlier_mm=(5.0, 20.0), orientation_fraction: float = 1.0, first_row: int = 0,
+                levels: dict | None = None) -> Sample:
         """Simulated measurement of ``q (N, dof)`` visited in row order: :meth:`reach` + noise
         ``noise_m`` per axis + outliers on ``round(outlier_fraction N)`` rows, each marker moved
         by a length uniform in ``outlier_mm`` (mm) in a random direction (per row, at random:
@@ -310,7 +336,13 @@ class PhysicalRobot:
             raise ValueError(f"measure: the robot's thermal growth or joint terms read the covariate(s) {missing}; "
                              "pass them in covariates={name: (N,) values}")
         dirs = self.directions(q)
-        true, true_R = self.reach_pose(q, temperature=temperature, directions=dirs, covariates=covariates)
+        self._first_row = int(first_row)  # rows are measured in order from first_row (drifts read it)
+        lv = {k: np.asarray(v).astype(str) for k, v in (levels or {}).items()}
+        try:
+            true, true_R = self.reach_pose(q, temperature=temperature, directions=dirs,
+                                           covariates={**covariates, **{f"level:{k}": v for k, v in lv.items()}})
+        finally:
+            self._first_row = 0
         pos = true + self._rng.normal(0, self.noise_m, true.shape)
         rows, v, per_marker = outlier_shifts(self._rng, N, M, outlier_fraction, outlier_mm)
         pos[rows] += v
@@ -319,6 +351,7 @@ class PhysicalRobot:
             cov["temperature"] = np.broadcast_to(np.asarray(self.t_ref_c if temperature is None else temperature,
                                                             dtype=float), (N,)).copy()
         cov.update(covariates)
+        cov.update(level_columns(lv))  # a text column, as a file's reader holds it: one 0/1 column per level
         if self.backlash:
             cov.update({f"dir.{n}": dirs[:, k] for k, n in enumerate(self.joint_names)})
         quat = true_quat = None  # drawn last: without pose markers the position data stay what they were

@@ -45,6 +45,7 @@ class LinearCV:
     def __init__(self, r: Tensor, w: Tensor, base: Tensor, x0: Tensor, prior: Tensor | None, groups: list[Tensor],
                  rows: Tensor, n_rows: int, folds: list[Tensor], c: float | None):
         self.r, self.rows, self.n_rows, self.c = r, rows, n_rows, c
+        self.n_searched = 0  # columns a screening searched before these groups (0: only these)
         A = torch.cat([base] + list(groups), 1)
         norm = A.norm(dim=0)
         self.scale = torch.where(norm > 0, norm, torch.ones_like(norm))
@@ -245,7 +246,7 @@ class LinearCV:
         cur, k_cur = (self.scores(chosen), self.k_eff(chosen)) if baseline is None else baseline
         history = []
         pool = [g for g in range(len(self.slices)) if g not in chosen and self.usable[g]]
-        t_sel = selection_threshold(len(pool) + (len(pool) > 1))
+        t_sel = selection_threshold(max(len(pool) + (len(pool) > 1), self.n_searched))
         while pool and (max_modes is None or len(chosen) - len(start) < max_modes):
             tried, passing = {}, []
             # each remaining group on its own; only when none passes, all of them at once

@@ -36,7 +36,7 @@ from torchcal.measure.stats import noise_floor
 from torchcal.measure.trust import stage_problems
 from torchcal.options import Options
 from torchcal.pipelines.fitting import check_plausible
-from torchcal.pipelines.loop.covariates import derive_directions
+from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
@@ -178,6 +178,8 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
         if test is not None:
             derive_directions(test)
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
+    if derive_row_order(train, test):
+        say("no time column: the row order is a driver ('row'), for what changed during the session")
 
 
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):

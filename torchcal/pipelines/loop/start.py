@@ -11,6 +11,7 @@ from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect
                                          prior_weights, split_params)
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.loop.records import EffectStart
+from torchcal.pipelines.loop.screen import screen_family
 from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
@@ -110,10 +111,16 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     Jb = prob.data_jacobian(x)
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
+    if getattr(eff, "screened", False):  # a large family: only the pairs that explain something are expanded
+        eff = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, ctx.sigma)
+        if eff is None:
+            return EffectStart(effect=None, prior_mm=current.prior_mm,
+                               reason="no (parameter, driver) pair passed the screening")
     cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
+    lcv.n_searched = getattr(eff, "n_searched", 0)  # a screened family: the threshold of the whole space
     out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
@@ -152,7 +159,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         chosen, hist = best["chosen"], best["hist"]
         out.prior_mm = best["prior_mm"]
         out.selection = [_step_words(h, labels) for h in hist]
-        soft = _soft_option(lcv, forced, ctx, baseline, best, shared)
+        soft = _soft_option(lcv, forced, ctx, baseline, best, shared) if getattr(eff, "keep_soft", True) else None
         if soft is not None:
             chosen = soft["chosen"]
             out.soft = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
