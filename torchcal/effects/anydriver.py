@@ -71,8 +71,11 @@ class ParameterDrivers(Effect):
     keep_soft = False  # never kept whole under a prior: its modes are chosen one by one
 
     def __init__(self, robot, joints=None, geometry=None, terms: list | None = None, ranges: dict | None = None,
-                 n_searched: int = 0):
+                 n_searched: int = 0, payload: list | None = None, payload_link: str | None = None):
         self.terms = [tuple(t) for t in terms or []]
+        # a payload an accepted effect fitted (mass moments, kg and kg·m), in every gravity torque
+        self.payload = None if payload is None else [float(v) for v in payload]
+        self.payload_link = payload_link
         self.ranges = {k: tuple(v) for k, v in (ranges or {}).items()}
         self.n_searched = int(n_searched)
         super().__init__(robot, joints, geometry)
@@ -82,7 +85,21 @@ class ParameterDrivers(Effect):
 
     def config(self) -> dict:
         return {"terms": [list(t) for t in self.terms], "ranges": {k: list(v) for k, v in self.ranges.items()},
-                "n_searched": self.n_searched}
+                "n_searched": self.n_searched, "payload": self.payload, "payload_link": self.payload_link}
+
+    def torques(self, q: Tensor) -> Tensor:
+        """``(N, dof)`` the gravity torque drivers at ``q`` (URDF inertials and the fitted payload)."""
+        return gravity_torques(self.robot, q, self.geometry, self.payload, self.payload_link)
+
+    def with_payload(self, payload: list[float], link: str, data) -> "ParameterDrivers":
+        """A copy whose torque drivers include a fitted payload (their ranges taken again on ``data``)."""
+        out = self._copy(payload=list(payload), payload_link=link)
+        tq = out.torques(data.q)
+        for d in out.ranges:
+            if d.startswith("torque:"):
+                x = tq[:, self.robot.joint_names.index(d.split(":", 1)[1])]
+                out.ranges[d] = (float(x.mean()), float((x.max() - x.min()) / 2))
+        return out
 
     # -- the space ---------------------------------------------------------------------
     def _offset_params(self) -> dict[str, str]:
@@ -128,7 +145,7 @@ class ParameterDrivers(Effect):
         torques = bool(body_inertials(self.robot)) if self.robot.urdf_text else False
         drivers = list_drivers(self.robot, moved.joints, data.covariates, torques)
         out = type(self)(self.robot, moved.joints, geometry=self.geometry)
-        tq = gravity_torques(self.robot, data.q, self.geometry) if torques else None
+        tq = out.torques(data.q) if torques else None
         for d in drivers:
             if driver_kind(d) != "level":
                 x = driver_values(self.robot, d, data.q, data.covariates, tq)
@@ -165,8 +182,7 @@ class ParameterDrivers(Effect):
     def expanded(self, pairs: list[tuple[str, str]], data, steps: dict | None = None) -> "ParameterDrivers":
         """A copy whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair ->
         the step breaks to offer, for time and row drivers)."""
-        tq = gravity_torques(self.robot, data.q, self.geometry) if any(d.startswith("torque:") for _, d in pairs) \
-            else None
+        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
         levels = factor_levels(data.covariates)
         terms = []
         for p, d in pairs:
@@ -239,8 +255,7 @@ class ParameterDrivers(Effect):
         return shape_column(t, x, mean, half)
 
     def prepare(self, q, covariates):
-        tq = gravity_torques(self.robot, q, self.geometry) if any(d.startswith("torque:") for _, d, _ in self.terms) \
-            else None
+        tq = self.torques(q) if any(d.startswith("torque:") for _, d, _ in self.terms) else None
         cols = [self._column(d, t, q, covariates, tq) for _, d, t in self.terms]
         F = torch.stack(cols, 1) if cols else q.new_zeros(q.shape[0], 0)
         offs = self._offset_params()

@@ -62,7 +62,7 @@ def mode_words(eff, label: str) -> str:
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"
     if tag.startswith("step"):
         return f"{what} steps at {driver_words(d)} = {float(tag[4:]):.6g}"
-    shape = {"lin": "linearly", "quad": "in a bow"}.get(tag)
+    shape = {"lin": "linearly", "quad": "in a bow", "cube": "in an S"}.get(tag)
     if shape is None:
         shape = ("in a smooth curve" if tag.startswith("spl") else "periodically" if tag[:3] in ("sin", "cos")
                  else "piecewise linearly")
@@ -86,7 +86,7 @@ def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
                 f"{k:.4g} {driver_unit(eff.robot, d)}")
     if tag[:3] in ("sin", "cos"):
         return f"{what} varies by ±{_value(abs(v), unit)} with {tag[:3]}({tag[3:]}·{d.split(':', 1)[1]})"
-    top = 1.0 if tag == "quad" else ((mean + half - float(tag[3:])) / (half or 1.0)) ** 2
+    top = 1.0 if tag in ("quad", "cube") else ((mean + half - float(tag[3:])) / (half or 1.0)) ** 2
     return f"{what} bends by {_value(v * top, unit)} over the range of {driver_words(d)} ({tag})"
 
 

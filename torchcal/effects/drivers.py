@@ -57,18 +57,23 @@ def list_drivers(robot, joints: list[str], covariates: dict, torques: bool) -> l
     return out
 
 
-def gravity_torques(robot, q: Tensor, geometry: Tensor | None = None) -> Tensor:
+def gravity_torques(robot, q: Tensor, geometry: Tensor | None = None, payload=None,
+                    payload_link: str | None = None) -> Tensor:
     """``(N, dof)`` gravity torque on each actuated joint (N·m; force along the axis, N, for a
-    prismatic joint) from the URDF's inertials at commands ``q (N, dof)``."""
+    prismatic joint) from the URDF's inertials at commands ``q (N, dof)``, plus a payload the loop
+    fitted: ``payload`` its mass moments ``(m kg, m·sx, m·sy, m·sz kg·m)`` on ``payload_link``."""
     from torchcal.effects.gravity import gravity_wrenches  # gravity imports the kinematics: only when asked
 
-    w = gravity_wrenches(robot, q, geometry)
+    w = gravity_wrenches(robot, q, geometry, payload_link=payload_link)
+    wrench = w.urdf
+    if payload is not None:
+        wrench = wrench + w.payload @ torch.as_tensor(payload, dtype=q.dtype, device=q.device)
     out = q.new_zeros(q.shape[0], robot.dof)
     for k, name in enumerate(robot.joint_names):
         f = w.names.index(name)
         jt = robot.joints[f - 1]
         ax = torch.as_tensor(jt.axis, dtype=q.dtype, device=q.device)
-        part = w.urdf[:, f, :3] if jt.type == "prismatic" else w.urdf[:, f, 3:]
+        part = wrench[:, f, :3] if jt.type == "prismatic" else wrench[:, f, 3:]
         out[:, k] = part @ ax
     return out
 

@@ -4,7 +4,8 @@ coefficient, with knots and break points chosen from the training data, never by
 Tags (the strings a saved model carries):
 
 * ``lin``: ``x − x̄`` (a rate);
-* ``quad``: ``((x − x̄) / h)²``, ``h`` the half range (a bow);
+* ``quad``: ``((x − x̄) / h)²``, ``h`` the half range (a bow); ``cube``: its cube (an S, a
+  saturation's odd part);
 * ``spl<k>``: ``((x − k) / h)²₊`` a quadratic spline piece from the knot ``k`` on (smooth);
 * ``sin<n>`` / ``cos<n>``: harmonic ``n`` of an angle (periodic);
 * ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
@@ -40,6 +41,8 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return x - centre
     if tag == "quad":
         return ((x - centre) / h) ** 2
+    if tag == "cube":
+        return ((x - centre) / h) ** 3
     if tag.startswith("lvl="):
         return x
     for p in ("sin", "cos"):
@@ -61,8 +64,8 @@ def _quantiles(x: Tensor, qs) -> list[float]:
 
 
 def smooth_tags(x: Tensor) -> list[str]:
-    """A quadratic spline: the bow and one piece from each knot (:data:`KNOT_QUANTILES`)."""
-    return ["quad"] + [f"spl{k:.6g}" for k in dict.fromkeys(_quantiles(x, KNOT_QUANTILES))]
+    """A spline: the bow, the S and one quadratic piece from each knot (:data:`KNOT_QUANTILES`)."""
+    return ["quad", "cube"] + [f"spl{k:.6g}" for k in dict.fromkeys(_quantiles(x, KNOT_QUANTILES))]
 
 
 def hinge_tags(x: Tensor) -> list[str]:
@@ -87,6 +90,6 @@ def step_breaks(x: Tensor, min_side: int = 3) -> list[float]:
 
 
 def screen_tags(kind: str, revolute: bool) -> list[str]:
-    """The low-order shapes a driver is screened with before its richer shapes are tried: a rate
-    and a bow (and the first harmonic of an angle)."""
-    return ["lin", "quad"] + (["sin1", "cos1"] if kind == "q" and revolute else [])
+    """The low-order shapes a driver is screened with before its richer shapes are tried: a rate,
+    a bow and an S (and the first harmonic of an angle)."""
+    return ["lin", "quad", "cube"] + (["sin1", "cos1"] if kind == "q" and revolute else [])

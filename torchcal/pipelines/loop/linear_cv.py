@@ -46,6 +46,7 @@ class LinearCV:
                  rows: Tensor, n_rows: int, folds: list[Tensor], c: float | None):
         self.r, self.rows, self.n_rows, self.c = r, rows, n_rows, c
         self.n_searched = 0  # columns a screening searched before these groups (0: only these)
+        self.allow_whole = True  # forward may try every group at once when none passes alone
         A = torch.cat([base] + list(groups), 1)
         norm = A.norm(dim=0)
         self.scale = torch.where(norm > 0, norm, torch.ones_like(norm))
@@ -250,7 +251,7 @@ class LinearCV:
         while pool and (max_modes is None or len(chosen) - len(start) < max_modes):
             tried, passing = {}, []
             # each remaining group on its own; only when none passes, all of them at once
-            for options in ([[g] for g in pool], [list(pool)] if len(pool) > 1 else []):
+            for options in ([[g] for g in pool], [list(pool)] if len(pool) > 1 and self.allow_whole else []):
                 for opt, (s, k) in zip(options, self._score_options(chosen, options)):
                     t, pen_ok, _ = compare(cur, s, k_cur, k, n_obs)
                     tried[opt[0] if len(opt) == 1 else -1] = t

@@ -36,7 +36,7 @@ from torchcal.measure.stats import noise_floor
 from torchcal.measure.trust import stage_problems
 from torchcal.options import Options
 from torchcal.pipelines.fitting import check_plausible
-from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order
+from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order, fold_groups
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
@@ -185,7 +185,7 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):
     """The run's context (folds, set-up, orientation weight), its stage book and the nominal
     model (base registration only), whose stage opens the book."""
-    fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, duplicate_groups(train))
+    fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, fold_groups(train, duplicate_groups(train)))
     if test is not None:
         check_heldout(train, test)
     setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None

@@ -28,11 +28,21 @@ from torch import Tensor
 from torchcal.effects.anydriver import MAX_STEPS
 from torchcal.effects.drivers import driver_kind
 
-__all__ = ["screen_family", "ALPHA", "MAX_PAIRS", "CHUNK"]
+__all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
 
 ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair this rarely)
 MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
 CHUNK = 256      # columns projected at once (memory)
+
+
+def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
+    """The payload (mass moments ``m, m·sx, m·sy, m·sz``) and its link that an accepted effect
+    fitted, from the model's parameter values ``params``; None when none did."""
+    for e in effects:
+        names = [f"{e.name}.payload.{k}" for k in ("m", "mx", "my", "mz")]
+        if all(n in params.names for n in names) and getattr(e, "tool_link", None):
+            return [float(params.values[params.names.index(n)]) for n in names], e.tool_link
+    return None
 
 
 def _projector(Jb: Tensor, w3: Tensor) -> Tensor:

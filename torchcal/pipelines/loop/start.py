@@ -8,10 +8,10 @@ from torch import Tensor
 from torchcal.effects import effect_params
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.fit import (Context, Model, PRIOR_SCALES_MM, effect_problem, assemble,
-                                         prior_weights, split_params)
+                                         fit_noise, prior_weights, split_params)
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.loop.records import EffectStart
-from torchcal.pipelines.loop.screen import screen_family
+from torchcal.pipelines.loop.screen import fitted_payload, screen_family
 from torchcal.pipelines.loop.selection import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
@@ -112,7 +112,11 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
     if getattr(eff, "screened", False):  # a large family: only the pairs that explain something are expanded
-        eff = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, ctx.sigma)
+        load = fitted_payload(current.effects, current.params)
+        if load is not None:  # the gravity torques as the accepted model knows them: with its payload
+            eff = eff.with_payload(load[0], load[1], ctx.data)
+        # the noise the current model leaves (the context's may date from a model far coarser)
+        eff = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x))
         if eff is None:
             return EffectStart(effect=None, prior_mm=current.prior_mm,
                                reason="no (parameter, driver) pair passed the screening")
@@ -121,6 +125,8 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
     lcv.n_searched = getattr(eff, "n_searched", 0)  # a screened family: the threshold of the whole space
+    # a screened family's pairs span unrelated parameters: all of them at once is no finding
+    lcv.allow_whole = not getattr(eff, "screened", False)
     out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
@@ -190,6 +196,11 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
     start = base.clone()
     start.values[base.free_index] = base.values[base.free_index] + step
+    if getattr(eff, "screened", False):
+        # its columns are the geometry's Jacobian: taken again where the step has moved the geometry
+        # (a model that absorbed a 12 mm tool change turns the flange by mrad, which the columns feel)
+        theta, eff = eff.theta, eff.at_geometry(start.values[: robot.n_params])
+        eff.theta = theta
     # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
     start.free[: ctx.n_geo] = current.info["candidates"]
     params = ParamSet.concat(start, effect_params([eff]))
