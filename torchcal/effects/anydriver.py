@@ -37,7 +37,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
-from torchcal.effects.shapes import (harmonic_tags, hinge_tags, screen_tags, shape_column, smooth_tags,
+from torchcal.effects.shapes import (harmonic_tags, knee_tags, screen_tags, shape_column, smooth_tags,
                                      step_breaks)
 from torchcal.effects.terms import _neighbours
 from torchcal.effects import anydriver_words as words
@@ -45,7 +45,7 @@ from torchcal.measure.levels import LEVEL_SEP, factor_levels
 
 __all__ = ["ParameterDrivers", "MAX_STEPS"]
 
-MAX_STEPS = 8  # step breaks offered per (parameter, driver) pair: the best by the screening projection
+MAX_STEPS = 8  # steps and knees offered per (parameter, driver) pair: the best by the screening projection
 
 
 def _levels(tag: str) -> bool:
@@ -68,7 +68,6 @@ class ParameterDrivers(Effect):
     selectable = True
     fallback = True
     screened = True  # the loop screens its pairs before expanding them (pipelines.loop.screen)
-    keep_soft = False  # never kept whole under a prior: its modes are chosen one by one
 
     def __init__(self, robot, joints=None, geometry=None, terms: list | None = None, ranges: dict | None = None,
                  n_searched: int = 0, payload: list | None = None, payload_link: str | None = None):
@@ -175,13 +174,24 @@ class ParameterDrivers(Effect):
         out = ["lin"] + smooth_tags(x)
         if rev:
             out += harmonic_tags()
-        if kind in ("q", "torque", "cov"):
-            out += hinge_tags(x)
-        return out
+        return out  # knees (hinges, clips) and steps: the best of their grids, chosen by the screening
+
+    def breaks(self, driver: str, data) -> list[str]:
+        """Every step or knee ``driver`` can have on ``data``: steps in time and rows, hinges
+        (and clips of a torque) at fine quantiles of the others; none for a text column."""
+        kind = driver_kind(driver)
+        if kind == "level":
+            return []
+        tq = self.torques(data.q) if kind == "torque" else None
+        x = driver_values(self.robot, driver, data.q, data.covariates, tq)
+        x = x[torch.isfinite(x)]
+        if kind in ("time", "row"):
+            return [f"step{b:.10g}" for b in step_breaks(x)]
+        return knee_tags(kind, x)
 
     def expanded(self, pairs: list[tuple[str, str]], data, steps: dict | None = None) -> "ParameterDrivers":
         """A copy whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair ->
-        the step breaks to offer, for time and row drivers)."""
+        the step and knee shapes to offer, :meth:`breaks`)."""
         tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
         levels = factor_levels(data.covariates)
         terms = []
@@ -192,13 +202,8 @@ class ParameterDrivers(Effect):
                 continue
             x = driver_values(self.robot, d, data.q, data.covariates, tq)
             terms += [(p, d, t) for t in self.shapes_for(d, x[torch.isfinite(x)])]
-            terms += [(p, d, f"step{b:.10g}") for b in (steps or {}).get((p, d), [])]
+            terms += [(p, d, t) for t in (steps or {}).get((p, d), [])]
         return self._copy(terms=terms)
-
-    def step_candidates(self, driver: str, data) -> list[float]:
-        """Every break a step in ``driver`` (time or row) can sit at on ``data``."""
-        x = driver_values(self.robot, driver, data.q, data.covariates)
-        return step_breaks(x[torch.isfinite(x)])
 
     # -- the effect's interface --------------------------------------------------------
     @property

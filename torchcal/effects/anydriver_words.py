@@ -16,7 +16,7 @@ _AXIS = {"x": "x", "y": "y", "z": "z", "rx": "about x", "ry": "about y", "rz": "
 
 def coef_unit(param_unit: str, robot, driver: str, tag: str) -> str:
     """The unit of a term's coefficient: the parameter's per driver unit for a rate or a slope."""
-    if tag == "lin" or tag.startswith("hinge"):
+    if tag == "lin" or tag.startswith(("hinge", "sat")):
         return f"{param_unit}/{driver_unit(robot, driver)}"
     return param_unit
 
@@ -84,6 +84,10 @@ def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
         k = float(tag[5:])
         return (f"{what}'s rate along {driver_words(d)} changes by {_rate(v, unit, eff.robot, d)} beyond "
                 f"{k:.4g} {driver_unit(eff.robot, d)}")
+    if tag.startswith("sat"):
+        k = float(tag[3:])
+        return (f"{what} changes by an extra {_rate(v, unit, eff.robot, d)} ({driver_words(d)}) within ±{k:.4g} "
+                f"{driver_unit(eff.robot, d)}, and no further beyond: its stiffness changes there")
     if tag[:3] in ("sin", "cos"):
         return f"{what} varies by ±{_value(abs(v), unit)} with {tag[:3]}({tag[3:]}·{d.split(':', 1)[1]})"
     top = 1.0 if tag in ("quad", "cube") else ((mean + half - float(tag[3:])) / (half or 1.0)) ** 2

@@ -9,8 +9,9 @@ Tags (the strings a saved model carries):
 * ``spl<k>``: ``((x − k) / h)²₊`` a quadratic spline piece from the knot ``k`` on (smooth);
 * ``sin<n>`` / ``cos<n>``: harmonic ``n`` of an angle (periodic);
 * ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
-* ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``: a stiffness that changes with load, a
-  dead zone, a saturation);
+* ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``);
+* ``sat<k>``: ``x`` clipped to ``±k`` (a torque driver: a stiffness that changes beyond ``±k``, a
+  dead zone or a saturation about zero load);
 * ``lvl=<level>``: ``1`` where a text column reads ``level`` (one value per level).
 
 Knots of the smooth and piecewise shapes sit at quantiles of the training values; step breaks
@@ -21,7 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["shape_column", "smooth_tags", "hinge_tags", "harmonic_tags", "step_breaks", "screen_tags",
+__all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "screen_tags",
            "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES"]
 
 HARMONICS = 2                      # highest harmonic of an angle driver
@@ -55,6 +56,9 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return (x >= _num(tag, "step")).to(x.dtype)
     if tag.startswith("hinge"):
         return torch.clamp(x - _num(tag, "hinge"), min=0)
+    if tag.startswith("sat"):
+        k = _num(tag, "sat")
+        return torch.clamp(x, min=-k, max=k)
     raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, spl<k>, sin<n>, cos<n>, step<k>, hinge<k>, lvl=<level>")
 
 
@@ -71,6 +75,16 @@ def smooth_tags(x: Tensor) -> list[str]:
 def hinge_tags(x: Tensor) -> list[str]:
     """Piecewise-linear pieces from break points at :data:`HINGE_QUANTILES`."""
     return [f"hinge{k:.6g}" for k in dict.fromkeys(_quantiles(x, HINGE_QUANTILES))]
+
+
+def knee_tags(kind: str, x: Tensor, n: int = 39) -> list[str]:
+    """Every knee a piecewise-linear shape can have on training values ``x``: hinges at ``n``
+    evenly spaced quantiles, and for a torque clips at as many quantiles of ``|x|``."""
+    qs = [(i + 1) / (n + 1) for i in range(n)]
+    out = [f"hinge{k:.6g}" for k in dict.fromkeys(_quantiles(x, qs))]
+    if kind == "torque":
+        out += [f"sat{k:.6g}" for k in dict.fromkeys(_quantiles(x.abs(), qs)) if k > 0]
+    return out
 
 
 def harmonic_tags() -> list[str]:

@@ -11,7 +11,8 @@ per-axis σ is χ² with as many degrees of freedom as columns. A pair is kept w
 improbable at the level :data:`ALPHA` shared among all pairs (Bonferroni), the strongest
 :data:`MAX_PAIRS` at most; a driver none of whose pairs passes is not expanded at all. For a time
 or row driver, every break a step can sit at is scored the same way, one column each, and the
-best :data:`~torchcal.effects.anydriver.MAX_STEPS` are offered.
+best :data:`~torchcal.effects.anydriver.MAX_STEPS` are offered; so are the knees of the
+piecewise-linear shapes of the other drivers (hinges, and clips of a torque, on a fine grid).
 
 Screening only prunes: what is kept is still chosen by the cross-validated rule, at the Bonferroni
 threshold of the whole space (every shape of every pair), so a pair kept by chance is not accepted
@@ -26,7 +27,6 @@ from scipy.stats import chi2
 from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
-from torchcal.effects.drivers import driver_kind
 
 __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
 
@@ -87,15 +87,15 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
 
 def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
                 w3: Tensor) -> list[float]:
-    """The :data:`MAX_STEPS` breaks of a step in ``pair``'s driver that explain the most, one column each."""
+    """The :data:`MAX_STEPS` steps or knees of ``pair``'s driver that explain the most, one column each."""
     p, d = pair
-    breaks = eff.step_candidates(d, data)
+    breaks = eff.breaks(d, data)
     if not breaks:
         return []
     score = []
     for s in range(0, len(breaks), CHUNK):
         b = breaks[s:s + CHUNK]
-        C = columns(eff._copy(terms=[(p, d, f"step{x:.10g}") for x in b])) * w3[:, None]
+        C = columns(eff._copy(terms=[(p, d, t) for t in b])) * w3[:, None]
         C = C - Q @ (Q.T @ C)
         n2 = (C * C).sum(0)
         score.append(torch.where(n2 > 0, (C.T @ rp) ** 2 / n2.clamp(min=1e-300), torch.zeros_like(n2)))
@@ -110,8 +110,7 @@ def _space_size(eff, pairs: list[tuple[str, str]], data) -> int:
     for p, d in pairs:
         if d not in cache:
             full = eff.expanded([(p, d)], data)
-            cache[d] = len(full.terms) + (len(eff.step_candidates(d, data)) if driver_kind(d) in ("time", "row")
-                                          else 0)
+            cache[d] = len(full.terms) + len(eff.breaks(d, data))
         n += cache[d]
     return n
 
@@ -144,7 +143,7 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     # zero before the yaw of its origin that turns the same way)
     offs = set(eff._offset_params())
     kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
-    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept if driver_kind(pr[1]) in ("time", "row")}
+    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept}
     out = eff.expanded(kept, data, steps)
     out.n_searched = _space_size(eff, [pr for _, pr in stats], data)
     return out

@@ -68,7 +68,7 @@ def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard:
     error chooses (:data:`SOFT_SCALES`), when it beats the hard selection ``hard`` and passes the
     rule against ``baseline``; None otherwise (the ridge is then left off). On noisy data many
     small modes held by a prior can explain what no single mode shows clearly."""
-    if shared or not ctx.soft:  # a bilinear family (an unknown payload) is chosen mode by mode
+    if shared or not ctx.soft or not lcv.allow_whole:  # a bilinear or screened family: chosen mode by mode
         return None
     n3 = 3 * ctx.n_obs
     opt = lcv.soft(forced, ctx.n_obs, [1.0 / (m * (n3 ** 0.5)) for m in SOFT_SCALES])
@@ -95,6 +95,36 @@ def _step_words(h: dict, labels: list[str]) -> dict:
             "t": {name(g): t for g, t in h["tried"].items()}}
 
 
+def _screened(ctx: Context, current: Model, prob, eff, lin: tuple):
+    """A screened family (:mod:`~torchcal.pipelines.loop.screen`) expanded into the pairs that
+    explain something around ``current`` (``lin``: its residuals, Jacobian, IRLS weights and free
+    values), its torques with the payload an accepted effect fitted; None when no pair passes."""
+    r, Jb, w, x = lin
+    load = fitted_payload(current.effects, current.params)
+    if load is not None:  # the gravity torques as the accepted model knows them: with its payload
+        eff = eff.with_payload(load[0], load[1], ctx.data)
+    # the noise the current model leaves (the context's may date from a model far coarser)
+    return screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x))
+
+
+def _screened_rule(lcv: LinearCV, eff) -> None:
+    """The selection of a screened family: at the Bonferroni threshold of the whole space it
+    searched, and never all of its pairs at once, nor all of them under a prior (they span
+    unrelated parameters: no finding). Other effects keep the rule as it is."""
+    if getattr(eff, "screened", False):
+        lcv.n_searched = eff.n_searched
+        lcv.allow_whole = False
+
+
+def _relinearised(eff, geometry: Tensor):
+    """A family whose columns are the geometry's Jacobian, taken again where the linear step has
+    moved the geometry (a model that absorbed a 12 mm tool change turns the flange by mrad, which
+    those columns feel), its start values kept."""
+    theta, out = eff.theta, eff.at_geometry(geometry)
+    out.theta = theta
+    return out
+
+
 def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=frozenset()) -> EffectStart:
     """Where a candidate effect starts (:class:`~torchcal.pipelines.loop.records.EffectStart`):
     modes chosen (for a family) and start values from the linear step around ``current`` without
@@ -111,22 +141,13 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     Jb = prob.data_jacobian(x)
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
-    if getattr(eff, "screened", False):  # a large family: only the pairs that explain something are expanded
-        load = fitted_payload(current.effects, current.params)
-        if load is not None:  # the gravity torques as the accepted model knows them: with its payload
-            eff = eff.with_payload(load[0], load[1], ctx.data)
-        # the noise the current model leaves (the context's may date from a model far coarser)
-        eff = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x))
-        if eff is None:
-            return EffectStart(effect=None, prior_mm=current.prior_mm,
-                               reason="no (parameter, driver) pair passed the screening")
+    if getattr(eff, "screened", False) and (eff := _screened(ctx, current, prob, eff, (r, Jb, w, x))) is None:
+        return EffectStart(effect=None, prior_mm=current.prior_mm, reason="no (parameter, driver) pair passed the screening")
     cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
-    lcv.n_searched = getattr(eff, "n_searched", 0)  # a screened family: the threshold of the whole space
-    # a screened family's pairs span unrelated parameters: all of them at once is no finding
-    lcv.allow_whole = not getattr(eff, "screened", False)
+    _screened_rule(lcv, eff)
     out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
@@ -165,7 +186,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         chosen, hist = best["chosen"], best["hist"]
         out.prior_mm = best["prior_mm"]
         out.selection = [_step_words(h, labels) for h in hist]
-        soft = _soft_option(lcv, forced, ctx, baseline, best, shared) if getattr(eff, "keep_soft", True) else None
+        soft = _soft_option(lcv, forced, ctx, baseline, best, shared)
         if soft is not None:
             chosen = soft["chosen"]
             out.soft = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
@@ -197,10 +218,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     start = base.clone()
     start.values[base.free_index] = base.values[base.free_index] + step
     if getattr(eff, "screened", False):
-        # its columns are the geometry's Jacobian: taken again where the step has moved the geometry
-        # (a model that absorbed a 12 mm tool change turns the flange by mrad, which the columns feel)
-        theta, eff = eff.theta, eff.at_geometry(start.values[: robot.n_params])
-        eff.theta = theta
+        eff = _relinearised(eff, start.values[: robot.n_params])
     # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
     start.free[: ctx.n_geo] = current.info["candidates"]
     params = ParamSet.concat(start, effect_params([eff]))
