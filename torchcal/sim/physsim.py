@@ -27,12 +27,13 @@ from torchcal.sim.instrument import orientation_readings, outlier_shifts
 from torchcal.sim.joint_terms import JointTerm, as_joint_terms
 from torchcal.sim.physsim_drifts import apply_carriage, evaluate_drifts, instrument_motion, level_columns
 from torchcal.sim.physsim_gravity import subtree_wrenches
+from torchcal.sim.physsim_options import PhysicalOptions
 from torchcal.sim.physsim_truth import error_support, robot_truth
 from torchcal.sim.physsim_urdf import (MOVING_TYPES, homogeneous, joints_above, parse_marker, parse_urdf,
                                        rotation_exp, rpy_matrix, tree_order)
 from torchcal.sim.sample import Sample
 
-__all__ = ["JointTerm", "PhysicalRobot", "warmup_temperature"]
+__all__ = ["JointTerm", "PhysicalOptions", "PhysicalRobot", "warmup_temperature"]
 
 
 class PhysicalRobot:
@@ -41,47 +42,28 @@ class PhysicalRobot:
     Args:
         urdf: path or URDF XML text.
         markers: ``"link"`` (its origin) or ``"name@link=x,y,z"`` (m, link frame).
-        seed: one ``numpy.random.Generator`` draws the robot, then every ``sample_q``/``measure``.
-        length_error_m, angle_error_rad: std of the joint origin errors and zero offsets.
-        marker_error_m: std per axis of the true marker offset around the declared one;
-            marker_true_m: marker -> its true offset (m, link frame) instead, set apart from the
-            declared guess (e.g. a guess on a joint axis, the real point cm off it).
-        marker_rpy: marker -> declared rotation (roll, pitch, yaw) rad of its frame in the link
-            frame (default identity); marker_rotation_error_rad: std per axis of the true frame's
-            rotation around it (drawn from a second generator, so the data stream is unchanged).
-        base_distance_m: distance instrument origin <-> base origin.
-        instrument_frame: ``(4, 4)`` pose of the instrument frame in the base frame, replacing
-            the drawn one (``np.eye(4)``: measure in the base frame).
-        payload_kg, payload_com_m, payload_link: undeclared point mass (COM m in the link frame;
-            default link: the first marker's).
-        torsion: joint -> k rad/(N m); lateral: joint -> (cx, cy, cz) rad/(N m) about the child
-            frame axes (``lateral_frame="parent"``: about the joint frame's axes before the joint
-            turns, applied before the motion, as a bearing seat in the parent link); base_tilt:
-            (cx, cy) rad/(N m); thermal: joint -> alpha 1/K on that joint origin's translation,
-            driven by the covariate ``temperature``, or -> (alpha, column) driven by the named
-            covariate column (degC); backlash: joint -> half play rad (m); cyclic: joint ->
-            [(harmonic, amplitude rad, phase rad), ...] of its own commanded angle; joint_terms:
-            joint -> [:class:`JointTerm` or (source, kind, coef[, harmonic[, phase[, ref]]]), ...]
-            added to its true value, the source another joint's command or a covariate column;
-            noise_m: instrument noise std per axis.
-        pose_markers: markers also measured in orientation (names, or True: all), with
-            ``rot_noise_rad`` std per axis of a small random rotation (in the marker frame).
-        geometric_errors: False: nominal geometry (the random draws still happen, so the
-            instrument frame and later data are the same as with errors).
+        settings: a :class:`~torchcal.sim.physsim_options.PhysicalOptions` (the drawn errors, the
+            effects, the instrument); its fields may also be given as keywords.
 
     Joints not on a path to a marker are not columns; they stay "parked" at 0 (clipped into
     their limits) and their bodies still weigh on the joints they hang from.
     """
 
-    def __init__(self, urdf, markers, *, seed: int = 0, length_error_m: float = 0.5e-3,
-                 angle_error_rad: float = 1e-3, marker_error_m: float = 0.0, base_distance_m: float = 3.0,
-                 instrument_frame=None, payload_kg: float = 0.0, payload_com_m=(0.0, 0.0, 0.0),
-                 payload_link: str | None = None, torsion=None, lateral=None, lateral_frame: str = "child",
-                 base_tilt=None, thermal=None,
-                 t_ref_c: float = 20.0, backlash=None, cyclic=None, noise_m: float = 0.02e-3,
-                 gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True, joint_terms=None, marker_rpy=None,
-                 marker_rotation_error_rad: float = 0.0, pose_markers=None, rot_noise_rad: float = 0.0,
-                 marker_true_m=None, drifts=None):
+    def __init__(self, urdf, markers, settings: PhysicalOptions | None = None, /, **kw):
+        o = PhysicalOptions.build(settings, **kw)
+        seed, length_error_m, angle_error_rad, marker_error_m = o.seed, o.length_error_m, o.angle_error_rad, \
+            o.marker_error_m
+        base_distance_m, instrument_frame, payload_kg, payload_com_m = o.base_distance_m, o.instrument_frame, \
+            o.payload_kg, o.payload_com_m
+        payload_link, torsion, lateral, lateral_frame, base_tilt = o.payload_link, o.torsion, o.lateral, \
+            o.lateral_frame, o.base_tilt
+        thermal, t_ref_c, backlash, cyclic, noise_m, gravity = o.thermal, o.t_ref_c, o.backlash, o.cyclic, \
+            o.noise_m, o.gravity
+        geometric_errors, joint_terms, marker_rpy, marker_rotation_error_rad = o.geometric_errors, o.joint_terms, \
+            o.marker_rpy, o.marker_rotation_error_rad
+        pose_markers, rot_noise_rad, marker_true_m, drifts = o.pose_markers, o.rot_noise_rad, o.marker_true_m, \
+            o.drifts
+        self.settings = o
         text = str(urdf) if str(urdf).lstrip().startswith("<") else Path(urdf).read_text()
         self.name, joints, self._bodies = parse_urdf(text)
         self._j = {j.name: j for j in joints}
