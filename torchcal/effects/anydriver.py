@@ -195,7 +195,12 @@ class ParameterDrivers(Effect):
         tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
         levels = factor_levels(data.covariates)
         terms = []
+        names = set(self.robot.param_names)
+        whole = []  # a marker point that differs by level: all three coordinates
         for p, d in pairs:
+            m = self._point(p) if driver_kind(d) == "level" else None
+            whole += [(f"{m}.{a}", d) for a in ("dx", "dy", "dz")] if m is not None else [(p, d)]
+        for p, d in dict.fromkeys(q for q in whole if q[0] in names):
             if driver_kind(d) == "level":
                 f = d.split(":", 1)[1]
                 terms += [(p, d, f"lvl={lv}") for lv in levels[f][1:]]
@@ -223,16 +228,28 @@ class ParameterDrivers(Effect):
         units = dict(zip(self.robot.param_names, self.robot.param_units))
         return [(f"{p}~{d}~{t}", words.coef_unit(units[p], self.robot, d, t)) for p, d, t in self.terms]
 
+    def _point(self, p: str) -> str | None:
+        """The marker whose point ``p`` is a coordinate of (None: another parameter)."""
+        head = p.rsplit(".", 1)[0]
+        return head if head in self.robot.marker_names else None
+
+    def _label(self, p: str, d: str, t: str) -> str:
+        """A term's mode: one per term; a text column's levels together, and for a marker point
+        its three coordinates together too (a tool is a point, whatever frame its link turns)."""
+        if not _levels(t):
+            return f"{p}~{d}~{t}"
+        m = self._point(p)
+        return f"{m}.point~{d}~levels" if m is not None else f"{p}~{d}~levels"
+
     def modes(self):
         out: dict[str, list[int]] = {}
         for i, (p, d, t) in enumerate(self.terms):
-            out.setdefault(f"{p}~{d}~levels" if _levels(t) else f"{p}~{d}~{t}", []).append(i)
+            out.setdefault(self._label(p, d, t), []).append(i)
         return list(out.items())
 
     def with_modes(self, labels: list[str]) -> "ParameterDrivers":
         keep = set(labels)
-        return self._copy(terms=[(p, d, t) for p, d, t in self.terms
-                                 if (f"{p}~{d}~levels" if _levels(t) else f"{p}~{d}~{t}") in keep])
+        return self._copy(terms=[(p, d, t) for p, d, t in self.terms if self._label(p, d, t) in keep])
 
     def _copy(self, **changes) -> "ParameterDrivers":
         if "joints" in changes and "terms" not in changes:
@@ -305,7 +322,22 @@ class ParameterDrivers(Effect):
         idx = dict(self.modes())[label]
         return self.terms[idx[0]][0], prep.features["F"][:, idx] @ theta[idx]
 
+    def _point_signature(self, prep, label, theta) -> dict:
+        """A marker point per level: its offset's length per row along the direction it moves."""
+        idx = dict(self.modes())[label]
+        pos = prep.features["pos"].tolist()
+        F, G = prep.features["F"], prep.features["G"]
+        disp = 0
+        for i in idx:
+            disp = disp + G[..., pos.index(i)] * (F[:, i] * theta[i])[:, None, None]  # (N, M, 3)
+        size = disp.norm(dim=-1).amax(-1)
+        d = self.terms[idx[0]][1]
+        return {"x": prep.features["X"][d], "xlabel": words.axis_label(self.robot, d), "fitted": size,
+                "ylabel": f"{label.split('~')[0]} offset [m]", "G": disp / size.clamp(min=1e-300)[:, None, None]}
+
     def signature(self, prep, label, theta):
+        if label.split("~")[0].endswith(".point"):
+            return self._point_signature(prep, label, theta)
         p, change = self.parameter_change(theta, prep, label)
         i = dict(self.modes())[label][0]
         d = self.terms[i][1]

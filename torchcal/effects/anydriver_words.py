@@ -57,6 +57,8 @@ def _rate(v: float, unit: str, robot, driver: str) -> str:
 
 def mode_words(eff, label: str) -> str:
     p, d, tag = label.split("~")
+    if p.endswith(".point"):
+        return f"the marker point {p[:-6]} takes one value per level of {d.split(':', 1)[1]}"
     what = parameter_words(eff, p)
     if tag == "levels":
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"
