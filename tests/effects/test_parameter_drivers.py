@@ -81,3 +81,19 @@ def test_saved_and_loaded_effect_predicts_the_same():
     p = robot.positions(q, geo)
     assert torch.allclose(eff.position_correction(p, q, cov), again.position_correction(p, q, cov), atol=1e-12)
     assert torch.allclose(eff.joint_correction(q, cov), again.joint_correction(q, cov), atol=1e-12)
+
+
+def test_direct_columns_equal_the_effect_evaluated_term_by_term():
+    """The family's own linear basis (built directly) is the generic one (the effect evaluated
+    at each unit coefficient)."""
+    from torchcal.effects.base import Effect
+
+    robot, q, geo, cov = _robot_and_rows()
+    terms = [("elbow_joint.offset", "row", "step5.5"), ("base.rx", "row", "lin"),
+             (f"{robot.marker_names[0]}.dy", "level:tool", "lvl=b"), ("wrist_1_joint.offset", "q:elbow_joint", "cos1"),
+             ("shoulder_lift_joint.droll", "q:elbow_joint", "hinge0.2")]
+    eff = ParameterDrivers(robot, geometry=geo, terms=terms, ranges={"row": (5.5, 5.5)})
+    prep = eff.prepare(q, cov)
+    a, b = eff.linear_basis(prep), Effect.linear_basis(eff, prep)
+    assert torch.allclose(a.dq, b.dq, atol=1e-15) and torch.allclose(a.dp, b.dp, atol=1e-15)
+    assert a.groups == b.groups

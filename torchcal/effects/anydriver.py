@@ -34,7 +34,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcal.effects.base import Effect, Prepared
+from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
 from torchcal.effects.shapes import (harmonic_tags, knee_tags, screen_tags, shape_column, smooth_tags,
@@ -176,13 +176,15 @@ class ParameterDrivers(Effect):
             out += harmonic_tags()
         return out  # knees (hinges, clips) and steps: the best of their grids, chosen by the screening
 
-    def breaks(self, driver: str, data) -> list[str]:
+    def breaks(self, driver: str, data, tq: Tensor | None = None) -> list[str]:
         """Every step or knee ``driver`` can have on ``data``: steps in time and rows, hinges
-        (and clips of a torque) at fine quantiles of the others; none for a text column."""
+        (and clips of a torque) at fine quantiles of the others; none for a text column
+        (``tq``: :meth:`torques` on ``data``, when known)."""
         kind = driver_kind(driver)
         if kind == "level":
             return []
-        tq = self.torques(data.q) if kind == "torque" else None
+        if kind == "torque" and tq is None:
+            tq = self.torques(data.q)
         x = driver_values(self.robot, driver, data.q, data.covariates, tq)
         x = x[torch.isfinite(x)]
         if kind in ("time", "row"):
@@ -209,6 +211,20 @@ class ParameterDrivers(Effect):
             terms += [(p, d, t) for t in self.shapes_for(d, x[torch.isfinite(x)])]
             terms += [(p, d, t) for t in (steps or {}).get((p, d), [])]
         return self._copy(terms=terms)
+
+    def space_size(self, pairs: list[tuple[str, str]], data) -> int:
+        """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every
+        step or knee of its grid, every level."""
+        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
+        levels = factor_levels(data.covariates)
+        per: dict[str, int] = {}
+        for d in dict.fromkeys(d for _, d in pairs):
+            if driver_kind(d) == "level":
+                per[d] = len(levels[d.split(":", 1)[1]]) - 1
+                continue
+            x = driver_values(self.robot, d, data.q, data.covariates, tq)
+            per[d] = len(self.shapes_for(d, x[torch.isfinite(x)])) + len(self.breaks(d, data, tq))
+        return sum(per[d] for _, d in pairs)
 
     # -- the effect's interface --------------------------------------------------------
     @property
@@ -316,6 +332,22 @@ class ParameterDrivers(Effect):
             return None
         Fp = prep.features["F"][:, pos]  # (N, T')
         return torch.einsum("nmat,nt,pt->pnma", G, Fp, theta[:, pos])
+
+    def linear_basis(self, prep: Prepared) -> LinearBasis:
+        """The terms' columns built directly (one per term, the family is linear in its
+        coefficients): a zero's ``Δq`` on its joint, any other parameter's Jacobian column times
+        the shape, without evaluating the effect once per term."""
+        F, is_q, target, pos, G = (prep.features[k] for k in ("F", "is_q", "target", "pos", "G"))
+        N, T = F.shape
+        dq = dp = None
+        if bool(is_q.any()):
+            dq = F.new_zeros(N, self.robot.dof, T)
+            cols = torch.nonzero(is_q).flatten()
+            dq[:, target[cols], cols] = F[:, cols]
+        if G is not None:
+            dp = F.new_zeros(*G.shape[:3], T)
+            dp[..., pos] = G * F[:, pos][:, None, None, :]
+        return LinearBasis(dq, dp, [list(c) for _, c in self.modes()])
 
     def parameter_change(self, theta: Tensor, prep: Prepared, label: str) -> tuple[str, Tensor]:
         """(parameter, ``(N,)`` its change per row) from the terms of mode ``label``."""

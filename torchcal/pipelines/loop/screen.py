@@ -32,7 +32,7 @@ __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
 
 ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair this rarely)
 MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
-CHUNK = 256      # columns projected at once (memory)
+CHUNK = 1024     # columns projected at once (memory: 3 n_obs × CHUNK values)
 
 
 def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
@@ -89,7 +89,7 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
                 w3: Tensor) -> list[float]:
     """The :data:`MAX_STEPS` steps or knees of ``pair``'s driver that explain the most, one column each."""
     p, d = pair
-    breaks = eff.breaks(d, data)
+    breaks = eff.breaks(d, data, eff.torques(data.q) if d.startswith("torque:") else None)
     if not breaks:
         return []
     score = []
@@ -101,18 +101,6 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
         score.append(torch.where(n2 > 0, (C.T @ rp) ** 2 / n2.clamp(min=1e-300), torch.zeros_like(n2)))
     top = torch.cat(score).argsort(descending=True)[:MAX_STEPS]
     return [breaks[int(i)] for i in top]
-
-
-def _space_size(eff, pairs: list[tuple[str, str]], data) -> int:
-    """Columns of the whole space: every shape of every pair, every step break of time and rows."""
-    cache: dict[str, int] = {}
-    n = 0
-    for p, d in pairs:
-        if d not in cache:
-            full = eff.expanded([(p, d)], data)
-            cache[d] = len(full.terms) + len(eff.breaks(d, data))
-        n += cache[d]
-    return n
 
 
 def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float, say=None):
@@ -145,5 +133,5 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
     steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept}
     out = eff.expanded(kept, data, steps)
-    out.n_searched = _space_size(eff, [pr for _, pr in stats], data)
+    out.n_searched = eff.space_size([pr for _, pr in stats], data)
     return out
