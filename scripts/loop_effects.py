@@ -8,7 +8,10 @@ per stage, and the noise floor. Two simulators:
    cases of the held-back data (:mod:`torchcal.sim.cases`): an undeclared 0 / 12 / 20 kg tool, one
    warm link, sideways bending, a tilting base, 5 % outliers, a clean arm, a humanoid upper body;
    on a 7-joint arm, a coupled wrist with backlash, a link warmed by the motor of the second
-   temperature column, twist with bent seats, harmonics with twist, a clean arm with irrelevant logs.
+   temperature column, twist with bent seats, harmonics with twist, a clean arm with irrelevant logs;
+   and issue 32's parameters that change with a driver: a zero stepping at an unknown row, an
+   instrument frame drifting with time, a tool point per level of a text column, a stiffness that
+   changes with torque, a linear track whose carriage bows and pitches along its travel.
 
 Prints markdown tables and one JSON line. The noise floor is the mean Euclidean norm of the
 simulated noise on the held-out rows.
