@@ -275,6 +275,15 @@ class ParameterDrivers(Effect):
     def applicable(self, data) -> tuple[bool, str]:
         return True, ""
 
+    def proposes(self, labels: list[str]) -> tuple[bool, str]:
+        """Nothing of its own when every chosen term is a joint's zero following that joint's own
+        gravity torque linearly: that is joint compliance, which the catalogue names."""
+        offs = self._offset_params()
+        own = [p for p, d, t in (lab.split("~") for lab in labels) if t == "lin" and d == f"torque:{offs.get(p)}"]
+        if labels and len(own) == len(labels):
+            return False, "its terms are joint compliance (a zero linear in its own torque): the catalogue's to name"
+        return True, ""
+
     def clamped(self, covariates: dict[str, Tensor]) -> dict[str, Tensor]:
         """Time, and the row order, held inside their training range: a session's trend says
         nothing of rows beyond it."""

@@ -103,7 +103,8 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
     return [breaks[int(i)] for i in top]
 
 
-def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float, say=None):
+def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float,
+                  c: float | None = None, say=None):
     """``eff`` (a bound :class:`~torchcal.effects.anydriver.ParameterDrivers`, terms = its
     screening shapes) expanded into every shape of the pairs that pass the screening (module
     docstring), with :attr:`n_searched` the size of the whole space; None when no pair passes.
@@ -111,10 +112,14 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     Args:
         columns: ``effect -> (3 n_obs, T)`` its terms' columns in the observations' residuals.
         r: ``(n_obs, 3)`` current residuals (m); ``Jb``: ``(3 n_obs, kb)`` the current model's
-            Jacobian; ``w``: ``(n_obs,)`` IRLS weights; ``sigma``: per-axis noise (m).
+            Jacobian; ``w``: ``(n_obs,)`` IRLS weights; ``sigma``: per-axis noise (m); ``c``: the
+            Huber threshold (m), to which each observation's residual is shortened (None: none).
     """
     w3 = w.repeat_interleave(3)
     Q = _projector(Jb, w3)
+    if c is not None:  # Huber's pseudo-observations: a gross error weighs no more than the threshold
+        n = r.norm(dim=-1, keepdim=True)
+        r = r * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
     rw = r.reshape(-1) * w3
     rp = rw - Q @ (Q.T @ rw)
     stats = _pair_stats(eff, columns, Q, rp, w3, sigma)

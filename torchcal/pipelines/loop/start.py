@@ -104,7 +104,8 @@ def _screened(ctx: Context, current: Model, prob, eff, lin: tuple):
     if load is not None:  # the gravity torques as the accepted model knows them: with its payload
         eff = eff.with_payload(load[0], load[1], ctx.data)
     # the noise the current model leaves (the context's may date from a model far coarser)
-    return screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x))
+    return screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x),
+                         ctx.c)
 
 
 def _screened_rule(lcv: LinearCV, eff) -> None:
