@@ -39,7 +39,9 @@ from torchcal.effects import JointCompliance, effect_params  # noqa: E402
 from torchcal.effects.joint import CyclicJointError  # noqa: E402
 from torchcal.measure.instrument import InstrumentFormat  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402
-from torchcal.pipelines.loop.fit import Context, fit_params, geometric_start  # noqa: E402
+from torchcal.pipelines.crossval.evaluate import fit_params  # noqa: E402
+from torchcal.pipelines.crossval.models import Context  # noqa: E402
+from torchcal.problems.template import geometric_start  # noqa: E402
 from torchcal.pipelines.loop.stages import stage_stats  # noqa: E402
 from torchcal.sim.ur10 import ur10_urdf  # noqa: E402  (the UR10's published numbers as URDF, no simulation)
 

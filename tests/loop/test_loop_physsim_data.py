@@ -19,14 +19,15 @@ from torchcal import Robot, run_loop
 from torchcal.report.loop import write_loop_report
 from torchcal.kinematics.robots import urdf_path
 from torchcal.sim.cases import CASES, TORSION, make_case
+from torchcal.sim.drift_cases import DRIFT_CASES
 
 UR5E = urdf_path("ur5e").read_text()
 N_TRAIN = CASES["payload_12kg"]["n_train"]
 FLOOR_FACTOR = 1.15  # the issue's bar: held-out mean within 1.15x the noise floor
 # every case but the humanoid (its own test below) and the 7-joint twist-and-seats case, whose loop
 # (an unknown 8 kg tool, bending at two seats) takes minutes: scripts/loop_effects.py measures it over
-# seeds 1-6 with the others
-UR5E_CASES = [n for n in CASES if n not in ("humanoid", "twist_seat_7dof")]
+# seeds 1-6 with the others; issue 32's drifting parameters have their own tests (tests/sim)
+UR5E_CASES = [n for n in CASES if n not in ("humanoid", "twist_seat_7dof") and n not in DRIFT_CASES]
 
 _CACHE: dict = {}
 

@@ -13,14 +13,16 @@ from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
 from torchcal.effects.registry import EFFECTS, effect_class, effect_type, register_effect
 from torchcal.effects.terms import JointTerms
+from torchcal.effects.anydriver import ParameterDrivers
 from torchcal.effects.thermal import ThermalDrift, thermal_covariate
 from torchcal.params import ParamSet
 
-for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation, JointTerms):
+for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation, JointTerms,
+             ParameterDrivers):
     register_effect(_cls)
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "GravityDeformation", "Backlash",
-           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "thermal_covariate", "effect_params",
+           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "thermal_covariate", "effect_params",
            "build_effect",
            "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]
 

@@ -18,7 +18,7 @@ unknown marker 10 cm from its guess changes every lever arm by that much.
 **Modes.** An effect is a sum of *modes*, each owning some of its parameters (a joint's
 backlash, one link's thermal growth, one direction of bending at one joint). A *selectable*
 effect is a family whose modes the loop chooses one at a time by cross-validation
-(:mod:`torchcal.pipelines.loop.selection`); the others are tried whole. :meth:`Effect.with_modes` restricts an
+(:mod:`torchcal.pipelines.crossval.scores`); the others are tried whole. :meth:`Effect.with_modes` restricts an
 effect to some modes.
 
 **Linear form.** :meth:`Effect.linear_basis` gives the effect's columns as a model linear in its

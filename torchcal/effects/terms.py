@@ -41,8 +41,8 @@ def driver_columns(covariates: dict) -> list[str]:
     (:func:`~torchcal.measure.data.is_quality_column`) and columns that never change."""
     out = []
     for k, v in covariates.items():
-        if k.startswith("dir.") or is_quality_column(k):
-            continue
+        if k.startswith("dir.") or is_quality_column(k) or k == "row" or "=" in k:
+            continue  # the row order and text levels are drivers of parameter_drivers
         v = v[torch.isfinite(v)]
         if v.numel() > 1 and float(v.max() - v.min()) > 0:
             out.append(k)

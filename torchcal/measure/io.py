@@ -34,6 +34,7 @@ from torchcal.measure.checks import check_motion, check_robot
 from torchcal.measure.columns import PLANE, POS, QUAT, DIST, Columns, sort_columns
 from torchcal.measure.data import Measurements
 from torchcal.measure.instrument import InstrumentFormat, translate
+from torchcal.measure.levels import is_text_column, join_levels, level_covariates
 from torchcal.measure.units import UNITS, UnitsError, convert_units
 from torchcal.outputs import atomic_write_text
 
@@ -174,8 +175,10 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
     dt = dtype or robot.dtype
     q = robot.check_q(torch.as_tensor(Q, dtype=dt), what=f"{path} joint columns", units_judged=True).to(robot.device)
     as_t = lambda v: torch.as_tensor(v, dtype=dt, device=robot.device)  # noqa: E731
-    out = Measurements(q, as_t(P), c.measured, c.joints, None if Qt is None else as_t(Qt),
-                       {k: as_t(v) for k, v in _covariates(path, c, data).items()}, str(path),
+    cov = {k: as_t(v) for k, v in _covariates(path, c, data).items()}
+    for k in _text_columns(c):  # a text column is a factor: one 0/1 covariate per level
+        cov.update({n: as_t(v) for n, v in level_covariates(k, [r[c.idx[k]] for r in c.rows]).items()})
+    out = Measurements(q, as_t(P), c.measured, c.joints, None if Qt is None else as_t(Qt), cov, str(path),
                        None if planes is None else torch.as_tensor(planes, device=robot.device), plane_names,
                        {k: as_t(v) for k, v in D.items()}, robot.name)
     check_motion(robot, out, units, where=str(path), lines=path.lines)
@@ -185,7 +188,8 @@ def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | No
 def _cells(path, c: Columns) -> np.ndarray:
     """``(N, columns)`` the numeric cells (NaN where empty and in the plane columns), checked for
     values no unit makes plausible."""
-    numeric = [col for col in c.header if col not in c.plane_cols.values()]
+    text = set(_text_columns(c))
+    numeric = [col for col in c.header if col not in c.plane_cols.values() and col not in text]
     data = np.full((len(c.rows), len(c.header)), np.nan)
     for i, r in enumerate(c.rows):
         for col in numeric:
@@ -193,6 +197,11 @@ def _cells(path, c: Columns) -> np.ndarray:
             data[i, j] = _number(r[j], path.line(i), col, path)
     _absurd(path, data, c.header, set(c.covariates))
     return data
+
+
+def _text_columns(c: Columns) -> list[str]:
+    """Covariate columns holding text (a tool name, an operator): read as levels, not numbers."""
+    return [k for k in c.covariates if is_text_column([r[c.idx[k]] for r in c.rows])]
 
 
 def _joint_values(path, robot, c: Columns, data: np.ndarray) -> np.ndarray:
@@ -278,7 +287,10 @@ def _covariates(path, c: Columns, data: np.ndarray) -> dict[str, np.ndarray]:
     refused with its line; a column with empty cells is left out, with one warning, since a model
     that reads it could not be evaluated on those rows (the thermal search would fit NaN)."""
     out = {}
+    text = set(_text_columns(c))
     for k in c.covariates:
+        if k in text:  # read as levels (load_measurements)
+            continue
         v = c.col(data, k)
         if np.isinf(v).any():
             i = int(np.flatnonzero(np.isinf(v))[0])
@@ -355,9 +367,14 @@ def save_measurements(path: str | os.PathLike, data: Measurements, digits: int =
     for (a, b), v in data.distances.items():
         header.append(f"{a}{DIST}{b}")
         cols.append(v)
-    for c, v in data.covariates.items():
+    numeric, text = join_levels(data.covariates)
+    for c, v in numeric.items():
         header.append(c)
         cols.append(v)
+    for c, cells in text.items():  # levels written back as the text column they came from
+        labels[len(header)] = cells
+        header.append(c)
+        cols.append(torch.full((len(data),), float("nan")))
     M = torch.stack([c.detach().cpu().double() for c in cols], 1).numpy()
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")

@@ -3,9 +3,9 @@
 With few measured values per parameter, the all-or-nothing choice (fit a parameter or fix it)
 is a poor one: a parameter the data see weakly is either left at zero or fitted to whatever the
 noise says. A Gaussian prior on every geometric error (σ in mm for lengths and mrad for angles,
-:func:`~torchcal.pipelines.loop.fit.prior_weights`) holds such parameters near zero by as much as
+:func:`~torchcal.pipelines.crossval.priors.prior_weights`) holds such parameters near zero by as much as
 the data ask. Its scale is chosen by the penalised cross-validated error over
-:data:`~torchcal.pipelines.loop.fit.PRIOR_SCALES_MM`, against the same parameters without a
+:data:`~torchcal.pipelines.crossval.priors.PRIOR_SCALES_MM`, against the same parameters without a
 prior, with the loop's folds (rows with identical commands share a fold) and scores.
 """
 from __future__ import annotations

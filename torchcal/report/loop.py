@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 from torchcal.report.calibration import write_json
+from torchcal.report.drivers import driver_figure
 from torchcal.report.figures import error_figure, evidence_figure, joint_rank, leftover_figure
 from torchcal.report.findings import effect_findings
 from torchcal.report.html import write_html
@@ -155,6 +156,9 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     figs = {s: _histograms(res, out / f"errors_{s}.png", s) for s in ("train", "test")}
     order = [jt.name for jt in res.robot.joints]
     ev_figs = {n: _evidence_figures(n, ev, out, order) for n, ev in res.evidence.items()}
+    for n, ev in res.evidence.items():  # a parameter that follows a driver: drawn against that driver
+        if n.startswith("+parameter_drivers") or n == "parameter_drivers":
+            driver_figure(ev, out / f"drivers_{_safe(n)}.png")
 
     floor = "no noise floor known" if res.noise_floor_mm is None else (
         f"noise floor {res.noise_floor_mm:.4f} mm, {res.noise_floor_source or 'source not recorded'}")

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from torchcal.sim.covariates import covariate_columns
+from torchcal.sim.drift_cases import DRIFT_CASES, level_series, track_urdf
 from torchcal.sim.effect_size import EFFECT_KEYS, displacement_um
 from torchcal.sim.humanoid import arm9_urdf, humanoid_urdf
 from torchcal.sim.physsim import PhysicalRobot, warmup_temperature
@@ -115,6 +116,7 @@ CASES: dict[str, dict] = {
                         "physics": dict(torsion=TORSION_SOFT_7DOF, cyclic={"iiwa_joint_4": HARMONICS_J4})},
     # geometry only, with the logs of a real cell that drive nothing: air, a motor, the arm's
     # cover (degC) and the campaign's time (s, with a 10 min break every 50 poses)
+    **DRIFT_CASES,
     "clean_covariates": {**_IIWA, "named": [], "physics": {},
                          "covariates": {"temp_ambient": ("ambient", {}), "temp_motor_a2": ("motor", {}),
                                         "temp_skin": ("skin", {}), "time": ("time", {})}},
@@ -175,7 +177,7 @@ class Case:
 
 
 def _urdf(name: str) -> str:
-    made = {"humanoid": humanoid_urdf, "arm9": arm9_urdf, "ur10": ur10_urdf}
+    made = {"humanoid": humanoid_urdf, "arm9": arm9_urdf, "ur10": ur10_urdf, "ur5e_track": track_urdf}
     if name in made:
         return made[name]()
     return (Path(__file__).resolve().parents[2] / "urdf" / f"{name}.urdf").read_text()
@@ -210,13 +212,21 @@ def make_case(name: str, seed: int = 0, outliers: float | None = None, urdf: str
     temp = warmup_temperature(n + m, span_k=c["warmup_k"], seed=seed) if "warmup_k" in c else None
     logs = covariate_columns(c.get("covariates", {}), n + m, seed)
     frac = c.get("outliers", 0.0) if outliers is None else outliers
+    levels = {k: level_series(v, n + m, [seed, 200 + i]) for i, (k, v) in enumerate(c.get("levels", {}).items())}
+    # held-out rows from the same session (issue 32's time drift), else after the training rows
+    order = np.random.default_rng([seed, 300]).permutation(n + m) if c.get("interleave") else np.arange(n + m)
+    tr, te = np.sort(order[:n]), np.sort(order[n:])
 
-    def rows(sl: slice) -> dict:
+    def rows(sl) -> dict:
         return dict(temperature=None if temp is None else temp[sl], covariates={k: v[sl] for k, v in logs.items()},
-                    orientation_fraction=c.get("orientation_fraction", 1.0))
+                    orientation_fraction=c.get("orientation_fraction", 1.0), levels={k: v[sl] for k, v in levels.items()})
 
-    train = real.measure(q[:n], outlier_fraction=frac, **rows(slice(0, n)))
-    test = real.measure(q[n:], **rows(slice(n, None)))
+    if c.get("interleave"):  # one session: every row measured in its order, then split
+        full = real.measure(q, **rows(slice(None)))
+        train, test = full.subset(tr), full.subset(te)
+    else:
+        train = real.measure(q[:n], outlier_fraction=frac, **rows(slice(0, n)))
+        test = real.measure(q[n:], first_row=n, **rows(slice(n, None)))
     floor = float(np.linalg.norm(test.true_positions - test.positions, axis=-1).mean()) * 1e3
     rot_floor = None
     if test.quaternions is not None:

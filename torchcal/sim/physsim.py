@@ -25,13 +25,15 @@ from torchcal.sim.base import Simulated
 from torchcal.sim.covariates import warmup_temperature
 from torchcal.sim.instrument import orientation_readings, outlier_shifts
 from torchcal.sim.joint_terms import JointTerm, as_joint_terms
+from torchcal.sim.physsim_drifts import apply_carriage, evaluate_drifts, instrument_motion, level_columns
 from torchcal.sim.physsim_gravity import subtree_wrenches
+from torchcal.sim.physsim_options import PhysicalOptions
 from torchcal.sim.physsim_truth import error_support, robot_truth
 from torchcal.sim.physsim_urdf import (MOVING_TYPES, homogeneous, joints_above, parse_marker, parse_urdf,
                                        rotation_exp, rpy_matrix, tree_order)
 from torchcal.sim.sample import Sample
 
-__all__ = ["JointTerm", "PhysicalRobot", "warmup_temperature"]
+__all__ = ["JointTerm", "PhysicalOptions", "PhysicalRobot", "warmup_temperature"]
 
 
 class PhysicalRobot:
@@ -40,47 +42,28 @@ class PhysicalRobot:
     Args:
         urdf: path or URDF XML text.
         markers: ``"link"`` (its origin) or ``"name@link=x,y,z"`` (m, link frame).
-        seed: one ``numpy.random.Generator`` draws the robot, then every ``sample_q``/``measure``.
-        length_error_m, angle_error_rad: std of the joint origin errors and zero offsets.
-        marker_error_m: std per axis of the true marker offset around the declared one;
-            marker_true_m: marker -> its true offset (m, link frame) instead, set apart from the
-            declared guess (e.g. a guess on a joint axis, the real point cm off it).
-        marker_rpy: marker -> declared rotation (roll, pitch, yaw) rad of its frame in the link
-            frame (default identity); marker_rotation_error_rad: std per axis of the true frame's
-            rotation around it (drawn from a second generator, so the data stream is unchanged).
-        base_distance_m: distance instrument origin <-> base origin.
-        instrument_frame: ``(4, 4)`` pose of the instrument frame in the base frame, replacing
-            the drawn one (``np.eye(4)``: measure in the base frame).
-        payload_kg, payload_com_m, payload_link: undeclared point mass (COM m in the link frame;
-            default link: the first marker's).
-        torsion: joint -> k rad/(N m); lateral: joint -> (cx, cy, cz) rad/(N m) about the child
-            frame axes (``lateral_frame="parent"``: about the joint frame's axes before the joint
-            turns, applied before the motion, as a bearing seat in the parent link); base_tilt:
-            (cx, cy) rad/(N m); thermal: joint -> alpha 1/K on that joint origin's translation,
-            driven by the covariate ``temperature``, or -> (alpha, column) driven by the named
-            covariate column (degC); backlash: joint -> half play rad (m); cyclic: joint ->
-            [(harmonic, amplitude rad, phase rad), ...] of its own commanded angle; joint_terms:
-            joint -> [:class:`JointTerm` or (source, kind, coef[, harmonic[, phase[, ref]]]), ...]
-            added to its true value, the source another joint's command or a covariate column;
-            noise_m: instrument noise std per axis.
-        pose_markers: markers also measured in orientation (names, or True: all), with
-            ``rot_noise_rad`` std per axis of a small random rotation (in the marker frame).
-        geometric_errors: False: nominal geometry (the random draws still happen, so the
-            instrument frame and later data are the same as with errors).
+        settings: a :class:`~torchcal.sim.physsim_options.PhysicalOptions` (the drawn errors, the
+            effects, the instrument); its fields may also be given as keywords.
 
     Joints not on a path to a marker are not columns; they stay "parked" at 0 (clipped into
     their limits) and their bodies still weigh on the joints they hang from.
     """
 
-    def __init__(self, urdf, markers, *, seed: int = 0, length_error_m: float = 0.5e-3,
-                 angle_error_rad: float = 1e-3, marker_error_m: float = 0.0, base_distance_m: float = 3.0,
-                 instrument_frame=None, payload_kg: float = 0.0, payload_com_m=(0.0, 0.0, 0.0),
-                 payload_link: str | None = None, torsion=None, lateral=None, lateral_frame: str = "child",
-                 base_tilt=None, thermal=None,
-                 t_ref_c: float = 20.0, backlash=None, cyclic=None, noise_m: float = 0.02e-3,
-                 gravity=(0.0, 0.0, -9.81), geometric_errors: bool = True, joint_terms=None, marker_rpy=None,
-                 marker_rotation_error_rad: float = 0.0, pose_markers=None, rot_noise_rad: float = 0.0,
-                 marker_true_m=None):
+    def __init__(self, urdf, markers, settings: PhysicalOptions | None = None, /, **kw):
+        o = PhysicalOptions.build(settings, **kw)
+        seed, length_error_m, angle_error_rad, marker_error_m = o.seed, o.length_error_m, o.angle_error_rad, \
+            o.marker_error_m
+        base_distance_m, instrument_frame, payload_kg, payload_com_m = o.base_distance_m, o.instrument_frame, \
+            o.payload_kg, o.payload_com_m
+        payload_link, torsion, lateral, lateral_frame, base_tilt = o.payload_link, o.torsion, o.lateral, \
+            o.lateral_frame, o.base_tilt
+        thermal, t_ref_c, backlash, cyclic, noise_m, gravity = o.thermal, o.t_ref_c, o.backlash, o.cyclic, \
+            o.noise_m, o.gravity
+        geometric_errors, joint_terms, marker_rpy, marker_rotation_error_rad = o.geometric_errors, o.joint_terms, \
+            o.marker_rpy, o.marker_rotation_error_rad
+        pose_markers, rot_noise_rad, marker_true_m, drifts = o.pose_markers, o.rot_noise_rad, o.marker_true_m, \
+            o.drifts
+        self.settings = o
         text = str(urdf) if str(urdf).lstrip("\ufeff \t\r\n").startswith("<") else Path(urdf).read_text("utf-8-sig")
         text = text.lstrip("\ufeff")  # a byte-order mark is no part of the text
         self.name, joints, self._bodies = parse_urdf(text)
@@ -124,6 +107,8 @@ class PhysicalRobot:
             raise ValueError(f"pose_markers / marker_rpy / marker_true_m: {unknown} are not markers "
                              f"({self.marker_names})")
         self.rot_noise_rad = float(rot_noise_rad)
+        self.drifts = list(drifts or [])  # parameters changing with a driver (physsim_drifts)
+        self._first_row = 0  # the measuring order of the rows reach() is asked for
         self.noise_m, self.gravity = float(noise_m), np.asarray(gravity, dtype=float)
         self.payload_kg, self.payload_com_m = float(payload_kg), np.asarray(payload_com_m, dtype=float)
         self.payload_link = payload_link or self.markers[0][1]
@@ -197,7 +182,8 @@ class PhysicalRobot:
             out[j.name] = th
         return out
 
-    def _fk(self, th: dict, cov: dict, N: int, bend: dict | None = None) -> dict[str, np.ndarray]:
+    def _fk(self, th: dict, cov: dict, N: int, bend: dict | None = None, carriage: dict | None = None
+            ) -> dict[str, np.ndarray]:
         """Link poses in the base frame: link -> ``(N, 4, 4)``; ``cov``: column -> ``(N,)``."""
         T = {self.root: np.broadcast_to(np.eye(4), (N, 4, 4))}
         for j in self._order:
@@ -215,6 +201,8 @@ class PhysicalRobot:
                 A[:, :3, :3] = A[:, :3, :3] @ rotation_exp(j.axis * th[j.name][:, None])
             if bend is not None and j.name in bend and not seat:
                 A[:, :3, :3] = A[:, :3, :3] @ bend[j.name]
+            if carriage and j.name in carriage:  # the guide's straightness and pitch along the travel
+                A = apply_carriage(A, carriage[j.name])
             T[j.child] = A
         return T
 
@@ -236,7 +224,8 @@ class PhysicalRobot:
         """Covariate columns as ``(N,)`` arrays, see :meth:`_columns_read` for those not given."""
         cov = {**self._columns_read(), "temperature": self.t_ref_c if temperature is None else temperature}
         cov.update(covariates or {})
-        return {k: np.broadcast_to(np.asarray(v, dtype=float), (N,)) for k, v in cov.items()}
+        return {k: np.broadcast_to(np.asarray(v, dtype=str if k.startswith("level:") else float), (N,))
+                for k, v in cov.items()}
 
     def _state(self, q, temperature, directions, covariates=None):
         q = self._check_q(q)
@@ -263,7 +252,10 @@ class PhysicalRobot:
         rotations ``(N, M, 3, 3)`` (link frame times the marker's true rotation); arguments as
         :meth:`reach`."""
         th, cov, T = self._state(q, temperature, directions, covariates)
-        tilt = None
+        tilt, dr = None, self._drifts(q, th, cov, T)
+        if dr["offset"] or dr["carriage"]:
+            th = {n: v + dr["offset"].get(n, 0.0) for n, v in th.items()}
+            T = self._fk(th, cov, len(q), carriage=dr["carriage"])
         if self.torsion or self.lateral or self.base_tilt is not None:
             W = self._wrenches(T)
 
@@ -277,21 +269,37 @@ class PhysicalRobot:
                     for n, c in self.lateral.items()}  # the moment in that frame's axes
             for n, k in self.torsion.items():
                 th[n] = th[n] + k * W["joints"][n]["tau_Nm"]
-            T = self._fk(th, cov, len(T[self.root]), bend)
+            T = self._fk(th, cov, len(T[self.root]), bend, dr["carriage"])
             if self.base_tilt is not None:
                 M = W["base"]["M_Nm"]
                 tilt = rotation_exp(np.stack([self.base_tilt[0] * M[:, 0], self.base_tilt[1] * M[:, 1], 0 * M[:, 0]], -1))
-        p = np.stack([T[ln][:, :3, :3] @ x + T[ln][:, :3, 3] for (_, ln, _), x in zip(self.markers, self._marker_true)],
-                     1)
+        p = np.stack([(T[ln][:, :3, :3] @ x if m not in dr["marker"] else
+                       np.einsum("nij,nj->ni", T[ln][:, :3, :3], x + dr["marker"][m])) + T[ln][:, :3, 3]
+                      for (m, ln, _), x in zip(self.markers, self._marker_true)], 1)
         Rm = np.stack([T[ln][:, :3, :3] @ Rk for (_, ln, _), Rk in zip(self.markers, self._marker_rot)], 1)
         if tilt is not None:
             p = np.einsum("nij,nmj->nmi", tilt, p)
             Rm = np.einsum("nij,nmjk->nmik", tilt, Rm)
-        R, t = self.instrument_in_base[:3, :3], self.instrument_in_base[:3, 3]
+        Ti = self.instrument_in_base if dr["instrument"] is None else instrument_motion(dr["instrument"]) @ \
+            self.instrument_in_base
+        R, t = Ti[..., :3, :3], Ti[..., :3, 3]
+        if Ti.ndim == 3:  # an instrument frame that moves from row to row
+            return np.einsum("nji,nmj->nmi", R, p - t[:, None]), np.einsum("nji,nmjk->nmik", R, Rm)
         return (p - t) @ R, np.einsum("ji,nmjk->nmik", R, Rm)
 
+    def _drifts(self, q, th: dict, cov: dict, T: dict) -> dict:
+        """The drifts' values at these rows (:func:`~torchcal.sim.physsim_drifts.evaluate_drifts`)."""
+        rows = self._first_row + np.arange(len(q))
+        torque = None
+        if any(d.driver.startswith("torque:") for d in self.drifts):
+            W = self._wrenches(T)
+            torque = {n: W["joints"][n]["tau_Nm"] for n in self.joint_names if n in W["joints"]}
+        cmd = {n: q[:, k] for k, n in enumerate(self.joint_names)}
+        return evaluate_drifts(self.drifts, cmd, cov, rows, torque, len(q))
+
     def measure(self, q, *, temperature=None, covariates=None, outlier_fraction: float = 0.0,
-                outlier_mm=(5.0, 20.0), orientation_fraction: float = 1.0) -> Sample:
+                outlier_mm=(5.0, 20.0), orientation_fraction: float = 1.0, first_row: int = 0,
+                levels: dict | None = None) -> Sample:
         """Simulated measurement of ``q (N, dof)`` visited in row order: :meth:`reach` + noise
         ``noise_m`` per axis + outliers on ``round(outlier_fraction N)`` rows, each marker moved
         by a length uniform in ``outlier_mm`` (mm) in a random direction (per row, at random:
@@ -311,7 +319,13 @@ class PhysicalRobot:
             raise ValueError(f"measure: the robot's thermal growth or joint terms read the covariate(s) {missing}; "
                              "pass them in covariates={name: (N,) values}")
         dirs = self.directions(q)
-        true, true_R = self.reach_pose(q, temperature=temperature, directions=dirs, covariates=covariates)
+        self._first_row = int(first_row)  # rows are measured in order from first_row (drifts read it)
+        lv = {k: np.asarray(v).astype(str) for k, v in (levels or {}).items()}
+        try:
+            true, true_R = self.reach_pose(q, temperature=temperature, directions=dirs,
+                                           covariates={**covariates, **{f"level:{k}": v for k, v in lv.items()}})
+        finally:
+            self._first_row = 0
         pos = true + self._rng.normal(0, self.noise_m, true.shape)
         rows, v, per_marker = outlier_shifts(self._rng, N, M, outlier_fraction, outlier_mm)
         pos[rows] += v
@@ -320,6 +334,7 @@ class PhysicalRobot:
             cov["temperature"] = np.broadcast_to(np.asarray(self.t_ref_c if temperature is None else temperature,
                                                             dtype=float), (N,)).copy()
         cov.update(covariates)
+        cov.update(level_columns(lv))  # a text column, as a file's reader holds it: one 0/1 column per level
         if self.backlash:
             cov.update({f"dir.{n}": dirs[:, k] for k, n in enumerate(self.joint_names)})
         quat = true_quat = None  # drawn last: without pose markers the position data stay what they were

@@ -8,7 +8,7 @@ import torch
 from torchcal.effects.base import TIME_COVARIATES
 from torchcal.measure.data import Measurements
 
-__all__ = ["derive_directions", "extrapolation"]
+__all__ = ["derive_directions", "derive_row_order", "extrapolation", "fold_groups"]
 
 
 def derive_directions(data: Measurements) -> str | None:
@@ -30,6 +30,47 @@ def derive_directions(data: Measurements) -> str | None:
     for j, n in enumerate(data.joint_names):
         data.covariates[f"dir.{n}"] = d[inv, j]
     return key
+
+
+def derive_row_order(train: Measurements, test: Measurements | None) -> bool:
+    """Add the ``row`` covariate (0, 1, … in file order; the held-out rows after the training
+    ones) when the data has no time column: what changed during a session without a clock (a
+    joint re-mastered, a fixture knocked) still follows the order the rows were measured in.
+    Returns whether it was added."""
+    from torchcal.effects.drivers import ROW
+
+    if ROW in train.covariates or any(k in train.covariates for k in TIME_COVARIATES) or len(train) < 2:
+        return False
+    train.covariates[ROW] = torch.arange(len(train), dtype=train.q.dtype, device=train.q.device)
+    if test is not None and ROW not in test.covariates:
+        test.covariates[ROW] = len(train) + torch.arange(len(test), dtype=test.q.dtype, device=test.q.device)
+    return True
+
+
+def fold_groups(data: Measurements, duplicates: torch.Tensor) -> torch.Tensor:
+    """A group id per row for the folds: rows with identical commands (``duplicates``, one id
+    per row) and rows sharing a time stamp stay together, so that a step in time is never
+    "found" by rows of one instant on both sides of a fold."""
+    key = next((k for k in TIME_COVARIATES if k in data.covariates), None)
+    if key is None or torch.unique(data.covariates[key]).numel() == len(data):
+        return duplicates  # no instant holds two rows: the folds stay what they were
+    parent = list(range(len(data)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+    cols = [duplicates] + ([] if key is None else [torch.unique(data.covariates[key], return_inverse=True)[1]])
+    for g in cols:
+        first: dict[int, int] = {}
+        for i, v in enumerate(g.tolist()):
+            if v in first:
+                parent[root(i)] = root(first[v])
+            else:
+                first[v] = i
+    _, out = torch.unique(torch.tensor([root(i) for i in range(len(data))]), return_inverse=True)
+    return out.to(duplicates.device)
 
 
 def extrapolation(eff, test: Measurements | None) -> list[dict]:

@@ -7,7 +7,7 @@ guessed on a joint axis hides that joint's offset at the guess, so a set judged 
 would lose to a smaller one for a reason that has nothing to do with the robot.
 
 **Priors.** The full set is also fitted with a Gaussian prior on every geometric error (scale in
-mm and mrad chosen by the penalised CV error, :func:`~torchcal.pipelines.loop.fit.evaluate_prior`).
+mm and mrad chosen by the penalised CV error, :func:`~torchcal.pipelines.crossval.evaluate.evaluate_prior`).
 When the full set itself was accepted, on small data (fewer than ten values per parameter,
 :func:`~torchcal.pipelines.fitting.is_small`) the prior is a setting of the same model and
 replaces it when its penalised CV error is lower; otherwise it must pass the rule against the best

@@ -44,6 +44,8 @@ class LinearCV:
     def __init__(self, r: Tensor, w: Tensor, base: Tensor, x0: Tensor, prior: Tensor | None, groups: list[Tensor],
                  rows: Tensor, n_rows: int, folds: list[Tensor], c: float | None):
         self.r, self.rows, self.n_rows, self.c = r, rows, n_rows, c
+        self.n_searched = 0  # columns a screening searched before these groups (0: only these)
+        self.allow_whole = True  # forward may try every group at once when none passes alone
         A = torch.cat([base] + list(groups), 1)
         norm = A.norm(dim=0)
         self.scale = torch.where(norm > 0, norm, torch.ones_like(norm))
@@ -273,11 +275,11 @@ class LinearCV:
         cur, k_cur = (self.scores(chosen), self.k_eff(chosen)) if baseline is None else baseline
         history = []
         pool = [g for g in range(len(self.slices)) if g not in chosen and self.usable[g]]
-        t_sel = selection_threshold(len(pool) + (len(pool) > 1))
+        t_sel = selection_threshold(max(len(pool) + (len(pool) > 1), self.n_searched))
         while pool and (max_modes is None or len(chosen) - len(start) < max_modes):
             tried, passing = {}, []
             # each remaining group on its own; only when none passes, all of them at once
-            for options in ([[g] for g in pool], [list(pool)] if len(pool) > 1 else []):
+            for options in ([[g] for g in pool], [list(pool)] if len(pool) > 1 and self.allow_whole else []):
                 for opt, (s, k) in zip(options, self._score_options(chosen, options)):
                     t, pen_ok, _ = compare(cur, s, k_cur, k, n_obs)
                     tried[opt[0] if len(opt) == 1 else -1] = t
@@ -307,7 +309,7 @@ class LinearCV:
                 history: list) -> tuple[list[int], Tensor, float]:
         """Selection that can change its mind: after the forward steps, a mode (or a block added at
         once) that no longer passes the rule against the set without it (at the exit threshold
-        :data:`~torchcal.pipelines.loop.selection.T_EXIT`) leaves, and a mode is
+        :data:`~torchcal.pipelines.crossval.scores.T_EXIT`) leaves, and a mode is
         exchanged for one outside when the rule prefers the set with the other; until neither
         applies. ``start`` stays."""
         for _ in range(4 * len(self.slices) + 4):

@@ -3,7 +3,7 @@ model lacks, add it, and report held-out error before and after.
 
 Every decision (which geometric parameters and prior, which effect and which of its modes,
 whether the residual ELM helps) is made on the training rows alone, by K-fold cross-validation
-under the rule of :mod:`torchcal.pipelines.loop.selection`. The held-out ``test`` rows never steer anything:
+under the rule of :mod:`torchcal.pipelines.crossval.scores`. The held-out ``test`` rows never steer anything:
 they are only measured.
 
 Stages:
@@ -37,7 +37,7 @@ from torchcal.measure.stats import noise_floor
 from torchcal.measure.trust import stage_problems
 from torchcal.options import Options
 from torchcal.pipelines.fitting import check_plausible
-from torchcal.pipelines.loop.covariates import derive_directions
+from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order, fold_groups
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
@@ -216,12 +216,14 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
         if test is not None:
             derive_directions(test)
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
+    if derive_row_order(train, test):
+        say("no time column: the row order is a driver ('row'), for what changed during the session")
 
 
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):
     """The run's context (folds, set-up, orientation weight), its stage book, the nominal model
     (base registration only), whose stage opens the book, and how the orientation weight was chosen."""
-    fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, duplicate_groups(train))
+    fl = folds_of(len(train), min(opt.folds, len(train)), opt.seed, fold_groups(train, duplicate_groups(train)))
     if test is not None:
         check_heldout(train, test)
     setup = Setup.from_data(robot, train, geometric_start(robot, train, None).values) if needs_setup(train) else None

@@ -28,7 +28,9 @@ from torchcal.effects.base import TIME_COVARIATES
 from torchcal.measure.data import Measurements
 from torchcal.measure.trust import FOREIGN_RATIO
 from torchcal.pipelines.loop.covariates import extrapolation
-from torchcal.pipelines.loop.fit import Context, assemble, fit_params, split_params
+from torchcal.pipelines.crossval.evaluate import fit_params
+from torchcal.pipelines.crossval.models import Context
+from torchcal.pipelines.loop.parts import assemble, split_params
 from torchcal.pipelines.loop.stages import stage_stats
 
 __all__ = ["is_session_driver", "other_session", "hold_session_terms", "HeldOutCheck", "check_heldout_rows",

@@ -7,11 +7,12 @@ from torch import Tensor
 
 from torchcal.effects import effect_params
 from torchcal.params import ParamSet
-from torchcal.pipelines.crossval.models import Context, Model, effect_problem
+from torchcal.pipelines.crossval.models import Context, Model, effect_problem, fit_noise
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.loop.parts import assemble, split_params
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.loop.records import EffectStart
+from torchcal.pipelines.loop.screen import fitted_payload, screen_family
 from torchcal.pipelines.crossval.scores import T_ACCEPT, compare, penalised
 from torchcal.problems.calibration import EffectCalibrationProblem
 
@@ -68,7 +69,7 @@ def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard:
     error chooses (:data:`SOFT_SCALES`), when it beats the hard selection ``hard`` and passes the
     rule against ``baseline``; None otherwise (the ridge is then left off). On noisy data many
     small modes held by a prior can explain what no single mode shows clearly."""
-    if shared or not ctx.soft:  # a bilinear family (an unknown payload) is chosen mode by mode
+    if shared or not ctx.soft or not lcv.allow_whole:  # a bilinear or screened family: chosen mode by mode
         return None
     n3 = 3 * ctx.n_obs
     opt = lcv.soft(forced, ctx.n_obs, [1.0 / (m * (n3 ** 0.5)) for m in SOFT_SCALES])
@@ -95,6 +96,37 @@ def _step_words(h: dict, labels: list[str]) -> dict:
             "t": {name(g): t for g, t in h["tried"].items()}}
 
 
+def _screened(ctx: Context, current: Model, prob, eff, lin: tuple):
+    """A screened family (:mod:`~torchcal.pipelines.loop.screen`) expanded into the pairs that
+    explain something around ``current`` (``lin``: its residuals, Jacobian, IRLS weights and free
+    values), its torques with the payload an accepted effect fitted; None when no pair passes."""
+    r, Jb, w, x = lin
+    load = fitted_payload(current.effects, current.params)
+    if load is not None:  # the gravity torques as the accepted model knows them: with its payload
+        eff = eff.with_payload(load[0], load[1], ctx.data)
+    # the noise the current model leaves (the context's may date from a model far coarser)
+    return screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x),
+                         ctx.c)
+
+
+def _screened_rule(lcv: LinearCV, eff) -> None:
+    """The selection of a screened family: at the Bonferroni threshold of the whole space it
+    searched, and never all of its pairs at once, nor all of them under a prior (they span
+    unrelated parameters: no finding). Other effects keep the rule as it is."""
+    if getattr(eff, "screened", False):
+        lcv.n_searched = eff.n_searched
+        lcv.allow_whole = False
+
+
+def _relinearised(eff, geometry: Tensor):
+    """A family whose columns are the geometry's Jacobian, taken again where the linear step has
+    moved the geometry (a model that absorbed a 12 mm tool change turns the flange by mrad, which
+    those columns feel), its start values kept."""
+    theta, out = eff.theta, eff.at_geometry(geometry)
+    out.theta = theta
+    return out
+
+
 def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=frozenset()) -> EffectStart:
     """Where a candidate effect starts (:class:`~torchcal.pipelines.loop.records.EffectStart`):
     modes chosen (for a family) and start values from the linear step around ``current`` without
@@ -111,10 +143,13 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     Jb = prob.data_jacobian(x)
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
+    if getattr(eff, "screened", False) and (eff := _screened(ctx, current, prob, eff, (r, Jb, w, x))) is None:
+        return EffectStart(effect=None, prior_mm=current.prior_mm, reason="no (parameter, driver) pair passed the screening")
     cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
     gcols = [cols_all[:, g] for g in groups]
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
+    _screened_rule(lcv, eff)
     out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
         forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
@@ -184,6 +219,8 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
     start = base.clone()
     start.values[base.free_index] = base.values[base.free_index] + step
+    if getattr(eff, "screened", False):
+        eff = _relinearised(eff, start.values[: robot.n_params])
     # the geometry is judged again with the effect in: what the rigid model's misfit hid may show now
     start.free[: ctx.n_geo] = current.info["candidates"]
     params = ParamSet.concat(start, effect_params([eff]))

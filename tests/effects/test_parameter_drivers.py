@@ -1,0 +1,99 @@
+"""The any-parameter, any-driver family: its columns against finite differences of the kinematics,
+its shapes, and its words."""
+from __future__ import annotations
+
+import torch
+
+from torchcal.effects import ParameterDrivers
+from torchcal.effects.shapes import shape_column, step_breaks
+from torchcal.kinematics.robots import shipped
+
+
+def _robot_and_rows(n: int = 12, seed: int = 0):
+    robot = shipped("ur5e")
+    g = torch.Generator().manual_seed(seed)
+    q = (torch.rand(n, robot.dof, generator=g, dtype=torch.float64) - 0.5) * 3.0
+    geo = torch.randn(robot.n_params, generator=g, dtype=torch.float64) * 1e-3
+    cov = {"row": torch.arange(n, dtype=torch.float64),
+           "tool=a": (torch.arange(n) % 2 == 0).double(), "tool=b": (torch.arange(n) % 2 == 1).double()}
+    return robot, q, geo, cov
+
+
+def test_columns_match_finite_differences_of_the_parameter():
+    """Each term's column (a joint's zero as Δq, any other parameter through the geometric
+    Jacobian) equals the change of the marker positions when that parameter alone moves by
+    ε·f(driver) row by row (central differences)."""
+    robot, q, geo, cov = _robot_and_rows()
+    mk = robot.marker_names[0]
+    terms = [("elbow_joint.offset", "row", "step5.5"), ("base.rx", "row", "lin"),
+             (f"{mk}.dy", "level:tool", "lvl=b"), ("wrist_1_joint.dz", "q:wrist_1_joint", "sin1"),
+             ("shoulder_lift_joint.droll", "q:elbow_joint", "hinge0.2")]
+    eff = ParameterDrivers(robot, geometry=geo, terms=terms, ranges={"row": (5.5, 5.5)})
+    prep = eff.prepare(q, cov)
+    basis = eff.linear_basis(prep)
+    Rb, _ = robot.base_transform(geo)
+    Jq = robot.joint_jacobian(q, geo, check=False)[:, :, :3, :]
+    D = torch.zeros(q.shape[0], len(robot.marker_names), 3, len(terms), dtype=torch.float64)
+    if basis.dq is not None:
+        D = D + Jq @ basis.dq[:, None]
+    if basis.dp is not None:
+        D = D + Rb @ basis.dp
+    eps = 1e-6
+    for t, (p, _, _) in enumerate(terms):
+        k = robot.param_names.index(p)
+        f = prep.features["F"][:, t]
+        pp, pm = geo.repeat(q.shape[0], 1), geo.repeat(q.shape[0], 1)
+        pp[:, k] += eps * f
+        pm[:, k] -= eps * f
+        fd = (robot.positions(q[:, None], pp) - robot.positions(q[:, None], pm))[:, 0] / (2 * eps)
+        assert torch.allclose(D[..., t], fd, atol=1e-7, rtol=1e-5), p
+
+
+def test_step_breaks_and_shapes():
+    x = torch.arange(10, dtype=torch.float64)
+    b = step_breaks(x, min_side=3)
+    assert b[0] == 2.5 and b[-1] == 6.5 and len(b) == 5
+    col = shape_column("step4.5", x, 0.0, 1.0)
+    assert col.tolist() == [0.0] * 5 + [1.0] * 5
+    hinge = shape_column("hinge3", x, 0.0, 1.0)
+    assert torch.allclose(hinge, torch.clamp(x - 3, min=0))
+
+
+def test_words_say_the_finding_in_units():
+    robot, q, geo, cov = _robot_and_rows()
+    eff = ParameterDrivers(robot, geometry=geo, terms=[("elbow_joint.offset", "row", "step212.5"),
+                                                        ("base.ry", "time:time", "lin"),
+                                                        (f"{robot.marker_names[0]}.dy", "level:tool", "lvl=probe")])
+    eff.theta = torch.tensor([1.9e-3, 0.8e-3 / 3600, 12.4e-3], dtype=torch.float64)
+    words = eff.describe()
+    assert "joint elbow_joint's zero shifts by 1.9 mrad at row 213, and stays" == words[0]
+    assert "0.8 mrad per hour" in words[1] and "instrument frame" in words[1]
+    assert "differs by 12.4 mm for tool = probe" in words[2]
+
+
+def test_saved_and_loaded_effect_predicts_the_same():
+    robot, q, geo, cov = _robot_and_rows()
+    eff = ParameterDrivers(robot, geometry=geo, terms=[("elbow_joint.offset", "row", "step5.5"),
+                                                        ("base.rx", "row", "lin")], ranges={"row": (5.5, 5.5)})
+    eff.theta = torch.tensor([1e-3, 2e-5], dtype=torch.float64)
+    eff.covariate_range = {"row": (0.0, 11.0)}
+    again = ParameterDrivers.from_state_dict(eff.state_dict(), robot)
+    p = robot.positions(q, geo)
+    assert torch.allclose(eff.position_correction(p, q, cov), again.position_correction(p, q, cov), atol=1e-12)
+    assert torch.allclose(eff.joint_correction(q, cov), again.joint_correction(q, cov), atol=1e-12)
+
+
+def test_direct_columns_equal_the_effect_evaluated_term_by_term():
+    """The family's own linear basis (built directly) is the generic one (the effect evaluated
+    at each unit coefficient)."""
+    from torchcal.effects.base import Effect
+
+    robot, q, geo, cov = _robot_and_rows()
+    terms = [("elbow_joint.offset", "row", "step5.5"), ("base.rx", "row", "lin"),
+             (f"{robot.marker_names[0]}.dy", "level:tool", "lvl=b"), ("wrist_1_joint.offset", "q:elbow_joint", "cos1"),
+             ("shoulder_lift_joint.droll", "q:elbow_joint", "hinge0.2")]
+    eff = ParameterDrivers(robot, geometry=geo, terms=terms, ranges={"row": (5.5, 5.5)})
+    prep = eff.prepare(q, cov)
+    a, b = eff.linear_basis(prep), Effect.linear_basis(eff, prep)
+    assert torch.allclose(a.dq, b.dq, atol=1e-15) and torch.allclose(a.dp, b.dp, atol=1e-15)
+    assert a.groups == b.groups

@@ -1,0 +1,69 @@
+"""The loop's any-parameter, any-driver family on small simulated sets: a step found at the right
+row, rows of one instant kept in one fold, and nothing accepted on a clean set."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchcal import Robot
+from torchcal.measure.data import Measurements
+from torchcal.pipelines.loop.covariates import fold_groups
+from torchcal.pipelines.crossval.models import duplicate_groups, folds_of
+from torchcal.pipelines.loop.run import run_loop
+from torchcal.sim.physsim import PhysicalRobot
+from torchcal.sim.physsim_drifts import Drift
+
+UR5E = (Path(__file__).resolve().parents[2] / "urdf" / "ur5e.urdf").read_text()
+
+
+def _sets(drifts, n: int, m: int, seed: int):
+    real = PhysicalRobot(UR5E, ["tool@flange"], seed=seed, drifts=drifts)
+    q = real.sample_q(n + m)
+    train = real.measure(q[:n]).to_measurements()
+    test = real.measure(q[n:], first_row=n).to_measurements()
+    return Robot.from_urdf(UR5E, markers=["tool@flange"]), train, test
+
+
+@pytest.mark.slow
+def test_a_zero_step_is_found_at_its_row():
+    """The elbow re-mastered at row 50 of 90 (1.5 mrad, no time column): the loop names a step
+    of the elbow's zero (or an alias of it) in the row order, between rows 49 and 50."""
+    step = Drift("offset:elbow_joint", "row", lambda r: 1.5e-3 * (r >= 50))
+    robot, train, test = _sets([step], 90, 30, seed=4)
+    res = run_loop(robot, train, test, seed=4, log=None, candidates=["parameter_drivers"], elm=False)
+    modes = [m for a in res.accepted for m in a["modes"]]
+    steps = [m for m in modes if "~row~step" in m]
+    assert steps, modes
+    assert abs(float(steps[0].split("step")[1]) - 49.5) < 1e-9
+
+
+@pytest.mark.slow
+def test_clean_set_accepts_nothing():
+    robot, train, test = _sets([], 120, 30, seed=7)
+    res = run_loop(robot, train, test, seed=7, log=None, candidates=["parameter_drivers"], elm=False)
+    assert res.accepted == []
+
+
+def test_rows_of_one_instant_share_a_fold():
+    """Four markers' rows logged at one time stamp each (or repeated commands) never straddle
+    two folds; without shared instants the folds are the duplicates' folds as before."""
+    g = torch.Generator().manual_seed(0)
+    n = 40
+    q = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    t = torch.arange(n, dtype=torch.float64) // 4  # four rows per instant
+    data = Measurements(q, torch.zeros(n, 1, 3, dtype=torch.float64), ["m"], ["a", "b", "c"], None, {"time": t})
+    groups = fold_groups(data, duplicate_groups(data))
+    folds = folds_of(n, 5, 0, groups)
+    fold_of = torch.empty(n, dtype=torch.long)
+    for k, f in enumerate(folds):
+        fold_of[f] = k
+    for v in torch.unique(t):
+        assert torch.unique(fold_of[t == v]).numel() == 1
+    assert sorted(torch.cat(folds).tolist()) == list(range(n))
+    solo = Measurements(q, torch.zeros(n, 1, 3, dtype=torch.float64), ["m"], ["a", "b", "c"], None,
+                        {"time": torch.arange(n, dtype=torch.float64)})
+    dup = duplicate_groups(solo)
+    assert fold_groups(solo, dup) is dup

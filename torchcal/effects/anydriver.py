@@ -1,0 +1,400 @@
+"""Any parameter, any driver: a general family in which any parameter of the identified model
+varies with any driver, in any of a few shapes.
+
+Real cells hold errors no catalogue lists, and they share one form: *some parameter of the model
+changes with some driver*. A joint re-mastered mid-session is a zero offset stepping with time; a
+tracker that settles is the instrument frame drifting with time; a linear axis whose carriage
+pitches along its travel is a joint origin following that joint's position; a tool swapped between
+rows is a marker point with one value per tool; a gear that stiffens under load is a zero offset
+following the gravity torque piecewise. This family holds them all::
+
+    Δθ_p(row) = Σ_t c_t f_t(driver_t(row))
+
+* **parameters** ``p``: each joint's zero offset and origin (translations and turns), the
+  instrument (base) frame, each marker point;
+* **drivers** (:mod:`torchcal.effects.drivers`): each joint's position (prismatic ones in m), the
+  gravity torque at each joint, time or the row order, each numeric covariate, each text column;
+* **shapes** (:mod:`torchcal.effects.shapes`): linear, smooth (quadratic spline), periodic
+  (harmonics of an angle), a step at an unknown time or row, piecewise-linear, one value per level.
+
+A zero offset acts as ``Δq`` on its joint, exactly; every other parameter acts through its column
+of the geometric Jacobian at the fitted geometry (a marker displacement, first order in ``Δθ``,
+which is micro-radians to millimetres). Joint drivers pair with the parameters of joints within
+:data:`~torchcal.effects.terms.REACH` of them along the chain; time, row, covariates and text
+columns pair with every parameter.
+
+The loop tries the family last in a round (:attr:`Effect.fallback`): it takes only what no
+catalogued effect explains. Its space is large, so the loop screens each (parameter, driver) pair
+with low-order shapes first (:mod:`torchcal.pipelines.loop.screen`), expands the pairs that
+explain something into every shape, and selects single terms by the cross-validated rule at the
+Bonferroni threshold of the whole space searched (:attr:`n_searched`).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcal.effects.base import Effect, LinearBasis, Prepared
+from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
+from torchcal.effects.gravity import body_inertials
+from torchcal.effects.shapes import (harmonic_tags, knee_tags, screen_tags, shape_column, smooth_tags,
+                                     step_breaks)
+from torchcal.effects.terms import _neighbours
+from torchcal.effects import anydriver_words as words
+from torchcal.measure.levels import LEVEL_SEP, factor_levels
+
+__all__ = ["ParameterDrivers", "MAX_STEPS"]
+
+MAX_STEPS = 8  # steps and knees offered per (parameter, driver) pair: the best by the screening projection
+
+
+def _levels(tag: str) -> bool:
+    return tag.startswith("lvl=")
+
+
+class ParameterDrivers(Effect):
+    """Any model parameter varying with any driver (module docstring).
+
+    Args:
+        terms: ``[(parameter, driver, shape), …]`` (default: none; :meth:`bind` lists the pairs
+            and :meth:`expanded` their shapes).
+        ranges: driver -> ``(mean, half range)`` of its training values (set by :meth:`bind`).
+        n_searched: columns of the whole space the selection searched (for its threshold).
+    """
+
+    name = "parameter_drivers"
+    description = "a model parameter that varies with a driver (a joint, torque, time, row, covariate or text column)"
+    reads = ("measured",)
+    selectable = True
+    fallback = True
+    screened = True  # the loop screens its pairs before expanding them (pipelines.loop.screen)
+
+    def __init__(self, robot, joints=None, geometry=None, terms: list | None = None, ranges: dict | None = None,
+                 n_searched: int = 0, payload: list | None = None, payload_link: str | None = None):
+        self.terms = [tuple(t) for t in terms or []]
+        # a payload an accepted effect fitted (mass moments, kg and kg·m), in every gravity torque
+        self.payload = None if payload is None else [float(v) for v in payload]
+        self.payload_link = payload_link
+        self.ranges = {k: tuple(v) for k, v in (ranges or {}).items()}
+        self.n_searched = int(n_searched)
+        super().__init__(robot, joints, geometry)
+
+    def default_joints(self) -> list[str]:
+        return list(self.robot.joint_names)
+
+    def config(self) -> dict:
+        return {"terms": [list(t) for t in self.terms], "ranges": {k: list(v) for k, v in self.ranges.items()},
+                "n_searched": self.n_searched, "payload": self.payload, "payload_link": self.payload_link}
+
+    def torques(self, q: Tensor) -> Tensor:
+        """``(N, dof)`` the gravity torque drivers at ``q`` (URDF inertials and the fitted payload)."""
+        return gravity_torques(self.robot, q, self.geometry, self.payload, self.payload_link)
+
+    def with_payload(self, payload: list[float], link: str, data) -> "ParameterDrivers":
+        """A copy whose torque drivers include a fitted payload (their ranges taken again on ``data``)."""
+        out = self._copy(payload=list(payload), payload_link=link)
+        tq = out.torques(data.q)
+        for d in out.ranges:
+            if d.startswith("torque:"):
+                x = tq[:, self.robot.joint_names.index(d.split(":", 1)[1])]
+                out.ranges[d] = (float(x.mean()), float((x.max() - x.min()) / 2))
+        return out
+
+    # -- the space ---------------------------------------------------------------------
+    def _offset_params(self) -> dict[str, str]:
+        """Zero-offset parameter name -> its joint."""
+        out = {}
+        for jt in self.robot.joints:
+            if jt.name in self.robot.joint_names:
+                out[jt.offset_name or f"{jt.name}.offset"] = jt.name
+        return out
+
+    def parameters(self, markers: list[str]) -> dict[str, str | None]:
+        """Parameter -> the joint it belongs to (None: the instrument frame or a marker point):
+        the effect joints' zero offsets and origins, the base frame, the points of ``markers``."""
+        names = set(self.robot.param_names)
+        out: dict[str, str | None] = {n: None for n in self.robot.param_names if n.startswith("base.")}
+        offs = {j: p for p, j in self._offset_params().items()}
+        for j in self.joints:
+            if offs.get(j) in names:
+                out[offs[j]] = j
+            out.update({f"{j}.{a}": j for a in ("dx", "dy", "dz", "droll", "dpitch", "dyaw") if f"{j}.{a}" in names})
+        for m in markers:
+            out.update({f"{m}.{a}": None for a in ("dx", "dy", "dz") if f"{m}.{a}" in names})
+        return out
+
+    def pairs(self, params: dict[str, str | None], drivers: list[str]) -> list[tuple[str, str]]:
+        """(parameter, driver) pairs: joint drivers with the parameters of joints near them."""
+        near = _neighbours(self.robot)
+        out = []
+        for d in drivers:
+            kind = driver_kind(d)
+            for p, j in params.items():
+                if kind in ("q", "torque"):
+                    if j is None or j not in near.get(d.split(":", 1)[1], []):
+                        continue
+                out.append((p, d))
+        return out
+
+    def bind(self, data, min_lever_m: float = 5e-3) -> "ParameterDrivers":
+        """A copy for ``data``: joints that move the markers, the training range of every driver,
+        and as terms the screening shapes of every (parameter, driver) pair
+        (:func:`~torchcal.effects.shapes.screen_tags`)."""
+        moved = Effect.bind(self, data, min_lever_m)
+        torques = bool(body_inertials(self.robot)) if self.robot.urdf_text else False
+        drivers = list_drivers(self.robot, moved.joints, data.covariates, torques)
+        out = type(self)(self.robot, moved.joints, geometry=self.geometry)
+        tq = out.torques(data.q) if torques else None
+        for d in drivers:
+            if driver_kind(d) != "level":
+                x = driver_values(self.robot, d, data.q, data.covariates, tq)
+                x = x[torch.isfinite(x)]
+                out.ranges[d] = (float(x.mean()), float((x.max() - x.min()) / 2))
+        units = dict(zip(self.robot.joint_names, self.robot.joint_units))
+        levels = factor_levels(data.covariates)
+        terms = []
+        for p, d in out.pairs(out.parameters(list(data.marker_names)), drivers):
+            if driver_kind(d) == "level":
+                f = d.split(":", 1)[1]
+                terms += [(p, d, f"lvl={lv}") for lv in levels[f][1:]]  # the first level is the baseline
+            else:
+                rev = driver_kind(d) == "q" and units[d.split(":", 1)[1]] == "rad"
+                terms += [(p, d, t) for t in screen_tags(driver_kind(d), rev)]
+        out.terms = terms
+        out.theta = torch.zeros(out.n_params, dtype=self.robot.dtype, device=self.robot.device)
+        out.n_searched = len(terms)
+        out.covariate_range = {c: (float(data.covariates[c].min()), float(data.covariates[c].max()))
+                               for c in out.covariates if c in data.covariates}
+        return out
+
+    def shapes_for(self, driver: str, x: Tensor) -> list[str]:
+        """Every shape of a (numeric) driver with training values ``x (N,)``, steps aside."""
+        kind = driver_kind(driver)
+        rev = kind == "q" and self.robot.joint_units[self.robot.joint_names.index(driver.split(":", 1)[1])] == "rad"
+        out = ["lin"] + smooth_tags(x)
+        if rev:
+            out += harmonic_tags()
+        return out  # knees (hinges, clips) and steps: the best of their grids, chosen by the screening
+
+    def breaks(self, driver: str, data, tq: Tensor | None = None) -> list[str]:
+        """Every step or knee ``driver`` can have on ``data``: steps in time and rows, hinges
+        (and clips of a torque) at fine quantiles of the others; none for a text column
+        (``tq``: :meth:`torques` on ``data``, when known)."""
+        kind = driver_kind(driver)
+        if kind == "level":
+            return []
+        if kind == "torque" and tq is None:
+            tq = self.torques(data.q)
+        x = driver_values(self.robot, driver, data.q, data.covariates, tq)
+        x = x[torch.isfinite(x)]
+        if kind in ("time", "row"):
+            return [f"step{b:.10g}" for b in step_breaks(x)]
+        return knee_tags(kind, x)
+
+    def expanded(self, pairs: list[tuple[str, str]], data, steps: dict | None = None) -> "ParameterDrivers":
+        """A copy whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair ->
+        the step and knee shapes to offer, :meth:`breaks`)."""
+        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
+        levels = factor_levels(data.covariates)
+        terms = []
+        names = set(self.robot.param_names)
+        whole = []  # a marker point that differs by level: all three coordinates
+        for p, d in pairs:
+            m = self._point(p) if driver_kind(d) == "level" else None
+            whole += [(f"{m}.{a}", d) for a in ("dx", "dy", "dz")] if m is not None else [(p, d)]
+        for p, d in dict.fromkeys(q for q in whole if q[0] in names):
+            if driver_kind(d) == "level":
+                f = d.split(":", 1)[1]
+                terms += [(p, d, f"lvl={lv}") for lv in levels[f][1:]]
+                continue
+            x = driver_values(self.robot, d, data.q, data.covariates, tq)
+            terms += [(p, d, t) for t in self.shapes_for(d, x[torch.isfinite(x)])]
+            terms += [(p, d, t) for t in (steps or {}).get((p, d), [])]
+        return self._copy(terms=terms)
+
+    def space_size(self, pairs: list[tuple[str, str]], data) -> int:
+        """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every
+        step or knee of its grid, every level."""
+        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
+        levels = factor_levels(data.covariates)
+        per: dict[str, int] = {}
+        for d in dict.fromkeys(d for _, d in pairs):
+            if driver_kind(d) == "level":
+                per[d] = len(levels[d.split(":", 1)[1]]) - 1
+                continue
+            x = driver_values(self.robot, d, data.q, data.covariates, tq)
+            per[d] = len(self.shapes_for(d, x[torch.isfinite(x)])) + len(self.breaks(d, data, tq))
+        return sum(per[d] for _, d in pairs)
+
+    # -- the effect's interface --------------------------------------------------------
+    @property
+    def covariates(self) -> list[str]:
+        out = []
+        for _, d, t in self.terms:
+            k = driver_kind(d)
+            if k == "level":
+                out.append(f"{d.split(':', 1)[1]}{LEVEL_SEP}{t[4:]}")
+            elif k in ("time", "cov"):
+                out.append(d.split(":", 1)[1])
+            elif k == "row":
+                out.append(d)
+        return list(dict.fromkeys(out))
+
+    def param_info(self):
+        units = dict(zip(self.robot.param_names, self.robot.param_units))
+        return [(f"{p}~{d}~{t}", words.coef_unit(units[p], self.robot, d, t)) for p, d, t in self.terms]
+
+    def _point(self, p: str) -> str | None:
+        """The marker whose point ``p`` is a coordinate of (None: another parameter)."""
+        head = p.rsplit(".", 1)[0]
+        return head if head in self.robot.marker_names else None
+
+    def _label(self, p: str, d: str, t: str) -> str:
+        """A term's mode: one per term; a text column's levels together, and for a marker point
+        its three coordinates together too (a tool is a point, whatever frame its link turns)."""
+        if not _levels(t):
+            return f"{p}~{d}~{t}"
+        m = self._point(p)
+        return f"{m}.point~{d}~levels" if m is not None else f"{p}~{d}~levels"
+
+    def modes(self):
+        out: dict[str, list[int]] = {}
+        for i, (p, d, t) in enumerate(self.terms):
+            out.setdefault(self._label(p, d, t), []).append(i)
+        return list(out.items())
+
+    def with_modes(self, labels: list[str]) -> "ParameterDrivers":
+        keep = set(labels)
+        return self._copy(terms=[(p, d, t) for p, d, t in self.terms if self._label(p, d, t) in keep])
+
+    def _copy(self, **changes) -> "ParameterDrivers":
+        if "joints" in changes and "terms" not in changes:
+            changes["terms"] = list(self.terms)
+        return super()._copy(**changes)
+
+    def applicable(self, data) -> tuple[bool, str]:
+        return True, ""
+
+    def proposes(self, labels: list[str]) -> tuple[bool, str]:
+        """Nothing of its own when every chosen term is a joint's zero following that joint's own
+        gravity torque linearly: that is joint compliance, which the catalogue names."""
+        offs = self._offset_params()
+        own = [p for p, d, t in (lab.split("~") for lab in labels) if t == "lin" and d == f"torque:{offs.get(p)}"]
+        if labels and len(own) == len(labels):
+            return False, "its terms are joint compliance (a zero linear in its own torque): the catalogue's to name"
+        return True, ""
+
+    def clamped(self, covariates: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Time, and the row order, held inside their training range: a session's trend says
+        nothing of rows beyond it."""
+        out = super().clamped(covariates)
+        if ROW in out and ROW in self.covariate_range:
+            out[ROW] = out[ROW].clamp(*self.covariate_range[ROW])
+        return out
+
+    def _column(self, d: str, t: str, q: Tensor, covariates: dict, tq: Tensor | None) -> Tensor:
+        if _levels(t):
+            c = covariates.get(f"{d.split(':', 1)[1]}{LEVEL_SEP}{t[4:]}")
+            # a level the rows never show reads 0 there; an unrecorded one (NaN) counts as the baseline
+            return q.new_zeros(q.shape[0]) if c is None else torch.nan_to_num(c.to(q), nan=0.0)
+        x = driver_values(self.robot, d, q, covariates, tq)
+        mean, half = self.ranges.get(d, (0.0, 1.0))
+        return shape_column(t, x, mean, half)
+
+    def prepare(self, q, covariates):
+        tq = self.torques(q) if any(d.startswith("torque:") for _, d, _ in self.terms) else None
+        cols = [self._column(d, t, q, covariates, tq) for _, d, t in self.terms]
+        F = torch.stack(cols, 1) if cols else q.new_zeros(q.shape[0], 0)
+        offs = self._offset_params()
+        is_q = [p in offs for p, _, _ in self.terms]
+        target = torch.tensor([self.robot.joint_names.index(offs[p]) if p in offs else 0 for p, _, _ in self.terms],
+                              dtype=torch.long, device=q.device)
+        pos = [i for i, b in enumerate(is_q) if not b]
+        G = None
+        if pos:
+            k = torch.tensor([self.robot.param_names.index(self.terms[i][0]) for i in pos], device=q.device)
+            J = self.robot.param_jacobian(q, self.geometry, check=False)[..., k]  # (N, M, 3, T') instrument frame
+            Rb, _ = self.robot.base_transform(self.geometry)
+            G = Rb.T @ J  # robot base frame, as position_delta speaks
+        X = {}  # each driver's value per row (a text column: its level's index, the baseline 0), for plots
+        for _, d, t in self.terms:
+            if driver_kind(d) != "level":
+                X.setdefault(d, driver_values(self.robot, d, q, covariates, tq))
+        for (_, d, t), c in zip(self.terms, cols):
+            if _levels(t):
+                X.setdefault(d, torch.zeros_like(c))
+                X[d] = torch.where(c > 0, c * (1 + sorted({u for _, e, u in self.terms if e == d}).index(t)), X[d])
+        return Prepared({"F": F, "X": X, "target": target, "is_q": torch.tensor(is_q, dtype=torch.bool, device=q.device),
+                         "pos": torch.tensor(pos, dtype=torch.long, device=q.device), "G": G})
+
+    def joint_delta(self, theta, prep):
+        F, target, is_q = prep.features["F"], prep.features["target"], prep.features["is_q"]
+        if not bool(is_q.any()):
+            return None
+        out = theta.new_zeros(theta.shape[0], F.shape[0], self.robot.dof)
+        th = theta * is_q.to(theta)
+        return out.index_add_(2, target, th[:, None, :] * F[None])
+
+    def position_delta(self, theta, prep):
+        G, pos = prep.features["G"], prep.features["pos"]
+        if G is None:
+            return None
+        Fp = prep.features["F"][:, pos]  # (N, T')
+        return torch.einsum("nmat,nt,pt->pnma", G, Fp, theta[:, pos])
+
+    def linear_basis(self, prep: Prepared) -> LinearBasis:
+        """The terms' columns built directly (one per term, the family is linear in its
+        coefficients): a zero's ``Δq`` on its joint, any other parameter's Jacobian column times
+        the shape, without evaluating the effect once per term."""
+        F, is_q, target, pos, G = (prep.features[k] for k in ("F", "is_q", "target", "pos", "G"))
+        N, T = F.shape
+        dq = dp = None
+        if bool(is_q.any()):
+            dq = F.new_zeros(N, self.robot.dof, T)
+            cols = torch.nonzero(is_q).flatten()
+            dq[:, target[cols], cols] = F[:, cols]
+        if G is not None:
+            dp = F.new_zeros(*G.shape[:3], T)
+            dp[..., pos] = G * F[:, pos][:, None, None, :]
+        return LinearBasis(dq, dp, [list(c) for _, c in self.modes()])
+
+    def parameter_change(self, theta: Tensor, prep: Prepared, label: str) -> tuple[str, Tensor]:
+        """(parameter, ``(N,)`` its change per row) from the terms of mode ``label``."""
+        idx = dict(self.modes())[label]
+        return self.terms[idx[0]][0], prep.features["F"][:, idx] @ theta[idx]
+
+    def _point_signature(self, prep, label, theta) -> dict:
+        """A marker point per level: its offset's length per row along the direction it moves."""
+        idx = dict(self.modes())[label]
+        pos = prep.features["pos"].tolist()
+        F, G = prep.features["F"], prep.features["G"]
+        disp = 0
+        for i in idx:
+            disp = disp + G[..., pos.index(i)] * (F[:, i] * theta[i])[:, None, None]  # (N, M, 3)
+        size = disp.norm(dim=-1).amax(-1)
+        d = self.terms[idx[0]][1]
+        return {"x": prep.features["X"][d], "xlabel": words.axis_label(self.robot, d), "fitted": size,
+                "ylabel": f"{label.split('~')[0]} offset [m]", "G": disp / size.clamp(min=1e-300)[:, None, None]}
+
+    def signature(self, prep, label, theta):
+        if label.split("~")[0].endswith(".point"):
+            return self._point_signature(prep, label, theta)
+        p, change = self.parameter_change(theta, prep, label)
+        i = dict(self.modes())[label][0]
+        d = self.terms[i][1]
+        offs = self._offset_params()
+        x = prep.features["X"][d]
+        sig = {"x": x, "xlabel": words.axis_label(self.robot, d), "fitted": change,
+               "ylabel": f"{p} [{dict(zip(self.robot.param_names, self.robot.param_units))[p]}]"}
+        if p in offs:
+            sig["dof"] = self.robot.joint_names.index(offs[p])
+        else:
+            k = int((prep.features["pos"] == i).nonzero()[0, 0])
+            sig["G"] = prep.features["G"][..., k]
+        return sig
+
+    def mode_words(self, label: str) -> str:
+        return words.mode_words(self, label)
+
+    def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
+        return words.describe(self, self.theta if theta is None else theta, free)

@@ -1,0 +1,109 @@
+"""Shapes a parameter may take along a driver: each a column ``f(x)`` per row, scaled by one
+coefficient, with knots and break points chosen from the training data, never by hand.
+
+Tags (the strings a saved model carries):
+
+* ``lin``: ``x − x̄`` (a rate);
+* ``quad``: ``((x − x̄) / h)²``, ``h`` the half range (a bow); ``cube``: its cube (an S, a
+  saturation's odd part);
+* ``spl<k>``: ``((x − k) / h)²₊`` a quadratic spline piece from the knot ``k`` on (smooth);
+* ``sin<n>`` / ``cos<n>``: harmonic ``n`` of an angle (periodic);
+* ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
+* ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``);
+* ``sat<k>``: ``x`` clipped to ``±k`` (a torque driver: a stiffness that changes beyond ``±k``, a
+  dead zone or a saturation about zero load);
+* ``lvl=<level>``: ``1`` where a text column reads ``level`` (one value per level).
+
+Knots of the smooth and piecewise shapes sit at quantiles of the training values; step breaks
+at the midpoints between consecutive distinct training values (every place a step can be seen).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "screen_tags",
+           "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES"]
+
+HARMONICS = 2                      # highest harmonic of an angle driver
+KNOT_QUANTILES = (1 / 3, 2 / 3)    # knots of the quadratic spline, as quantiles of the training values
+HINGE_QUANTILES = (0.2, 0.4, 0.6, 0.8)  # break points of the piecewise-linear shapes
+
+
+def _num(tag: str, prefix: str) -> float:
+    return float(tag[len(prefix):])
+
+
+def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
+    """``(N,)`` the shape ``tag`` of driver values ``x (N,)`` (``centre``: the training mean;
+    ``half``: half the training range, > 0). Level tags take the 0/1 indicator as ``x``."""
+    h = half if half > 0 else 1.0
+    if tag == "lin":
+        return x - centre
+    if tag == "quad":
+        return ((x - centre) / h) ** 2
+    if tag == "cube":
+        return ((x - centre) / h) ** 3
+    if tag.startswith("lvl="):
+        return x
+    for p in ("sin", "cos"):
+        if tag.startswith(p):
+            n = int(tag[3:])
+            return torch.sin(n * x) if p == "sin" else torch.cos(n * x)
+    if tag.startswith("spl"):
+        return (torch.clamp(x - _num(tag, "spl"), min=0) / h) ** 2
+    if tag.startswith("step"):
+        return (x >= _num(tag, "step")).to(x.dtype)
+    if tag.startswith("hinge"):
+        return torch.clamp(x - _num(tag, "hinge"), min=0)
+    if tag.startswith("sat"):
+        k = _num(tag, "sat")
+        return torch.clamp(x, min=-k, max=k)
+    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, spl<k>, sin<n>, cos<n>, step<k>, hinge<k>, lvl=<level>")
+
+
+def _quantiles(x: Tensor, qs) -> list[float]:
+    v = torch.quantile(x.double(), torch.tensor(list(qs), dtype=torch.float64, device=x.device))
+    return [float(f"{float(a):.6g}") for a in v]
+
+
+def smooth_tags(x: Tensor) -> list[str]:
+    """A spline: the bow, the S and one quadratic piece from each knot (:data:`KNOT_QUANTILES`)."""
+    return ["quad", "cube"] + [f"spl{k:.6g}" for k in dict.fromkeys(_quantiles(x, KNOT_QUANTILES))]
+
+
+def hinge_tags(x: Tensor) -> list[str]:
+    """Piecewise-linear pieces from break points at :data:`HINGE_QUANTILES`."""
+    return [f"hinge{k:.6g}" for k in dict.fromkeys(_quantiles(x, HINGE_QUANTILES))]
+
+
+def knee_tags(kind: str, x: Tensor, n: int = 39) -> list[str]:
+    """Every knee a piecewise-linear shape can have on training values ``x``: hinges at ``n``
+    evenly spaced quantiles, and for a torque clips at as many quantiles of ``|x|``."""
+    qs = [(i + 1) / (n + 1) for i in range(n)]
+    out = [f"hinge{k:.6g}" for k in dict.fromkeys(_quantiles(x, qs))]
+    if kind == "torque":
+        out += [f"sat{k:.6g}" for k in dict.fromkeys(_quantiles(x.abs(), qs)) if k > 0]
+    return out
+
+
+def harmonic_tags() -> list[str]:
+    return [f"{f}{n}" for n in range(1, HARMONICS + 1) for f in ("sin", "cos")]
+
+
+def step_breaks(x: Tensor, min_side: int = 3) -> list[float]:
+    """Every break a step can sit at: midpoints between consecutive distinct training values,
+    with at least ``min_side`` rows on each side (a step seen by fewer rows is an outlier)."""
+    v = torch.unique(x.double())
+    if v.numel() < 2 * min_side:
+        return []
+    mids = (v[:-1] + v[1:]) / 2
+    counts = torch.tensor([int((x.double() < m).sum()) for m in mids.tolist()])
+    ok = (counts >= min_side) & (counts <= x.numel() - min_side)
+    return [float(f"{float(m):.10g}") for m in mids[ok]]
+
+
+def screen_tags(kind: str, revolute: bool) -> list[str]:
+    """The low-order shapes a driver is screened with before its richer shapes are tried: a rate,
+    a bow and an S (and the first harmonic of an angle)."""
+    return ["lin", "quad", "cube"] + (["sin1", "cos1"] if kind == "q" and revolute else [])

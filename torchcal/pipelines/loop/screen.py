@@ -1,0 +1,142 @@
+"""Screening a large family before its selection: which (parameter, driver) pairs explain anything
+at the low-order level, and which step breaks fit best, so that only those are expanded into every
+shape and judged by the cross-validated rule.
+
+The space of :class:`~torchcal.effects.anydriver.ParameterDrivers` is parameters × drivers ×
+shapes: thousands of columns on a 6-joint arm. Around the current model the residual ``r`` is
+linear in every column; beyond what the model's own free parameters explain (projected off their
+Jacobian, with the fit's IRLS weights), a pair's low-order columns (a rate and a bow, the first
+harmonic of an angle, the levels of a text column) explain ``‖P r‖²``, which on pure noise of
+per-axis σ is χ² with as many degrees of freedom as columns. A pair is kept when that is
+improbable at the level :data:`ALPHA` shared among all pairs (Bonferroni), the strongest
+:data:`MAX_PAIRS` at most; a driver none of whose pairs passes is not expanded at all. For a time
+or row driver, every break a step can sit at is scored the same way, one column each, and the
+best :data:`~torchcal.effects.anydriver.MAX_STEPS` are offered; so are the knees of the
+piecewise-linear shapes of the other drivers (hinges, and clips of a torque, on a fine grid).
+
+Screening only prunes: what is kept is still chosen by the cross-validated rule, at the Bonferroni
+threshold of the whole space (every shape of every pair), so a pair kept by chance is not accepted
+by chance.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from scipy.stats import chi2
+from torch import Tensor
+
+from torchcal.effects.anydriver import MAX_STEPS
+
+__all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
+
+ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair this rarely)
+MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
+CHUNK = 1024     # columns projected at once (memory: 3 n_obs × CHUNK values)
+
+
+def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
+    """The payload (mass moments ``m, m·sx, m·sy, m·sz``) and its link that an accepted effect
+    fitted, from the model's parameter values ``params``; None when none did."""
+    for e in effects:
+        names = [f"{e.name}.payload.{k}" for k in ("m", "mx", "my", "mz")]
+        if all(n in params.names for n in names) and getattr(e, "tool_link", None):
+            return [float(params.values[params.names.index(n)]) for n in names], e.tool_link
+    return None
+
+
+def _projector(Jb: Tensor, w3: Tensor) -> Tensor:
+    """Orthonormal basis ``(3 n_obs, r)`` of the weighted base Jacobian's columns."""
+    A = Jb * w3[:, None]
+    U, S, _ = torch.linalg.svd(A, full_matrices=False)
+    keep = S > S.max() * 1e-10 if S.numel() else S.bool()
+    return U[:, keep]
+
+
+def _explained(C: Tensor, r: Tensor, Q: Tensor) -> tuple[float, int]:
+    """Residual power ``‖P r‖²`` the columns ``C`` explain beyond ``Q``, and their rank."""
+    C = C - Q @ (Q.T @ C)
+    n = C.norm(dim=0)
+    if float(n.max()) <= 0:
+        return 0.0, 0
+    U, S, _ = torch.linalg.svd(C / n.clamp(min=1e-300), full_matrices=False)
+    U = U[:, S > S.max() * 1e-6]
+    return float(((U.T @ r) ** 2).sum()), U.shape[1]
+
+
+def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma: float) -> list[tuple]:
+    """(p-value, pair) of every (parameter, driver) pair of ``eff``'s screening terms."""
+    by_pair: dict[tuple[str, str], list[int]] = {}
+    for i, (p, d, _) in enumerate(eff.terms):
+        by_pair.setdefault((p, d), []).append(i)
+    pairs = list(by_pair)
+    out = []
+    for s in range(0, len(pairs), max(CHUNK // 4, 1)):
+        chunk = pairs[s:s + max(CHUNK // 4, 1)]
+        sub = eff._copy(terms=[eff.terms[i] for pr in chunk for i in by_pair[pr]])
+        C = columns(sub) * w3[:, None]
+        o = 0
+        for pr in chunk:
+            g = len(by_pair[pr])
+            e, rank = _explained(C[:, o:o + g], rp, Q)
+            o += g
+            if rank:
+                out.append((float(chi2.sf(e / sigma ** 2, rank)), pr))
+    return out
+
+
+def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
+                w3: Tensor) -> list[float]:
+    """The :data:`MAX_STEPS` steps or knees of ``pair``'s driver that explain the most, one column each."""
+    p, d = pair
+    breaks = eff.breaks(d, data, eff.torques(data.q) if d.startswith("torque:") else None)
+    if not breaks:
+        return []
+    score = []
+    for s in range(0, len(breaks), CHUNK):
+        b = breaks[s:s + CHUNK]
+        C = columns(eff._copy(terms=[(p, d, t) for t in b])) * w3[:, None]
+        C = C - Q @ (Q.T @ C)
+        n2 = (C * C).sum(0)
+        score.append(torch.where(n2 > 0, (C.T @ rp) ** 2 / n2.clamp(min=1e-300), torch.zeros_like(n2)))
+    top = torch.cat(score).argsort(descending=True)[:MAX_STEPS]
+    return [breaks[int(i)] for i in top]
+
+
+def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float,
+                  c: float | None = None, say=None):
+    """``eff`` (a bound :class:`~torchcal.effects.anydriver.ParameterDrivers`, terms = its
+    screening shapes) expanded into every shape of the pairs that pass the screening (module
+    docstring), with :attr:`n_searched` the size of the whole space; None when no pair passes.
+
+    Args:
+        columns: ``effect -> (3 n_obs, T)`` its terms' columns in the observations' residuals.
+        r: ``(n_obs, 3)`` current residuals (m); ``Jb``: ``(3 n_obs, kb)`` the current model's
+            Jacobian; ``w``: ``(n_obs,)`` IRLS weights; ``sigma``: per-axis noise (m); ``c``: the
+            Huber threshold (m), to which each observation's residual is shortened (None: none).
+    """
+    w3 = w.repeat_interleave(3)
+    Q = _projector(Jb, w3)
+    if c is not None:  # Huber's pseudo-observations: a gross error weighs no more than the threshold
+        n = r.norm(dim=-1, keepdim=True)
+        r = r * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
+    rw = r.reshape(-1) * w3
+    rp = rw - Q @ (Q.T @ rw)
+    stats = _pair_stats(eff, columns, Q, rp, w3, sigma)
+    if not stats:
+        return None
+    level = ALPHA / len(stats)
+    kept = [pr for pv, pr in sorted(stats, key=lambda t: t[0]) if pv < level][:MAX_PAIRS]
+    if say is not None:
+        say(f"{eff.name}: {len(kept)} of {len(stats)} (parameter, driver) pairs pass the screening"
+            + (f": {', '.join(f'{p} ~ {d}' for p, d in kept)}" if kept else ""))
+    if not kept:
+        return None
+    # expanded in the order of plainness, so that aliases tie to the plainest reading (a joint's
+    # zero before the yaw of its origin that turns the same way)
+    offs = set(eff._offset_params())
+    kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
+    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept}
+    out = eff.expanded(kept, data, steps)
+    out.n_searched = eff.space_size([pr for _, pr in stats], data)
+    return out

@@ -1,0 +1,89 @@
+"""Cases of issue 32 for the independent simulator: a parameter of the robot changes with a driver,
+in a shape nobody declared (:mod:`torchcal.sim.physsim_drifts`; no torchcal effect code).
+
+On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker noise 3 m away):
+
+* ``zero_step``: the elbow's zero shifts by 1.9 mrad at row 210 (a joint re-mastered) and stays;
+  no time column, so only the row order tells;
+* ``instrument_drift``: the tracker settles: its frame turns 0.8 mrad per hour about its y axis
+  and creeps 0.1 mm per hour along x, over an hour's campaign (``time`` column, s); held-out
+  rows are drawn from the same session;
+* ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
+  12 mm and 4 mm off the gripper's;
+* ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
+  beyond (a gear whose backlash region is soft);
+* ``prismatic_guide``: the UR5e on a 1.5 m linear track whose carriage wanders 40 µm sideways
+  in a bow and pitches 0.3 mrad along its travel.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from torchcal.sim.physsim_drifts import Drift
+
+__all__ = ["DRIFT_CASES", "track_urdf", "level_series"]
+
+TRACK_M = 1.5  # travel of the linear track (m)
+
+_UR5E = dict(robot="ur5e", markers=["tool@flange"], n_train=300, n_test=150, noise_m=0.02e-3)
+
+
+def track_urdf() -> str:
+    """The UR5e on a linear track: a prismatic joint ``track`` (x, 0 to :data:`TRACK_M` m) under its base."""
+    text = (Path(__file__).resolve().parents[2] / "urdf" / "ur5e.urdf").read_text()
+    rail = (f'<link name="rail"/>\n  <joint name="track" type="prismatic">\n    <parent link="rail"/>\n'
+            f'    <child link="link0"/>\n    <origin xyz="0 0 0" rpy="0 0 0"/>\n    <axis xyz="1 0 0"/>\n'
+            f'    <limit lower="0" upper="{TRACK_M}" effort="1000" velocity="1"/>\n  </joint>\n  ')
+    return text.replace('<robot name="ur5e">', '<robot name="ur5e_track">', 1).replace(
+        '<link name="link0"/>', rail + '<link name="link0"/>', 1)
+
+
+def level_series(levels: list[str], n: int, seed) -> np.ndarray:
+    """``(n,)`` a text column: each row one of ``levels`` at random."""
+    return np.asarray(levels)[np.random.default_rng(seed).integers(0, len(levels), n)]
+
+
+def _step(rows):
+    return 1.9e-3 * (rows >= 210)
+
+
+def _settle(t):
+    h = (t - t[0] if t.ndim else t) / 3600.0
+    return np.stack([0.1e-3 * h, 0 * h, 0 * h, 0 * h, 0.8e-3 * h, 0 * h], -1)
+
+
+def _probe(tool):
+    return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
+
+
+def _soft_gear(tau, c_soft=2e-5, c_stiff=1e-5, knee=15.0):
+    return c_stiff * tau + (c_soft - c_stiff) * np.clip(tau, -knee, knee)
+
+
+def _guide(x):
+    u = x / TRACK_M
+    z = 0 * u
+    return np.stack([z, 40e-6 * 4 * u * (1 - u), z, z, 0.3e-3 * np.sin(np.pi * u), z], -1)
+
+
+DRIFT_CASES: dict[str, dict] = {
+    "zero_step": {**_UR5E, "named": ["parameter_drivers"],
+                  "physics": dict(drifts=[Drift("offset:elbow_joint", "row", _step,
+                                                "the elbow's zero shifts by 1.9 mrad at row 210")])},
+    "instrument_drift": {**_UR5E, "named": ["parameter_drivers"], "interleave": True,
+                         "covariates": {"time": ("time", {})},
+                         "physics": dict(drifts=[Drift("instrument", "cov:time", _settle,
+                                                       "the instrument turns 0.8 mrad/h and creeps 0.1 mm/h")])},
+    "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
+                    "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
+                                                  "the probe's point is 12 mm, 4 mm off the gripper's")])},
+    "torque_stiffness": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
+                         "physics": dict(payload_kg=5.0, payload_com_m=(0.0, 0.0, 0.1),
+                                         drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
+                                                       _soft_gear, "20 µrad/N·m up to 15 N·m, half beyond")])},
+    "prismatic_guide": {**_UR5E, "robot": "ur5e_track", "named": ["parameter_drivers"],
+                        "physics": dict(drifts=[Drift("carriage:track", "q:track", _guide,
+                                                      "the carriage bows 40 µm and pitches 0.3 mrad")])},
+}
