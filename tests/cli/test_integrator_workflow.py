@@ -62,6 +62,7 @@ def test_simulate_refuses_to_overwrite(files, capsys):
     assert (files / "train.csv").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_calibrate_and_loop_refuse_an_existing_output_folder(files, looped, tmp_path, capsys):
     before = _tree(looped)
     args = ["--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(looped)]
@@ -149,6 +150,7 @@ def _rewrite(src: Path, dst: Path, scale: dict) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_degrees_and_millimetres_stop_the_run_unless_declared(files, tmp_path, capsys):
     import math
 
@@ -169,6 +171,7 @@ def test_degrees_and_millimetres_stop_the_run_unless_declared(files, tmp_path, c
                 "--out", str(tmp_path / "o")]) == 0
 
 
+@pytest.mark.slow
 def test_a_marker_guess_in_millimetres_stops_the_run(files, tmp_path, capsys):
     args = ["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(tmp_path / "o")]
     assert cli([*args, "--marker", "flange@flange=0,0,50"]) == 2
@@ -187,6 +190,7 @@ def test_a_declared_marker_without_columns_is_an_error(files, tmp_path, capsys):
     assert "['m2'] are declared but the file has no" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_model_worse_than_nominal_is_not_saved(files, tmp_path, monkeypatch, capsys):
     import torchcal.cli.app as cli_mod
 
@@ -249,6 +253,7 @@ def test_effect_names_are_checked_before_fitting(files):
         cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--candidates", "thermal"])
 
 
+@pytest.mark.slow
 def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
     args = ["--robot", UR5E, "--data", str(files / "train.csv"), "--test", str(files / "other.csv")]
     assert cli(["calibrate", *args, "--out", str(tmp_path / "c")]) == 2
@@ -280,6 +285,7 @@ def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     assert load(looped / "model").meta["provenance"] == prov
 
 
+@pytest.mark.slow
 def test_with_instrument_roots_the_urdf_in_the_instrument_frame(files, tmp_path):
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--with-instrument",
                 "--out", str(tmp_path / "c")]) == 0
@@ -321,6 +327,7 @@ def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     assert rep["observability"]["condition"] > 1 and rep["observability"]["O1"] > 0
 
 
+@pytest.mark.slow
 def test_a_config_file_takes_any_option_and_run_yaml_repeats_the_run(files, looped, tmp_path, capsys):
     cfg = tmp_path / "run.yaml"
     cfg.write_text(yaml.safe_dump({"robot": UR5E, "data": str(files / "train.csv"), "holdout": 0.25,
@@ -335,6 +342,7 @@ def test_a_config_file_takes_any_option_and_run_yaml_repeats_the_run(files, loop
     assert "unknown option 'folds-count'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_logging_levels_version_and_module_entry(files, tmp_path, capsys):
     logging.getLogger("torchcal").handlers.clear()
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--quiet",
@@ -351,6 +359,7 @@ def test_logging_levels_version_and_module_entry(files, tmp_path, capsys):
     assert r.returncode == 0 and r.stdout.startswith(f"torchcal {torchcal.__version__}")
 
 
+@pytest.mark.slow
 def test_the_loop_shows_a_progress_bar_when_asked(files, capsys):
     robot = Robot.from_urdf(UR5E, markers=["flange"])
     data = load_measurements(files / "train.csv", robot)
@@ -358,6 +367,7 @@ def test_the_loop_shows_a_progress_bar_when_asked(files, capsys):
     assert "diagnosis" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_figures_and_evidence_without_inertials(looped, tmp_path):
     for f in ("errors_train.png", "errors_test.png", "evidence_joint_compliance.png"):
         assert (looped / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -380,6 +390,7 @@ def test_figures_and_evidence_without_inertials(looped, tmp_path):
     assert "rad/N/m" not in md and "rad/N " not in md and "µrad/(N·m)" in md
 
 
+@pytest.mark.slow
 def test_reprs_are_short(files, looped):
     robot = Robot.from_urdf(UR5E, markers=["flange"])
     data = load_measurements(files / "train.csv", robot)
@@ -457,6 +468,7 @@ def _left_out_lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if "left out the columns of marker(s)" in line]
 
 
+@pytest.mark.slow
 def test_markers_not_declared_are_left_out_with_one_line(tmp_path, capsys, caplog):
     csv = tmp_path / "two.csv"
     assert cli(["simulate", "--robot", UR5E, "--marker", "a@flange=0,0,0.05", "--marker", "b@flange=0.04,0,0.02",
@@ -486,6 +498,7 @@ def test_markers_not_declared_are_left_out_with_one_line(tmp_path, capsys, caplo
     assert "['c'] are declared but the file has no columns" in err and "'a', 'b'" in err
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not TIAGO.is_dir(), reason=f"the TIAGo motion-capture data is not in {TIAGO}")
 def test_the_tiago_file_of_four_markers_calibrates_with_the_one_declared(tmp_path, capsys):
     rc = cli(["calibrate", "--robot", str(TIAGO / "tiago_48_hey5.urdf"), "--data", str(TIAGO / "train.csv"),

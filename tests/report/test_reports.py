@@ -70,6 +70,7 @@ def looped(data, tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- every output directory
+@pytest.mark.slow
 def test_loop_writes_calibration_yaml_and_report_html(looped):
     for f in ("calibrated.urdf", "calibration.yaml", "report.md", "report.html", "report.json"):
         assert (looped / f).is_file(), f
@@ -82,6 +83,7 @@ def test_loop_writes_calibration_yaml_and_report_html(looped):
         assert c[key] == pytest.approx(geo.get(f"{j}.{slot}", 0.0), abs=1e-15)
 
 
+@pytest.mark.slow
 def test_calibrate_and_fleet_write_calibration_yaml_and_report_html(data, tmp_path):
     d, _ = data
     assert cli(["calibrate", "--robot", UR5E, "--data", str(d / "train.csv"), "--test", str(d / "test.csv"),
@@ -109,6 +111,7 @@ def fleet_out(tmp_path_factory):
     return d / "out"
 
 
+@pytest.mark.slow
 def test_fleet_writes_each_robots_files_and_a_spread_figure(fleet_out):
     rep = json.loads((fleet_out / "fleet.json").read_text())
     assert [(f["robot"], f["parameter"]) for f in rep["flags"]] == [("kr5_06", "joint_a3.offset")]
@@ -266,6 +269,7 @@ def test_the_overlap_check_sees_overlaps(tmp_path):
     assert [t.get_text() for t in ax.get_xticklabels() if t.get_visible()] == ["left tick"]
 
 
+@pytest.mark.slow
 def test_error_figure_shows_every_axis_before_and_after(tmp_path):
     stages = [("before", _details(80, 2e-3, 0)), ("geometric", _details(80, 3e-4, 1)), ("full", _details(80, 2e-5, 2))]
     fig = error_figure(stages, tmp_path / "e.png", noise_floor_mm=0.03)

@@ -105,6 +105,7 @@ def test_plane_intersection_closed_form():
 
 
 # ------------------------------------------------------------------------------- residual blocks
+@pytest.mark.slow
 def test_residuals_vanish_for_the_true_parameters(setup):
     s = setup
     robot, laser, true, free = s["robot"], s["laser"], s["true"], s["free"].clone()
@@ -166,6 +167,7 @@ def test_blocks_are_batched_over_populations(setup):
 
 
 # ------------------------------------------------------------------------------- identifiability
+@pytest.mark.slow
 def test_point_constraint_misses_the_gauge_and_the_scale(setup):
     s = setup
     robot, laser = s["robot"], s["laser"]
