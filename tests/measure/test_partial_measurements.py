@@ -168,6 +168,7 @@ def kr5_planes():
     return robot, sim, planes, g
 
 
+@pytest.mark.slow
 def test_geometry_from_three_planes_alone(kr5_planes):
     """A KR 5 arc with undeclared geometric errors touches three planes of unknown pose; the loop
     identifies robot and planes. Fresh poses: the shape (after the rigid motion and size that
