@@ -78,6 +78,7 @@ def test_calibrate_and_loop_refuse_an_existing_output_folder(files, looped, tmp_
     assert not list(tmp_path.glob(".*partial*")) and not list(tmp_path.glob(".*replaced*"))
 
 
+@pytest.mark.slow
 def test_save_refuses_to_overwrite_and_leaves_nothing_half_written(looped, tmp_path, monkeypatch):
     model = load(looped / "model")
     save(model, tmp_path / "m")
@@ -95,6 +96,7 @@ def test_save_refuses_to_overwrite_and_leaves_nothing_half_written(looped, tmp_p
     assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no partial folder left behind
 
 
+@pytest.mark.slow
 def test_correct_refuses_to_write_over_its_targets(looped, tmp_path, capsys):
     t = tmp_path / "targets.csv"
     t.write_text("x,y,z\n0.4,0.1,0.5\n")
@@ -115,6 +117,7 @@ def test_an_unwritable_output_fails_before_any_work(files, tmp_path, monkeypatch
     assert "cannot write under" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_changed_or_broken_model_is_refused_naming_the_file(looped, tmp_path):
     import shutil
 
@@ -264,6 +267,7 @@ def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- the integrator's outputs
+@pytest.mark.slow
 def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     text = (looped / "calibrated.urdf").read_text()
     rep = json.loads((looped / "report.json").read_text())
@@ -292,6 +296,7 @@ def test_with_instrument_roots_the_urdf_in_the_instrument_frame(files, tmp_path)
     assert Robot.from_urdf(tmp_path / "c" / "calibrated.urdf", markers=["marker_flange"]).root == "instrument"
 
 
+@pytest.mark.slow
 def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys):
     model = load(looped / "model")
     q = torch.tensor([[0.3, -1.2, 1.3, -1.6, -1.5, 0.2]], dtype=torch.float64)
@@ -317,6 +322,7 @@ def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys
     assert "failed" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     md = (looped / "report.md").read_text()
     rep = json.loads((looped / "report.json").read_text())

@@ -130,13 +130,13 @@ def test_fleet_writes_each_robots_files_and_a_spread_figure(fleet_out):
     assert 'href="kr5_06/report.html"' in page and "data:image/png;base64," in page
 
 
-def test_fleet_figure_marks_the_flagged_robot(fleet_out):
+def test_fleet_figure_marks_the_flagged_robot(tmp_path):
     from torchcal.report.fleet import spread_rows
     rows = [{"name": "joint_a3.offset", "z": np.array([0.3, -1.0, 9.5, 0.2, 0.8]), "robots": list("abcde"),
              "flagged": {"c"}, "z_needed": 7.0},
             {"name": "joint_a2.offset", "z": np.array([0.1, 0.4, -0.3, 1.2, -0.9]), "robots": list("abcde"),
              "flagged": set(), "z_needed": 7.0}]
-    fig = fleet_figure(rows, fleet_out.parent / "f.png", 5.0, "test")
+    fig = fleet_figure(rows, tmp_path / "f.png", 5.0, "test")
     texts = [t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_text"))]
     assert "c" in texts and "a" not in texts  # only the flagged robot is named
     assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == ["joint_a2.offset", "joint_a3.offset"]
@@ -145,6 +145,7 @@ def test_fleet_figure_marks_the_flagged_robot(fleet_out):
 
 
 # ----------------------------------------------------------------------------- what the report states
+@pytest.mark.slow
 def test_heldout_outliers_are_listed(looped):
     rep = json.loads((looped / "report.json").read_text())
     assert sorted(s["row"] for s in rep["suspect_rows_test"]) == sorted(MOVED)
@@ -154,6 +155,7 @@ def test_heldout_outliers_are_listed(looped):
     assert "suspect_rows" in rep and "stages" in rep and "effects" in rep  # the existing keys stay
 
 
+@pytest.mark.slow
 def test_tables_show_rmse_and_p95(looped):
     rep = json.loads((looped / "report.json").read_text())
     md = (looped / "report.md").read_text()
@@ -168,6 +170,7 @@ def test_tables_show_rmse_and_p95(looped):
     assert st["rmse_mm"] == pytest.approx(float(np.sqrt(np.mean((e.numpy() * 1e3) ** 2))), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_noise_floor_states_its_source(looped, data):
     _, med = data
     rep = json.loads((looped / "report.json").read_text())
@@ -212,6 +215,7 @@ def test_a_finding_is_stated_only_when_significant():
     assert any("not quite level" in s for s in effect_findings(eff, vals, se).stated)
 
 
+@pytest.mark.slow
 def test_the_loop_report_states_significant_findings_only(looped):
     rep = json.loads((looped / "report.json").read_text())
     md = (looped / "report.md").read_text()
@@ -230,6 +234,7 @@ def test_the_loop_report_states_significant_findings_only(looped):
         assert "not quite level" not in md
 
 
+@pytest.mark.slow
 def test_one_display_unit_per_quantity(looped):
     md = (looped / "report.md").read_text()
     for raw in ("rad/N/m", "rad/(N*m)", "kg*m", "rad/N "):
@@ -323,6 +328,7 @@ def _chromium() -> str:
                 "rendered in this run")
 
 
+@pytest.mark.slow
 def test_report_html_renders_in_headless_chromium(looped, tmp_path):
     browser = _chromium()
     page = (looped / "report.html").as_uri()

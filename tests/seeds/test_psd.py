@@ -105,7 +105,6 @@ def test_plane_intersection_closed_form():
 
 
 # ------------------------------------------------------------------------------- residual blocks
-@pytest.mark.slow
 def test_residuals_vanish_for_the_true_parameters(setup):
     s = setup
     robot, laser, true, free = s["robot"], s["laser"], s["true"], s["free"].clone()
