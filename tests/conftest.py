@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 import os
+import resource
+import time
 from pathlib import Path
 
 import pytest
@@ -189,6 +191,33 @@ def random_q(robot: Robot, n: int, seed: int) -> torch.Tensor:
     hi = torch.where(torch.isfinite(hi), hi, torch.full_like(hi, math.pi))
     u = torch.rand(n, robot.dof, generator=g, dtype=torch.float64).to(robot.dtype)
     return lo + (hi - lo) * u
+
+# ----------------------------------------------------------------------------- CPU time per test
+# How a test is judged slow: its CPU seconds (this process and the children it waited for, e.g. a
+# command-line run), not its wall time, which a loaded machine stretches. ``--cpu-times FILE``
+# appends "cpu_s<TAB>wall_s<TAB>node id" per test (setup, call and teardown); with xdist every
+# worker appends to the same file.
+
+def pytest_addoption(parser):
+    parser.addoption("--cpu-times", metavar="FILE", default=None,
+                     help="append each test's CPU seconds (process + children) and wall seconds to FILE")
+
+
+def _cpu_seconds() -> float:
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    out = item.config.getoption("--cpu-times")
+    if out is None:
+        yield
+        return
+    cpu0, wall0 = _cpu_seconds(), time.perf_counter()
+    yield
+    with open(out, "a") as f:
+        f.write(f"{_cpu_seconds() - cpu0:.2f}\t{time.perf_counter() - wall0:.2f}\t{item.nodeid}\n")
 
 
 # ---------------------------------------------------------------------------------- shared helpers

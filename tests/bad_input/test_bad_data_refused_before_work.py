@@ -104,6 +104,7 @@ def _loop(data: Path, out: Path, *extra, train: Path | None = None, marker: str 
 
 
 # ============================================================================ outputs: nothing is lost
+@pytest.mark.slow
 def test_force_replaces_only_what_torchcal_wrote_and_never_an_input(data, tmp_path, capsys):
     cell = tmp_path / "cell1"
     cell.mkdir()
@@ -183,6 +184,7 @@ def test_the_working_directory_is_no_output_and_nothing_is_left(data, tmp_path, 
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["train.csv", "work"]
 
 
+@pytest.mark.slow
 def test_a_full_disk_and_an_interrupt_leave_nothing(data, tmp_path, capsys, monkeypatch):
     real = os.fdopen
 
@@ -306,6 +308,7 @@ def test_registration_is_not_dragged_by_a_gross_error():
     assert float((R1 - R).abs().max()) < 1e-3 and float((t1 - t).abs().max()) < 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("metres", [6.0, 100.0])
 def test_one_tracker_glitch_is_listed_not_fatal(data, tmp_path, capsys, metres):
     def glitch(h, M):
@@ -338,6 +341,7 @@ def test_a_glitch_in_one_robot_of_a_fleet_is_listed_not_fatal():
 
 
 # ============================================================================ silent acceptance
+@pytest.mark.slow
 def test_what_was_accepted_silently_now_speaks(data, tmp_path, capsys):
     def beyond(h, M):
         M[:16, 2] = np.sign(M[:16, 2]) * 3.5  # elbow limits ±π
@@ -453,6 +457,7 @@ def test_a_file_that_cannot_be_read_is_named_with_the_fix(data, tmp_path, capsys
     assert not re.search(r"\d{20}", err) and not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_a_continuous_joint_may_turn_many_times(tmp_path, capsys):
     txt = Path(UR5E).read_text()
     i = txt.index('<joint name="wrist_3_joint" type="revolute"')

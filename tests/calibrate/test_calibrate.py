@@ -257,6 +257,7 @@ def test_standard_errors_match_monte_carlo_spread(kr5_dh):
 # ---------------------------------------------------------------------------------------------
 # The report and its files
 # ---------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_report_shape_and_saved_files(tmp_path):
     robot = shipped("kuka_kr5_arc")
     data, truth = simulate(robot, SimConfig(n=30, noise=0.02e-3, seed=5))

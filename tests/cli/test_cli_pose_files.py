@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from torchcal.sim.cases import make_case
 
 
@@ -15,6 +17,7 @@ def _cli(*args, cwd):
                           cwd=cwd)
 
 
+@pytest.mark.slow
 def test_loop_fits_and_reports_orientations_from_a_pose_file(tmp_path):
     c = make_case("pose6d", 0)
     (tmp_path / "robot.urdf").write_text(c.urdf)
@@ -36,6 +39,7 @@ def test_loop_fits_and_reports_orientations_from_a_pose_file(tmp_path):
     assert "orientation" not in rep0["stages"][-1]["train"]
 
 
+@pytest.mark.slow
 def test_calibrate_prior_and_plausible_sizes_from_the_command_line(tmp_path):
     c = make_case("arm9_mocap", 0)
     (tmp_path / "robot.urdf").write_text(c.urdf)

@@ -62,6 +62,7 @@ def test_simulate_refuses_to_overwrite(files, capsys):
     assert (files / "train.csv").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_calibrate_and_loop_refuse_an_existing_output_folder(files, looped, tmp_path, capsys):
     before = _tree(looped)
     args = ["--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(looped)]
@@ -77,6 +78,7 @@ def test_calibrate_and_loop_refuse_an_existing_output_folder(files, looped, tmp_
     assert not list(tmp_path.glob(".*partial*")) and not list(tmp_path.glob(".*replaced*"))
 
 
+@pytest.mark.slow
 def test_save_refuses_to_overwrite_and_leaves_nothing_half_written(looped, tmp_path, monkeypatch):
     model = load(looped / "model")
     save(model, tmp_path / "m")
@@ -94,6 +96,7 @@ def test_save_refuses_to_overwrite_and_leaves_nothing_half_written(looped, tmp_p
     assert [p.name for p in tmp_path.iterdir()] == ["m"]  # no partial folder left behind
 
 
+@pytest.mark.slow
 def test_correct_refuses_to_write_over_its_targets(looped, tmp_path, capsys):
     t = tmp_path / "targets.csv"
     t.write_text("x,y,z\n0.4,0.1,0.5\n")
@@ -114,6 +117,7 @@ def test_an_unwritable_output_fails_before_any_work(files, tmp_path, monkeypatch
     assert "cannot write under" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_changed_or_broken_model_is_refused_naming_the_file(looped, tmp_path):
     import shutil
 
@@ -152,6 +156,7 @@ def _rewrite(src: Path, dst: Path, scale: dict) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_degrees_and_millimetres_stop_the_run_unless_declared(files, tmp_path, capsys):
     import math
 
@@ -172,6 +177,7 @@ def test_degrees_and_millimetres_stop_the_run_unless_declared(files, tmp_path, c
                 "--out", str(tmp_path / "o")]) == 0
 
 
+@pytest.mark.slow
 def test_a_marker_guess_in_millimetres_stops_the_run(files, tmp_path, capsys):
     args = ["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--out", str(tmp_path / "o")]
     assert cli([*args, "--marker", "flange@flange=0,0,50"]) == 2
@@ -190,6 +196,7 @@ def test_a_declared_marker_without_columns_is_an_error(files, tmp_path, capsys):
     assert "['m2'] are declared but the file has no" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_model_worse_than_nominal_is_not_saved(files, tmp_path, monkeypatch, capsys):
     import torchcal.cli.app as cli_mod
 
@@ -252,6 +259,7 @@ def test_effect_names_are_checked_before_fitting(files):
         cli(["loop", "--robot", UR5E, "--data", "x.csv", "--out", "o", "--effect", "thermal"])
 
 
+@pytest.mark.slow
 def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
     args = ["--robot", UR5E, "--data", str(files / "train.csv"), "--test", str(files / "other.csv")]
     assert cli(["calibrate", *args, "--out", str(tmp_path / "c")]) == 2
@@ -262,6 +270,7 @@ def test_a_test_set_from_another_robot_is_named(files, tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- the integrator's outputs
+@pytest.mark.slow
 def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     text = (looped / "calibrated.urdf").read_text()
     rep = json.loads((looped / "report.json").read_text())
@@ -283,12 +292,14 @@ def test_loop_writes_the_calibrated_urdf_instrument_and_record(files, looped):
     assert load(looped / "model").meta["provenance"] == prov
 
 
+@pytest.mark.slow
 def test_with_instrument_roots_the_urdf_in_the_instrument_frame(files, tmp_path):
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--with-instrument",
                 "--out", str(tmp_path / "c")]) == 0
     assert Robot.from_urdf(tmp_path / "c" / "calibrated.urdf", markers=["flange"]).root == "instrument"
 
 
+@pytest.mark.slow
 def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys):
     model = load(looped / "model")
     q = torch.tensor([[0.3, -1.2, 1.3, -1.6, -1.5, 0.2]], dtype=torch.float64)
@@ -314,6 +325,7 @@ def test_correction_in_the_base_or_the_instrument_frame(looped, tmp_path, capsys
     assert "failed" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     md = (looped / "report.md").read_text()
     rep = json.loads((looped / "report.json").read_text())
@@ -324,6 +336,7 @@ def test_the_loop_report_has_a_parameter_table_with_observability(looped):
     assert rep["observability"]["condition"] > 1 and rep["observability"]["O1"] > 0
 
 
+@pytest.mark.slow
 def test_a_config_file_takes_any_option_and_run_yaml_repeats_the_run(files, looped, tmp_path, capsys):
     cfg = tmp_path / "run.yaml"
     cfg.write_text(yaml.safe_dump({"robot": UR5E, "data": str(files / "train.csv"), "holdout": 0.25,
@@ -338,6 +351,7 @@ def test_a_config_file_takes_any_option_and_run_yaml_repeats_the_run(files, loop
     assert "unknown option 'folds-count'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_logging_levels_version_and_module_entry(files, tmp_path, capsys):
     logging.getLogger("torchcal").handlers.clear()
     assert cli(["calibrate", "--robot", UR5E, "--data", str(files / "train.csv"), "--quiet",
@@ -354,6 +368,7 @@ def test_logging_levels_version_and_module_entry(files, tmp_path, capsys):
     assert r.returncode == 0 and r.stdout.startswith(f"torchcal {torchcal.__version__}")
 
 
+@pytest.mark.slow
 def test_the_loop_shows_a_progress_bar_when_asked(files, capsys):
     robot = Robot.from_urdf(UR5E, markers=["flange"])
     data = load_measurements(files / "train.csv", robot)
@@ -361,6 +376,7 @@ def test_the_loop_shows_a_progress_bar_when_asked(files, capsys):
     assert "diagnosis" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_figures_and_evidence_without_inertials(looped, tmp_path):
     evidence = sorted(looped.glob("evidence_joint_compliance_*.png"))  # one figure per mode
     assert evidence
@@ -386,6 +402,7 @@ def test_figures_and_evidence_without_inertials(looped, tmp_path):
     assert "rad/N/m" not in md and "rad/N " not in md and "µrad·kg/N" in md and "µrad/(N·m)" not in md
 
 
+@pytest.mark.slow
 def test_reprs_are_short(files, looped):
     robot = Robot.from_urdf(UR5E, markers=["flange"])
     data = load_measurements(files / "train.csv", robot)
@@ -463,6 +480,7 @@ def _left_out_lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if "left out the columns of marker(s)" in line]
 
 
+@pytest.mark.slow
 def test_markers_not_declared_are_left_out_with_one_line(tmp_path, capsys, caplog):
     csv = tmp_path / "two.csv"
     assert cli(["simulate", "--robot", UR5E, "--marker", "a@flange=0,0,0.05", "--marker", "b@flange=0.04,0,0.02",
@@ -492,6 +510,7 @@ def test_markers_not_declared_are_left_out_with_one_line(tmp_path, capsys, caplo
     assert "['c'] are declared but the file has no columns" in err and "'a', 'b'" in err
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not TIAGO.is_dir(), reason=f"the TIAGo motion-capture data is not in {TIAGO}")
 def test_the_tiago_file_of_four_markers_calibrates_with_the_one_declared(tmp_path, capsys):
     rc = cli(["calibrate", "--robot", str(TIAGO / "tiago_48_hey5.urdf"), "--data", str(TIAGO / "train.csv"),

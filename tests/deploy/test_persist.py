@@ -147,6 +147,7 @@ def _read(path):
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_shipped_kr5_model_reproduces_stored_corrections(tmp_path):
     """``torchcal correct`` with the shipped model gives the stored results."""
     assert SHIPPED_MODEL.is_dir(), "models/kuka_kr5_arc is missing; run scripts/train_kr5_model.py"

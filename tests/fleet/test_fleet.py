@@ -224,6 +224,7 @@ def test_small_clean_fleets_raise_few_flags():
     assert len(flags) <= 1
 
 
+@pytest.mark.slow
 def test_fleet_prior_helps_robots_with_few_poses():
     robot = shipped("kuka_kr5_arc")
     train, test, _ = simulate_fleet(robot, 12, SimConfig(n=10, seed=7), spread=0.2, n_test=40)
@@ -349,6 +350,7 @@ def test_cli_fleet(tmp_path, capsys):
     assert torch.allclose(cal.positions(q)[:, 0], robot.positions(q, held, base=False)[:, 0], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_the_readme_fleet_command_writes_its_figures(tmp_path, monkeypatch, capsys):
     """The README's command as written: figures on (the default), held-out files."""
     line = re.search(r"^torchcal fleet .*$", (REPO / "README.md").read_text(), re.M).group(0)

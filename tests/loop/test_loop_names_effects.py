@@ -28,6 +28,9 @@ from torchcal.kinematics.robots import shipped
 from torchcal.sim.serial import SimConfig, simulate_with_effects
 from torchcal.report import report_json
 
+# every test here runs whole loops (or reads a module cache of them): the full lane only
+pytestmark = pytest.mark.slow
+
 N_TRAIN = 120
 N_TEST = 60
 NOISE = 0.02e-3  # m, std per axis (a laser tracker)

@@ -21,6 +21,9 @@ from torchcal.kinematics.robots import urdf_path
 from torchcal.sim.cases import CASES, TORSION, make_case
 from torchcal.sim.drift_cases import DRIFT_CASES
 
+# every test here runs whole loops (or reads a module cache of them): the full lane only
+pytestmark = pytest.mark.slow
+
 UR5E = urdf_path("ur5e").read_text()
 N_TRAIN = CASES["payload_12kg"]["n_train"]
 FLOOR_FACTOR = 1.15  # the issue's bar: held-out mean within 1.15x the noise floor
@@ -190,7 +193,6 @@ def test_a_time_covariate_from_another_day_is_flagged():
         assert torch.equal(eff.position_correction(p, q, far), eff.position_correction(p, q, edge))
 
 
-@pytest.mark.slow
 def test_humanoid_upper_body_compliance_then_lateral_bending():
     """19 joints, three motion-capture markers, 500 poses, 0.3 mm noise: joint compliance is found
     first and the sideways bending of the torso after it, as in the published figures."""

@@ -37,11 +37,18 @@ def _true_support_fit(c, robot, train, test, kind):
 
 
 @pytest.fixture(scope="module")
-def arm9(tmp_path_factory):
-    c, robot, train, test = _case("arm9_mocap", tmp_path_factory.mktemp("arm9"))
+def arm9_data(tmp_path_factory):
+    return _case("arm9_mocap", tmp_path_factory.mktemp("arm9"))
+
+
+@pytest.fixture(scope="module")
+def arm9(arm9_data):
+    """The data and the loop's result on it (a whole loop: for the slow tests only)."""
+    c, robot, train, test = arm9_data
     return c, robot, train, test, run_loop(robot, train, test, seed=0, elm=False, log=None)
 
 
+@pytest.mark.slow
 def test_nine_joints_marker_on_the_last_axis_gives_a_plausible_model(arm9):
     c, robot, train, test, res = arm9
     assert not res.problems() and not implausible_values(res.params, robot)
@@ -52,8 +59,8 @@ def test_nine_joints_marker_on_the_last_axis_gives_a_plausible_model(arm9):
     assert res.stages[-1]["test"]["mean_mm"] <= 1.2 * ref, (res.stages[-1]["test"]["mean_mm"], ref)
 
 
-def test_calibrate_on_nine_joints_exports_nothing_absurd(arm9, tmp_path):
-    c, robot, train, test, _ = arm9
+def test_calibrate_on_nine_joints_exports_nothing_absurd(arm9_data, tmp_path):
+    c, robot, train, test = arm9_data
     res = calibrate(robot, train, test=test, method="lm")
     assert res.prior_reason  # small data: it says which prior, or why none
     if res.problems():  # refused, with the reason, never a URDF
@@ -73,6 +80,7 @@ def test_calibrate_on_nine_joints_exports_nothing_absurd(arm9, tmp_path):
             assert float(res.params[n]) == 0.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["pose6d", "pose6d_partial"])
 def test_six_d_poses_are_used(name, tmp_path):
     c, robot, train, test = _case(name, tmp_path)
@@ -118,6 +126,7 @@ def test_a_restart_after_an_imprecise_parameter_is_consistent():
     pytest.fail("no seed left a parameter imprecise; the test lost its subject")
 
 
+@pytest.mark.slow
 def test_a_joint_moved_beyond_plausible_is_refused(tmp_path):
     """A UR5e whose elbow origin is 40 mm off: with the default plausible sizes the result is a
     refusal that says why, never a URDF; with larger sizes it fits."""

@@ -169,6 +169,7 @@ def kr5_planes():
     return robot, sim, planes, g
 
 
+@pytest.mark.slow
 def test_geometry_from_three_planes_alone(kr5_planes):
     """A KR 5 arc with undeclared geometric errors touches three planes of unknown pose; the loop
     identifies robot and planes. Fresh poses: the shape (after the rigid motion and size that
@@ -218,6 +219,7 @@ def test_one_plane_cannot_see_motion_within_it(kr5_planes):
     assert "along the plane's normal" in why["joint_a1.offset"]
 
 
+@pytest.mark.slow
 def test_partial_axes_in_the_loop():
     """Motion capture that loses one or two axes of 40 % of the observations: every measured axis
     counts, and the held-out error (full positions) reaches the noise."""
@@ -232,6 +234,7 @@ def test_partial_axes_in_the_loop():
     assert res.stages[-1]["train"]["per_kind"]["position"]["n"] == int(part.observed.sum())
 
 
+@pytest.mark.slow
 def test_planes_and_a_ball_bar_through_the_cli(kr5_planes, tmp_path):
     """Contacts with three planes plus distances from the tool to the fixed pivot of a ball bar,
     written as CSV and run through ``torchcal loop``: the distances fix the size, so the absolute

@@ -120,6 +120,7 @@ def _tensors(data) -> list[torch.Tensor]:
     return [v for v in items if isinstance(v, torch.Tensor)]
 
 
+@pytest.mark.slow
 def test_every_simulator_is_reproducible_from_its_seed_and_keeps_the_truth_apart():
     robot = shipped("ur5e", markers=["flange"])
     kr5 = shipped("kuka_kr5_arc", source="dh")

@@ -43,6 +43,7 @@ def looped(looped_report):
 
 
 # ----------------------------------------------------------------------------- every output directory
+@pytest.mark.slow
 def test_loop_writes_calibration_yaml_and_report_html(looped):
     for f in ("calibrated.urdf", "calibration.yaml", "report.md", "report.html", "report.json"):
         assert (looped / f).is_file(), f
@@ -55,6 +56,7 @@ def test_loop_writes_calibration_yaml_and_report_html(looped):
         assert c[key] == pytest.approx(geo.get(f"{j}.{slot}", 0.0), abs=1e-15)
 
 
+@pytest.mark.slow
 def test_calibrate_and_fleet_write_calibration_yaml_and_report_html(data, tmp_path):
     d, _ = data
     assert cli(["calibrate", "--robot", UR5E, "--data", str(d / "train.csv"), "--test", str(d / "test.csv"),
@@ -72,6 +74,7 @@ def fleet_out(fleet_report_out):
     return fleet_report_out
 
 
+@pytest.mark.slow
 def test_fleet_writes_each_robots_files_and_a_spread_figure(fleet_out):
     rep = json.loads((fleet_out / "fleet.json").read_text())
     assert [(f["robot"], f["parameter"]) for f in rep["flags"]] == [("kr5_06", "joint_a3.offset")]
@@ -90,13 +93,13 @@ def test_fleet_writes_each_robots_files_and_a_spread_figure(fleet_out):
     assert 'href="kr5_06/report.html"' in page and "data:image/png;base64," in page
 
 
-def test_fleet_figure_marks_the_flagged_robot(fleet_out):
+def test_fleet_figure_marks_the_flagged_robot(tmp_path):
     from torchcal.report.fleet import spread_rows
     rows = [{"name": "joint_a3.offset", "z": np.array([0.3, -1.0, 9.5, 0.2, 0.8]), "robots": list("abcde"),
              "flagged": {"c"}, "z_needed": 7.0},
             {"name": "joint_a2.offset", "z": np.array([0.1, 0.4, -0.3, 1.2, -0.9]), "robots": list("abcde"),
              "flagged": set(), "z_needed": 7.0}]
-    fig = fleet_figure(rows, fleet_out.parent / "f.png", 5.0, "test")
+    fig = fleet_figure(rows, tmp_path / "f.png", 5.0, "test")
     texts = [t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_text"))]
     assert "c" in texts and "a" not in texts  # only the flagged robot is named
     assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == ["joint_a2.offset", "joint_a3.offset"]
@@ -105,6 +108,7 @@ def test_fleet_figure_marks_the_flagged_robot(fleet_out):
 
 
 # ----------------------------------------------------------------------------- what the report states
+@pytest.mark.slow
 def test_heldout_outliers_are_listed(looped):
     rep = json.loads((looped / "report.json").read_text())
     assert sorted(s["row"] for s in rep["suspect_rows_test"]) == sorted(MOVED)
@@ -114,6 +118,7 @@ def test_heldout_outliers_are_listed(looped):
     assert "suspect_rows" in rep and "stages" in rep and "effects" in rep  # the existing keys stay
 
 
+@pytest.mark.slow
 def test_tables_show_rmse_and_p95(looped):
     rep = json.loads((looped / "report.json").read_text())
     md = (looped / "report.md").read_text()
@@ -128,6 +133,7 @@ def test_tables_show_rmse_and_p95(looped):
     assert st["rmse_mm"] == pytest.approx(float(np.sqrt(np.mean((e.numpy() * 1e3) ** 2))), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_noise_floor_states_its_source(looped, data):
     _, med = data
     rep = json.loads((looped / "report.json").read_text())
@@ -172,6 +178,7 @@ def test_a_finding_is_stated_only_when_significant():
     assert any("not quite level" in s for s in effect_findings(eff, vals, se).stated)
 
 
+@pytest.mark.slow
 def test_the_loop_report_states_significant_findings_only(looped):
     rep = json.loads((looped / "report.json").read_text())
     md = (looped / "report.md").read_text()
@@ -190,6 +197,7 @@ def test_the_loop_report_states_significant_findings_only(looped):
         assert "not quite level" not in md
 
 
+@pytest.mark.slow
 def test_one_display_unit_per_quantity(looped):
     md = (looped / "report.md").read_text()
     for raw in ("rad/N/m", "rad/(N*m)", "kg*m", "rad/N "):
@@ -229,6 +237,7 @@ def test_the_overlap_check_sees_overlaps(tmp_path):
     assert [t.get_text() for t in ax.get_xticklabels() if t.get_visible()] == ["left tick"]
 
 
+@pytest.mark.slow
 def test_error_figure_shows_every_axis_before_and_after(tmp_path):
     stages = [("before", _details(80, 2e-3, 0)), ("geometric", _details(80, 3e-4, 1)), ("full", _details(80, 2e-5, 2))]
     fig = error_figure(stages, tmp_path / "e.png", noise_floor_mm=0.03)
@@ -280,6 +289,7 @@ def test_plan_writes_a_coverage_figure(tmp_path):
 
 
 # ----------------------------------------------------------------------------- the HTML page
+@pytest.mark.slow
 def test_report_html_renders_in_headless_chromium(looped, tmp_path, chromium):
     browser = chromium
     page = (looped / "report.html").as_uri()

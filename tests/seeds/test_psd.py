@@ -166,6 +166,7 @@ def test_blocks_are_batched_over_populations(setup):
 
 
 # ------------------------------------------------------------------------------- identifiability
+@pytest.mark.slow
 def test_point_constraint_misses_the_gauge_and_the_scale(setup):
     s = setup
     robot, laser = s["robot"], s["laser"]

@@ -192,6 +192,7 @@ def test_ga_recovers_errors_on_decorrelated_coding(model):
     assert prob.residuals(torch.zeros(1, 13, dtype=torch.float64)).pow(2).mean().sqrt() > 1 * MM
 
 
+@pytest.mark.slow
 def test_pipeline_study_reproduces_the_lesson_with_lm():
     """studies.rrru.study end to end (short GA, no Monte Carlo): 13 of 14 parameters identifiable
     (dr is not), LM on the spiral compensates both trajectories within 4 σ of the tracker noise,

@@ -84,6 +84,7 @@ def test_calibrate_runs_the_toy_solver_to_the_lm_solution(toys, robot):
     assert (toy.params.values[:6] - lm.params.values[:6]).abs().max() < 1e-6
 
 
+@pytest.mark.slow
 def test_the_loop_tries_and_names_the_toy_effect(toys, robot):
     truth = _truth(robot, 1)
     train, test = _measured(robot, truth, 150, 2, QUAD), _measured(robot, truth, 60, 3, QUAD)

@@ -62,6 +62,7 @@ def test_set_threads_leaves_torch_alone_or_fixes_the_count(two_threads):
         set_threads(0)
 
 
+@pytest.mark.slow
 def test_the_environment_variable_sets_the_rule():
     def run(value: str):
         return subprocess.run([sys.executable, "-c", "import torchcal; print(torchcal.get_threads())"],
