@@ -22,6 +22,14 @@ class DefaultsFormatter(argparse.HelpFormatter):
             return text
         return f"{text} (default: %(default)s)"
 
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        # argparse breaks lines after a hyphen, which cuts names such as chaotic-pso or
+        # --orientation-weight in two; names are kept whole
+        import textwrap
+
+        return textwrap.wrap(self._whitespace_matcher.sub(" ", text).strip(), width, break_on_hyphens=False,
+                             break_long_words=False)
+
 
 def renamed(parser: argparse.ArgumentParser, old: str, new: str, why: str, nargs="?") -> None:
     """Refuse ``old`` (hidden from ``--help``) with a message that names ``new``: a script with

@@ -132,7 +132,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     t0 = time.perf_counter()
     say = say_fn(opt.log)
     train, test = _placeholders(train, test, say)
-    _directions(train, test, say)
+    train, test = _directions(train, test, say)
     as_measured = test
     session, test, held = _session(train, test)
     timings: dict[str, float] = {}
@@ -210,7 +210,16 @@ def _session(train: Measurements, test: Measurements | None):
     return (session, *hold_session_terms(train, test))
 
 
-def _directions(train: Measurements, test: Measurements | None, say) -> None:
+def _own(data: Measurements | None) -> Measurements | None:
+    """``data`` with a covariate table of its own: the columns the loop derives (directions, row
+    order) are added to the run's copy, never to the caller's rows (a second run on the same rows
+    would otherwise find them there and derive nothing for its held-out rows)."""
+    return None if data is None else data._with(data.q, data.positions, list(data.marker_names), data.quaternions,
+                                                dict(data.covariates), data.planes, dict(data.distances))
+
+
+def _directions(train: Measurements, test: Measurements | None, say) -> tuple[Measurements, Measurements | None]:
+    train, test = _own(train), _own(test)
     derived = derive_directions(train)
     if derived is not None:
         if test is not None:
@@ -218,6 +227,7 @@ def _directions(train: Measurements, test: Measurements | None, say) -> None:
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     if derive_row_order(train, test):
         say("no time column: the row order is a driver ('row'), for what changed during the session")
+    return train, test
 
 
 def _nominal(robot, train: Measurements, test: Measurements | None, opt: LoopOptions, say):

@@ -23,7 +23,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from scipy.stats import chi2
 from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
@@ -70,6 +69,8 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
     for i, (p, d, _) in enumerate(eff.terms):
         by_pair.setdefault((p, d), []).append(i)
     pairs = list(by_pair)
+    from scipy.stats import chi2  # here, not at import: scipy.stats costs half a second of every start
+
     out = []
     for s in range(0, len(pairs), max(CHUNK // 4, 1)):
         chunk = pairs[s:s + max(CHUNK // 4, 1)]
