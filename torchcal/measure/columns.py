@@ -4,12 +4,13 @@ checked against the robot that reads the file."""
 from __future__ import annotations
 
 import difflib
+import math
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Columns", "sort_columns", "marker_columns_in", "POS", "QUAT", "PLANE", "DIST"]
+__all__ = ["Columns", "sort_columns", "marker_columns_in", "POS", "QUAT", "PLANE", "DIST", "number_cell"]
 
 logger = logging.getLogger("torchcal")
 
@@ -147,3 +148,14 @@ def _require_marker_columns(path, measured: list[str], cols: set[str]) -> list[s
         if absent:
             raise ValueError(f"{path}: marker {m!r} has some orientation columns but not {absent}")
     return has_quat
+
+
+def number_cell(cell: str, line: int, col: str, path) -> float:
+    """A CSV cell as a number (empty or ``nan``: NaN), refused with its file, line and column."""
+    s = cell.strip()
+    if s == "" or s.lower() == "nan":
+        return math.nan
+    try:
+        return float(s)
+    except ValueError:
+        raise ValueError(f"{path}, line {line}, column {col!r}: {cell!r} is not a number") from None

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal.kinematics.transforms import matrix_to_quat, rot_x, rot_y, rot_z
-from torchcal.measure.columns import QUAT
+from torchcal.measure.columns import QUAT, number_cell
 from torchcal.options import Options
 
 __all__ = ["InstrumentFormat", "translate", "parse_column_map", "EULER_COLUMNS", "ROT_UNITS"]
@@ -146,7 +146,7 @@ def _quaternions(path, header, rows, fmt: InstrumentFormat):
             raise ValueError(f"{path}: marker {m!r} needs all of {cols} and no quaternion columns"
                              + (f"; missing {lack}" if lack else ""))
         idx = [header.index(c) for c in cols]
-        vals = torch.tensor([[_angle(r[j], i + 2, header[j], path) for j in idx] for i, r in enumerate(rows)],
+        vals = torch.tensor([[number_cell(r[j], i + 2, header[j], path) for j in idx] for i, r in enumerate(rows)],
                             dtype=torch.float64)
         seen = torch.isfinite(vals).all(1)
         q = torch.full((len(rows), 4), math.nan, dtype=torch.float64)
@@ -159,11 +159,3 @@ def _quaternions(path, header, rows, fmt: InstrumentFormat):
     return header, rows
 
 
-def _angle(cell: str, line: int, col: str, path) -> float:
-    s = cell.strip()
-    if s == "" or s.lower() == "nan":
-        return math.nan
-    try:
-        return float(s)
-    except ValueError:
-        raise ValueError(f"{path}, line {line}, column {col!r}: {cell!r} is not a number") from None

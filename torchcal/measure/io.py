@@ -21,7 +21,6 @@ from __future__ import annotations
 import csv
 import io
 import logging
-import math
 import os
 import warnings
 from pathlib import Path
@@ -31,7 +30,7 @@ import torch
 
 from torchcal.advice import advice
 from torchcal.measure.checks import check_motion, check_robot
-from torchcal.measure.columns import PLANE, POS, QUAT, DIST, Columns, sort_columns
+from torchcal.measure.columns import PLANE, POS, QUAT, DIST, Columns, number_cell, sort_columns
 from torchcal.measure.data import Measurements
 from torchcal.measure.instrument import InstrumentFormat, translate
 from torchcal.measure.levels import is_text_column, join_levels, level_covariates
@@ -121,16 +120,6 @@ def read_table(path, fmt: InstrumentFormat | None = None, what: str = "measureme
     return translate(path, *read_csv(path, what, sep=fmt.sep), fmt)
 
 
-def _number(cell: str, line: int, col: str, path) -> float:
-    s = cell.strip()
-    if s == "" or s.lower() == "nan":
-        return math.nan
-    try:
-        return float(s)
-    except ValueError:
-        raise ValueError(f"{path}, line {line}, column {col!r}: {cell!r} is not a number") from None
-
-
 def load_measurements(path: str | os.PathLike, robot, *, dtype: torch.dtype | None = None,
                       units: list[str] | tuple[str, ...] = (), fmt: InstrumentFormat | None = None) -> Measurements:
     """Read a measurement CSV and check it against ``robot``.
@@ -194,7 +183,7 @@ def _cells(path, c: Columns) -> np.ndarray:
     for i, r in enumerate(c.rows):
         for col in numeric:
             j = c.idx[col]
-            data[i, j] = _number(r[j], path.line(i), col, path)
+            data[i, j] = number_cell(r[j], path.line(i), col, path)
     _absurd(path, data, c.header, set(c.covariates))
     return data
 
