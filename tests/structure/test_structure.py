@@ -69,11 +69,6 @@ def _constructors() -> list[tuple[str, str, ast.FunctionDef]]:
             for fn in c.body if isinstance(fn, ast.FunctionDef) and fn.name == "__init__"]
 
 
-# Constructors being converted to settings records on another branch (issue 34 §3): listed here so the
-# check holds for everything else meanwhile; remove an entry when its record lands.
-PENDING_CONSTRUCTORS = {"sim/physsim.py"}
-
-
 def test_public_functions_take_at_most_10_parameters():
     long = [f"{rel}:{fn.name} ({_count_params(fn)})" for rel, tree, _ in MODULES for fn in _functions(tree)
             if not fn.name.startswith("_") and _count_params(fn) > MAX_PUBLIC_PARAMS]
@@ -84,7 +79,7 @@ def test_constructors_take_at_most_10_parameters():
     ctors = _constructors()
     assert len(ctors) > 20  # a check that found no constructor would pass
     long = [f"{rel}:{cls}.__init__ ({_count_params(fn)})" for rel, cls, fn in ctors
-            if _count_params(fn) > MAX_PUBLIC_PARAMS and rel not in PENDING_CONSTRUCTORS]
+            if _count_params(fn) > MAX_PUBLIC_PARAMS]
     assert not long, "give these a torchcal.options.Options settings record: " + ", ".join(long)
 
 
