@@ -150,9 +150,14 @@ def _base_tree(commit: str, where: Path) -> Path:
 
 
 def _same(a: dict, b: dict) -> tuple[bool, float | None]:
-    """Whether two loop summaries decided the same, and the largest parameter difference."""
-    keys = ("geometric", "accepted", "candidates", "elm")
-    same = all(a.get(k) == b.get(k) for k in keys) and a.get("names") == b.get("names")
+    """Whether two loop summaries decided the same (the geometric set, the effects accepted, the
+    ELM; and every candidate both trees tried, judged alike: a tree may try a family the other does
+    not have, which then changes no decision), and the largest parameter difference."""
+    keys = ("geometric", "accepted", "elm")
+    tried_b = {(c[0], c[1]): c[2] for c in b.get("candidates", [])}
+    both = [c for c in a.get("candidates", []) if (c[0], c[1]) in tried_b]
+    same = (all(a.get(k) == b.get(k) for k in keys) and a.get("names") == b.get("names")
+            and all(tried_b[(c[0], c[1])] == c[2] for c in both))
     if "values" not in a or a.get("names") != b.get("names"):
         return same, None
     return same, max((abs(x - y) for x, y in zip(a["values"], b["values"])), default=0.0)

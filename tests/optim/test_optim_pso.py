@@ -363,7 +363,6 @@ def curve_problem():
                                torch.tensor([5.0, 5.0, 2.0], dtype=D))
 
 
-@register
 class _StubPolish(Solver):
     """Records where it was started and returns that point: tests the plumbing without LM."""
 
@@ -381,8 +380,19 @@ class _StubPolish(Solver):
                       n_iter=1, converged=True, message="stub")
 
 
+@pytest.fixture
+def stub_polish():
+    """The stub, registered for one test and taken out after: a solver left in the registry would
+    be listed by every later test of this process (the command line's --method among them)."""
+    from torchcal.optim.base import _REGISTRY
+
+    register(_StubPolish)
+    yield _StubPolish
+    _REGISTRY.pop(_StubPolish.name.lower(), None)
+
+
 @pytest.mark.parametrize("shift", [0.0, 1.0])
-def test_hybrid_plumbing_with_stub(shift):
+def test_hybrid_plumbing_with_stub(shift, stub_polish):
     _StubPolish.started_at.clear()
     prob = curve_problem()
     swarm_opts = dict(pop_size=10, max_iter=5)
