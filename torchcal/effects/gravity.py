@@ -11,6 +11,7 @@ the deflections they cause are micro-radians, which change the wrench only to se
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,10 @@ __all__ = ["GRAVITY", "Frames", "Wrenches", "body_inertials", "kinematic_frames"
            "gravity_features"]
 
 GRAVITY = (0.0, 0.0, -9.81)  # m/s², robot base frame with z up
+# gravity_features of the last commands seen, per robot: the loop builds hundreds of problems on
+# the same rows (fits, folds, rounds), and these kinematics are a tenth of its time when recomputed
+_FEATURES: "weakref.WeakKeyDictionary[Robot, list]" = weakref.WeakKeyDictionary()
+_FEATURES_KEPT = 16
 
 
 def body_inertials(robot) -> dict[str, tuple[float, np.ndarray]]:
@@ -213,7 +218,22 @@ def _beyond(robot, frame: int, mk_frame: list[int]) -> Tensor:
 def gravity_features(robot, q: Tensor, links: list[str], gravity=GRAVITY) -> Tensor:
     """``(N, L, dof, 4)`` features: torque (N·m) on each actuated joint from a unit mass at each
     link's origin (feature 0) and from a unit first moment along the link's x, y, z (features 1–3,
-    N·m per kg·m). Prismatic joints get the force along their axis (N) in feature 0."""
+    N·m per kg·m). Prismatic joints get the force along their axis (N) in feature 0. The last
+    :data:`_FEATURES_KEPT` results per robot are kept, and returned for equal commands."""
+    if q.requires_grad:  # a result kept for later calls must not carry this call's graph
+        return _gravity_features(robot, q, links, gravity)
+    key = (tuple(links), tuple(float(v) for v in gravity))
+    seen = _FEATURES.setdefault(robot, [])
+    for k, q0, F in seen:
+        if k == key and q0.shape == q.shape and q0.device == q.device and torch.equal(q0, q):
+            return F
+    F = _gravity_features(robot, q, links, gravity)
+    seen.append((key, q.detach().clone(), F))
+    del seen[:-_FEATURES_KEPT]
+    return F
+
+
+def _gravity_features(robot, q: Tensor, links: list[str], gravity) -> Tensor:
     aux, _, qcols = _aux(robot, links)
     cols = [aux.joint_names.index(n) for n in robot.joint_names]
     J = aux.joint_jacobian(q[:, qcols], check=False)[..., cols]  # (N, L, 6, dof)

@@ -10,7 +10,7 @@ from torch import Tensor
 
 from torchcal.measure.records import ErrorStats
 
-__all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched", "noise_floor"]
+__all__ = ["error_stats", "angle_stats", "errors_by_marker", "errors_by_marker_batched", "noise_floor", "chi2_sf", "chi2_isf"]
 
 
 def error_stats(err_m: Tensor, unit: str = "mm") -> ErrorStats:
@@ -124,3 +124,38 @@ def _pure_error_mm(data) -> tuple[float, str] | None:
     reps = int((torch.bincount(group) > 1).sum())
     return (_MEAN_NORM_3D * sigma_mm, f"the pure error of {reps} repeated command(s): their pooled spread, "
             f"σ = {sigma_mm:.4g} mm per axis, as the mean norm of 3-D noise (it includes the robot's repeatability)")
+
+
+def chi2_sf(x: float, k: int) -> float:
+    """P(χ²_k > x) (scipy's ``chi2.sf``) for an integer ``k ≥ 1``, in closed form: the regularised
+    upper incomplete gamma function of a whole or half-whole order. Written here, not imported,
+    because importing scipy.stats costs most of a second: a report's significance bounds and the
+    loop's screening would pay it on every run."""
+    h = x / 2.0
+    if k % 2 == 0:
+        term, total = 1.0, 1.0
+        for i in range(1, k // 2):
+            term *= h / i
+            total += term
+        return math.exp(-h) * total
+    total, term = math.erfc(math.sqrt(h)), math.sqrt(h) / math.gamma(1.5)
+    for i in range((k - 1) // 2):
+        total += math.exp(-h) * term
+        term *= h / (i + 1.5)
+    return total
+
+
+def chi2_isf(alpha: float, k: int) -> float:
+    """The bound a χ²_k exceeds with chance ``alpha`` (scipy's ``chi2.isf``), by bisection."""
+    lo, hi = 0.0, float(k) + 10.0
+    while chi2_sf(hi, k) > alpha:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if chi2_sf(mid, k) > alpha:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-13 * hi:
+            break
+    return 0.5 * (lo + hi)

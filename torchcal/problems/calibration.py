@@ -328,35 +328,42 @@ class EffectCalibrationProblem(Problem):
 
     def data_jacobian(self, x: Tensor) -> Tensor:
         """``(3 n_obs, n_free)`` Jacobian of the raw residual vectors (no loss, no prior rows)."""
-        full = self.full(x)[None]
-        J = torch.zeros(3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
+        return self.data_jacobians(x[None])[0]
+
+    def data_jacobians(self, X: Tensor) -> Tensor:
+        """:meth:`data_jacobian` at each of ``B`` points ``X (B, n_free)``: ``(B, 3 n_obs, n_free)``, the
+        kinematics of every point in one call (a batch of CV folds costs little more than one fold)."""
+        full = self.full(X)
+        B = full.shape[0]
+        J = torch.zeros(B, 3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         K, S = self.K, self.S
         turns = self.obs.has_orientation
         if self._geo_free.numel() or self._set_free.numel():
             R, p = self._points(full)
-            R, p = (None if R is None else R[0]), p[0]
-            s = full[0, K:K + S]
+            s = full[:, K:K + S]
         if self._geo_free.numel():
-            q = self.joint_values(full)[0]
-            Jg = self.robot.param_jacobian(q, full[0, :K], kind="pose" if turns else "position",
+            Jg = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
                                            check=False)[..., self._geo_free]
             D, W = (Jg[..., :3, :], Jg[..., 3:, :]) if turns else (Jg, None)
-            J[:, [pos[int(v)] for v in self._geo_free.tolist()]] = self.obs.project(p, D, s, W, R).reshape(
-                -1, self._geo_free.numel())
+            cols = [pos[int(v)] for v in self._geo_free.tolist()]
+            for b in range(B):
+                J[b, :, cols] = self.obs.project(p[b], D[b], s[b], None if W is None else W[b],
+                                                 None if R is None else R[b]).reshape(-1, len(cols))
         if self._set_free.numel():
-            Js = self.obs.setup_jacobian(p, s)[..., self._set_free - K]
-            J[:, [pos[int(v)] for v in self._set_free.tolist()]] = Js.reshape(-1, self._set_free.numel())
+            cols = [pos[int(v)] for v in self._set_free.tolist()]
+            for b in range(B):
+                J[b, :, cols] = self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K].reshape(-1, len(cols))
         if self._eff_free.numel():
             k = self._eff_free.numel()
-            h = self.fd_step * torch.clamp(full[0, self._eff_free].abs(), min=1.0)
-            E = torch.zeros(2 * k, full.shape[1], dtype=full.dtype, device=full.device)
+            h = self.fd_step * torch.clamp(full[:, self._eff_free].abs(), min=1.0)  # (B, k)
+            E = torch.zeros(B, 2 * k, full.shape[1], dtype=full.dtype, device=full.device)
             ar = torch.arange(k, device=full.device)
-            E[ar, self._eff_free] = h
-            E[ar + k, self._eff_free] = -h
-            r = self.residual_vectors(full + E)
-            d = (r[:k] - r[k:]) / (2 * h)[:, None, None]  # (k, n, 3)
-            J[:, [pos[int(v)] for v in self._eff_free.tolist()]] = d.permute(1, 2, 0).reshape(-1, k)
+            E[:, ar, self._eff_free] = h
+            E[:, ar + k, self._eff_free] = -h
+            r = self.residual_vectors((full[:, None] + E).reshape(B * 2 * k, -1)).reshape(B, 2 * k, self.n_obs, 3)
+            d = (r[:, :k] - r[:, k:]) / (2 * h)[..., None, None]  # (B, k, n, 3)
+            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = d.permute(0, 2, 3, 1).reshape(B, -1, k)
         return J
 
     def observation_weights(self, x: Tensor) -> Tensor:
@@ -367,17 +374,23 @@ class EffectCalibrationProblem(Problem):
         return self.loss.scales((r * r).sum(-1))[1]
 
     def jacobian(self, x: Tensor) -> Tensor:
-        J = self.data_jacobian(x)
+        return self.jacobians(x[None])[0]
+
+    def jacobians(self, X: Tensor) -> Tensor:
+        """:meth:`jacobian` at each of ``B`` points ``X (B, n_free)``: ``(B, m, n_free)``."""
+        J = self.data_jacobians(X)
         if self.loss.kind != "l2":
-            J = J * self.observation_weights(x).repeat_interleave(3)[:, None]
+            r = self.residual_vectors(self.full(X))
+            J = J * self.loss.scales((r * r).sum(-1))[1].repeat_interleave(3, dim=-1)[..., None]
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
+        B, k = J.shape[0], J.shape[-1]
         if self._prior is not None:
             idx, w = self._prior
-            P = torch.zeros(idx.numel(), J.shape[1], dtype=J.dtype, device=J.device)
-            P[torch.arange(idx.numel(), device=J.device), [pos[int(v)] for v in idx.tolist()]] = w
-            J = torch.cat([J, P], 0)
+            P = torch.zeros(B, idx.numel(), k, dtype=J.dtype, device=J.device)
+            P[:, torch.arange(idx.numel(), device=J.device), [pos[int(v)] for v in idx.tolist()]] = w
+            J = torch.cat([J, P], 1)
         if self._gauge is not None:
-            row = torch.zeros(1, J.shape[1], dtype=J.dtype, device=J.device)
-            row[0, [pos[int(v)] for v in self._geo_free.tolist()]] = GAUGE_WEIGHT * self._gauge[0]
-            J = torch.cat([J, row], 0)
+            row = torch.zeros(B, 1, k, dtype=J.dtype, device=J.device)
+            row[:, 0, [pos[int(v)] for v in self._geo_free.tolist()]] = GAUGE_WEIGHT * self._gauge[0]
+            J = torch.cat([J, row], 1)
         return J

@@ -7,10 +7,11 @@ import math
 from datetime import datetime, timezone
 
 from torchcal.effects.base import TIME_COVARIATES
+from torchcal.measure.stats import chi2_isf
 from torchcal.params import display_unit
 
 __all__ = ["shown", "with_error", "covariate_value", "is_time", "iso_time", "SIGNIFICANT_Z", "significant",
-           "z_score", "chi2_isf"]
+           "z_score"]
 
 # a finding is stated only when its value lies this many standard errors from zero (two-sided
 # chance 0.27 % for one parameter); a group of k parameters uses the chi-square bound of the
@@ -83,37 +84,3 @@ def significant(values: list[float], ses: list[float | None], z: float = SIGNIFI
         return False
     alpha = math.erfc(z / math.sqrt(2.0))  # two-sided normal tail beyond z
     return bool(sum(x * x for x in zs) > chi2_isf(alpha, len(zs)))
-
-
-def _chi2_sf(x: float, k: int) -> float:
-    """P(χ²_k > x) for an integer ``k``, in closed form (the regularised upper incomplete gamma
-    function of a whole or half-whole order)."""
-    h = x / 2.0
-    if k % 2 == 0:
-        term, total = 1.0, 1.0
-        for i in range(1, k // 2):
-            term *= h / i
-            total += term
-        return math.exp(-h) * total
-    total, term = math.erfc(math.sqrt(h)), math.sqrt(h) / math.gamma(1.5)
-    for i in range((k - 1) // 2):
-        total += math.exp(-h) * term
-        term *= h / (i + 1.5)
-    return total
-
-
-def chi2_isf(alpha: float, k: int) -> float:
-    """The bound a χ²_k exceeds with chance ``alpha`` (scipy's ``chi2.isf``), by bisection: written
-    here because importing scipy.stats costs half a second on every report."""
-    lo, hi = 0.0, float(k) + 10.0
-    while _chi2_sf(hi, k) > alpha:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if _chi2_sf(mid, k) > alpha:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-13 * hi:
-            break
-    return 0.5 * (lo + hi)

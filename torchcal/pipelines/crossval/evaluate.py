@@ -2,7 +2,7 @@
 the solution) and K-fold cross-validated from that fit; the prior scale chosen by the same CV.
 
 Fits use the Huber loss with the context's threshold; the folds start from the full fit with the
-same free set.
+same free set, all folds in one batched Levenberg-Marquardt (:func:`fit_folds`).
 """
 from __future__ import annotations
 
@@ -10,15 +10,20 @@ import torch
 from torch import Tensor
 
 from torchcal.measure.data import Measurements
+from torchcal.optim.lm_batched import lm_batched
 from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.models import (Context, Model, effect_problem, fit_noise, noise_sigma_of,
                                                 observation_errors)
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.crossval.scores import effective_params, penalised, row_scores
 from torchcal.pipelines.fitting import fit_identified
+from torchcal.problems.calibration import EffectCalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 
-__all__ = ["fit_params", "rescore", "evaluate", "cv_mean_mm", "evaluate_prior"]
+__all__ = ["fit_params", "fit_folds", "rescore", "evaluate", "cv_mean_mm", "evaluate_prior"]
+
+# a fold's fit, as a fit without identifiability judged again: at most this many trial steps
+FOLD_MAX_ITER = 100
 
 
 def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
@@ -33,6 +38,44 @@ def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements
     return ps
 
 
+def fit_folds(ctx: Context, full: ParamSet, prob: EffectCalibrationProblem) -> list[ParamSet]:
+    """Each fold's fit of ``full``'s free set on the other folds' rows, from ``full`` (``prob``: its
+    problem on every training row, with the prior), as
+    :func:`fit_params` without reduction would give them one by one, but as one batched
+    Levenberg-Marquardt: the folds are one problem on every training row, each fold's own rows
+    masked out (a zero residual and Jacobian row changes nothing), so the kinematics of every fold
+    run in one call per step, and the Jacobian at the shared start is computed once."""
+    n_rows, dev = len(ctx.data), ctx.data.q.device
+    keep = torch.ones(len(ctx.folds), n_rows, dtype=torch.bool, device=dev)
+    for i, f in enumerate(ctx.folds):
+        keep[i, f] = False
+    obs = keep[:, prob.rows].repeat_interleave(3, dim=1)  # (F, 3 n_obs): residual entries each fold fits
+    extra = prob.m - obs.shape[1]  # prior and gauge rows: every fold has them
+    mask = torch.cat([obs, obs.new_ones(obs.shape[0], extra)], 1).to(full.values.dtype)
+    k = prob.dim
+    short = [int(m) for m in mask.sum(1).tolist() if m < k]
+    if short:  # as a fold fitted alone would refuse
+        raise ValueError(f"{short[0]} residuals for {k} free parameters (no reduction asked): measure more poses, "
+                         "or fix parameters")
+
+    def residuals(X: Tensor, idx: Tensor) -> Tensor:
+        return prob.residuals(X) * mask[idx]
+
+    def jacobian(X: Tensor, idx: Tensor) -> Tensor:
+        return prob.jacobians(X) * mask[idx, :, None]
+
+    x0 = prob.x0.expand(mask.shape[0], k)
+    jac0 = prob.jacobian(prob.x0)[None] * mask[:, :, None]
+    res = lm_batched(residuals, jacobian, x0, torch.ones_like(x0, dtype=torch.bool), prob.lower, prob.upper,
+                     max_iter=FOLD_MAX_ITER, jac0=jac0)
+    out = []
+    for x in res.x:
+        p = full.clone()
+        p.values = prob.full(x).detach()
+        out.append(p)
+    return out
+
+
 def rescore(ctx: Context, m: Model) -> Tensor:
     """A model's cross-validated per-row scores under the context's (new) threshold, from its
     fold fits."""
@@ -44,9 +87,10 @@ def rescore(ctx: Context, m: Model) -> Tensor:
 
 
 def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm: float | None,
-             reduce: bool = True, info: dict | None = None) -> Model:
+             reduce: bool = True, info: dict | None = None, folds: bool = True) -> Model:
     """Fit ``start`` on all training rows (identifiable subset, judged at the start and again
-    at the solution), then K-fold cross-validate it from that fit."""
+    at the solution), then K-fold cross-validate it from that fit (``folds=False``: the fit alone,
+    with no scores, for a caller that reads only its values and effective size)."""
     prior = prior_weights(ctx.robot, start, prior_mm, ctx.sigma, effects)
     full = fit_params(ctx, start, effects, ctx.data, prior, reduce)
     prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma, effects)
@@ -59,19 +103,17 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     # how far noise alone moves each value: σ sqrt((JᵀJ + W²)⁻¹_ii) at the fit's robust noise
     se = standard_errors(J, sigma=noise_sigma_of(ctx, full, effects, k), prior=pf, singular="pinv")
     info["se"] = dict(zip(full.free_names, se.tolist()))
+    # the free set before identifiability: later fits judge it again, with the noise they see then
+    info.setdefault("candidates", start.free[: ctx.n_geo].clone())
     scores = torch.zeros(len(ctx.data), dtype=ctx.robot.dtype, device=ctx.robot.device)
     sq = torch.zeros_like(scores)
-    fits = []
-    for f in ctx.folds:
-        mask = torch.ones(len(ctx.data), dtype=torch.bool, device=ctx.data.q.device)
-        mask[f] = False
-        p = fit_params(ctx, full, effects, ctx.data.subset(mask), prior, reduce=False)
+    if not folds:
+        return Model(label, full, list(effects), prior_mm, k, scores, [], info, sq)
+    fits = fit_folds(ctx, full, prob) if ctx.folds else []
+    for f, p in zip(ctx.folds, fits):
         e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))
         scores[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
         sq[f] = row_scores(e.norm(dim=-1), rows, len(f), None)
-        fits.append(p)
-    # the free set before identifiability: later fits judge it again, with the noise they see then
-    info.setdefault("candidates", start.free[: ctx.n_geo].clone())
     return Model(label, full, list(effects), prior_mm, k, scores, fits, info, sq)
 
 

@@ -104,11 +104,12 @@ def estimate_noise(ctx: Context, robot, data: Measurements, setup, rounds: int =
     found = _markers_found(plain, robot, plain.data, setup)
     turns = ctx.rot_weight is not None
     full = lambda: warm_start(geometric_start(robot, data, None, setup, turns), found)  # noqa: E731
-    probe = evaluate(plain, "noise probe", full(), [], None)
-    for _ in range(rounds):
+    # only the last probe is cross-validated: the rounds before it read its fit's noise alone
+    probe = evaluate(plain, "noise probe", full(), [], None, folds=rounds == 0)
+    for i in range(rounds):
         sigma = noise_sigma(ctx, probe)
         ctx = ctx.at(HUBER_K * sigma, sigma)
-        probe = evaluate(ctx, "noise probe", full(), [], None)
+        probe = evaluate(ctx, "noise probe", full(), [], None, folds=i == rounds - 1)
     return ctx, probe, found
 
 

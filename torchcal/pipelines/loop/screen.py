@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
+from torchcal.measure.stats import chi2_sf
 
 __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
 
@@ -69,8 +70,6 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
     for i, (p, d, _) in enumerate(eff.terms):
         by_pair.setdefault((p, d), []).append(i)
     pairs = list(by_pair)
-    from scipy.stats import chi2  # here, not at import: scipy.stats costs half a second of every start
-
     out = []
     for s in range(0, len(pairs), max(CHUNK // 4, 1)):
         chunk = pairs[s:s + max(CHUNK // 4, 1)]
@@ -82,7 +81,7 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
             e, rank = _explained(C[:, o:o + g], rp, Q)
             o += g
             if rank:
-                out.append((float(chi2.sf(e / sigma ** 2, rank)), pr))
+                out.append((chi2_sf(e / sigma ** 2, rank), pr))
     return out
 
 

@@ -1,0 +1,88 @@
+"""The loop's cross-validation folds fitted as one batched Levenberg-Marquardt equal the folds fitted
+one by one on their own rows; the batched Jacobians equal the single ones; kept gravity features
+equal fresh ones."""
+from __future__ import annotations
+
+import torch
+
+from torchcal import Robot
+from torchcal.effects.compliance import JointCompliance
+from torchcal.effects.gravity import _gravity_features, gravity_features
+from torchcal.params import ParamSet
+from torchcal.pipelines.crossval.evaluate import fit_folds, fit_params
+from torchcal.pipelines.crossval.models import Context, effect_problem, folds_of
+from torchcal.pipelines.crossval.priors import prior_weights
+from torchcal.problems.template import geometric_start
+from torchcal.sim.serial import SimConfig, random_configs, simulated_robot
+
+D = torch.float64
+
+
+def _case(n=40, seed=0):
+    robot = Robot.from_urdf("urdf/kuka_kr5_arc.urdf", markers=["smr@flange=0.01,-0.02,0.1"])
+    cfg = SimConfig(n=n, noise=0.05e-3, seed=seed)
+    real = simulated_robot(robot, cfg, ["joint_compliance"], options={"joint_compliance": {"compliance": 5e-5}},
+                           true_params=None)
+    data = real.measure(random_configs(robot, n, torch.Generator().manual_seed(seed + 1)))
+    eff = JointCompliance(robot).bind(data)
+    geo = geometric_start(robot, data, None)
+    lo = torch.full((eff.n_params,), -float("inf"), dtype=D)
+    start = ParamSet.concat(geo, ParamSet(eff.param_names, eff.param_units, torch.zeros(eff.n_params, dtype=D),
+                                          torch.ones(eff.n_params, dtype=torch.bool), lo, -lo))
+    ctx = Context(robot, data, folds_of(n, 5, seed), c=0.1e-3, sigma=0.05e-3)  # Huber: outer rows count
+    return ctx, start, [eff]
+
+
+def test_batched_folds_equal_each_fold_fitted_alone():
+    ctx, start, effects = _case()
+    prior = prior_weights(ctx.robot, start, 1.0, ctx.sigma, effects)
+    full = fit_params(ctx, start, effects, ctx.data, prior, reduce=True)
+    prob = effect_problem(ctx, full, effects, ctx.data, prior)
+    batched = fit_folds(ctx, full, prob)
+    assert len(batched) == len(ctx.folds)
+    moved = 0.0
+    for f, pb in zip(ctx.folds, batched):
+        keep = torch.ones(len(ctx.data), dtype=torch.bool)
+        keep[f] = False
+        alone = fit_params(ctx, full, effects, ctx.data.subset(keep), prior, reduce=False)
+        assert pb.names == alone.names and torch.equal(pb.free, alone.free)
+        scale = alone.values.abs().clamp(min=1e-3)
+        assert float(((pb.values - alone.values).abs() / scale).max()) < 1e-8
+        moved = max(moved, float((alone.values - full.values).abs().max()))
+    assert moved > 1e-7  # each fold fit moved from the full fit: the comparison compares fits
+
+
+def test_batched_jacobians_equal_single_ones():
+    ctx, start, effects = _case(n=25, seed=3)
+    prior = prior_weights(ctx.robot, start, 1.0, ctx.sigma, effects)
+    prob = effect_problem(ctx, start, effects, ctx.data, prior)
+    g = torch.Generator().manual_seed(7)
+    X = prob.x0 + 1e-3 * torch.randn(3, prob.dim, generator=g, dtype=D)
+    JB = prob.jacobians(X)
+    assert JB.shape == (3, prob.m, prob.dim)
+    for b in range(3):
+        torch.testing.assert_close(JB[b], prob.jacobian(X[b]), rtol=1e-12, atol=1e-15)
+    # without a robust loss (whose Jacobian is IRLS's), the derivative of the residuals: central
+    # differences, effect columns too
+    plain = effect_problem(ctx, start, effects, ctx.data, prior, loss=False)
+    JP = plain.jacobians(X)
+    h = 1e-6
+    E = h * torch.eye(prob.dim, dtype=D)
+    fd = (plain.residuals(X[0] + E) - plain.residuals(X[0] - E)).T / (2 * h)
+    err = float((fd - JP[0]).abs().max()) / float(fd.abs().max())
+    assert err < 1e-5, err
+
+
+def test_kept_gravity_features_equal_fresh_ones():
+    robot = Robot.from_urdf("urdf/kuka_kr5_arc.urdf", markers=["smr@flange=0,0,0"])
+    g = torch.Generator().manual_seed(2)
+    links = [robot.joints[-1].child]
+    q1 = random_configs(robot, 12, g)
+    q2 = random_configs(robot, 12, g)
+    a = gravity_features(robot, q1, links)
+    b = gravity_features(robot, q1.clone(), links)  # equal commands, another tensor: the kept result
+    c = gravity_features(robot, q2, links)
+    torch.testing.assert_close(a, _gravity_features(robot, q1, links, (0.0, 0.0, -9.81)), rtol=0, atol=0)
+    assert b is a
+    torch.testing.assert_close(c, _gravity_features(robot, q2, links, (0.0, 0.0, -9.81)), rtol=0, atol=0)
+    assert not torch.equal(a, c)
