@@ -73,3 +73,44 @@ def test_modes_the_data_cannot_tell_apart_are_named_together():
     chosen, _, _, _ = lcv.forward([], n_rows)
     assert len(chosen) == 1 and chosen[0] in (1, 3)
     assert lcv.aliases(chosen) == {chosen[0]: [4 - chosen[0]]}
+
+
+def test_wide_sets_score_as_through_the_normal_matrix(monkeypatch):
+    """A set with more columns than rows is solved through the rows' Gram (BBᵀ): the same
+    minimum-norm steps, scores and effective sizes as the pseudo-inverse of the normal matrix."""
+    for prior in (True, False):
+        lcv = _problem(n_rows=8, kb=5, L=40, seed=4, prior=prior)
+        idx = torch.stack([lcv._cols(list(range(40))), lcv._cols(list(range(1, 40)) + [0])])
+        assert lcv._wide(idx)
+        assert not lcv.set_prior(lcv.prior, 0.05)._wide(idx)  # a ridge row per column: no fewer rows
+        lcv.set_prior(lcv.prior)
+        wide = lcv._scores_batch(idx), lcv._k_eff_batch(idx)
+        monkeypatch.setattr(LinearCV, "_wide", lambda self, idx: False)
+        normal = lcv._scores_batch(idx), lcv._k_eff_batch(idx)
+        monkeypatch.undo()
+        torch.testing.assert_close(wide[0], normal[0], rtol=1e-8, atol=1e-14)
+        torch.testing.assert_close(wide[1], normal[1], rtol=1e-8, atol=1e-10)
+        assert float(wide[1][0]) > 5  # more than the base's parameters: the groups count
+
+
+def test_psd_pinv_is_the_pseudo_inverse():
+    """The Cholesky shortcut where the condition number allows it, the eigendecomposition elsewhere:
+    the pseudo-inverse either way (well conditioned, singular, barely above the cut)."""
+    from torchcal.pipelines.loop.linear_cv import psd_pinv
+
+    g = torch.Generator().manual_seed(9)
+    B = torch.randn(6, 30, 12, generator=g, dtype=D)
+    G = B.mT @ B  # well conditioned
+    G[1] = G[1] * 0
+    r = torch.randn(12, 7, generator=g, dtype=D)
+    G[2] = r @ r.T  # rank 7: singular
+    Q, _ = torch.linalg.qr(torch.randn(12, 12, generator=g, dtype=D))
+    G[3] = Q @ torch.diag(torch.logspace(0, -11, 12, dtype=D)) @ Q.T  # above the cut, beyond the shortcut
+    G[4] = Q @ torch.diag(torch.logspace(0, -14, 12, dtype=D)) @ Q.T  # some below the cut
+    ref = torch.linalg.pinv(G, rtol=1e-12, hermitian=True)
+    H = psd_pinv(G)
+    for b in range(6):
+        scale = float(ref[b].abs().max()) or 1.0
+        assert float((H[b] - ref[b]).abs().max()) <= 1e-6 * scale, b
+    torch.testing.assert_close(H[0], torch.linalg.inv(G[0]), rtol=1e-9, atol=1e-12)
+    assert float(H[1].abs().max()) == 0.0

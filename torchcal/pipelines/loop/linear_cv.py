@@ -15,11 +15,37 @@ from torch import Tensor
 
 from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
 
-__all__ = ["LinearCV", "ALIAS_COS"]
+__all__ = ["LinearCV", "ALIAS_COS", "psd_pinv"]
 
 # Two modes whose columns, beyond what the rest of the model explains, have a cosine above this
 # are candidates for one finding (the rule then says whether the data can tell them apart)
 ALIAS_COS = 0.9
+# the pseudo-inverses' cut: eigenvalues below this fraction of the largest count as zero
+_RTOL = 1e-12
+# Below this bound of the condition number (‖G‖∞ ‖G⁻¹‖∞, never below the 2-norm's for a symmetric
+# G) every eigenvalue is above the cut, ten times over: there the pseudo-inverse is the inverse
+_SAFE_COND = 0.1 / _RTOL
+
+
+def psd_pinv(G: Tensor) -> Tensor:
+    """``pinv(G, rtol=1e-12, hermitian=True)`` of symmetric positive semi-definite ``G (..., k, k)``.
+
+    Where a Cholesky factor exists and bounds the condition number inside the cut, the
+    pseudo-inverse is the inverse, which the factor gives for a fraction of an eigendecomposition
+    (the linear CV inverts thousands of these per candidate); the others take the eigendecomposition."""
+    if G.shape[-1] == 0:
+        return G.clone()
+    L, info = torch.linalg.cholesky_ex(G)
+    failed = info != 0
+    if bool(failed.any()):  # a factor that broke down holds a zero pivot: invert a stand-in, judged below
+        L = torch.where(failed[..., None, None], torch.eye(G.shape[-1], dtype=G.dtype, device=G.device), L)
+    H = torch.cholesky_inverse(L)
+    cond = G.abs().sum(-1).amax(-1) * H.abs().sum(-1).amax(-1)
+    ok = ~failed & torch.isfinite(cond) & (cond < _SAFE_COND)
+    if not bool(ok.all()):
+        bad = ~ok
+        H[bad] = torch.linalg.pinv(G[bad], rtol=_RTOL, hermitian=True)
+    return H
 
 
 class LinearCV:
@@ -62,14 +88,17 @@ class LinearCV:
         w3 = w.repeat_interleave(3)
         self._w3, self._rw = w3, r.reshape(-1) * w3
         Aw = A * w3[:, None]
+        self._Aw = Aw
         self._data_all = (Aw.T @ Aw, Aw.T @ self._rw)
-        self._data_folds = []
+        self._data_folds, train = [], []
         for f in folds:
             in_val = torch.zeros(n_rows, dtype=torch.bool, device=A.device)
             in_val[f] = True
             val_obs = in_val[rows]
             tr3 = (~val_obs).repeat_interleave(3)
+            train.append(tr3)
             self._data_folds.append((val_obs, Aw[tr3].T @ Aw[tr3], Aw[tr3].T @ self._rw[tr3]))
+        self._train = torch.stack(train).to(A.dtype) if train else None  # (F, 3 n_obs): 1 on a fold's training rows
         self.set_prior(prior)
 
     def set_prior(self, prior: Tensor | None, ridge: float | None = None) -> "LinearCV":
@@ -84,6 +113,7 @@ class LinearCV:
             P[self.kb:] = ridge
         self.prior = None if prior is None else prior.clone()
         self.ridge = ridge
+        self._P = P
         P2 = P * P
 
         def add(G, b):  # the prior residual P (x0 + δ): curvature P², gradient P² x0
@@ -99,10 +129,36 @@ class LinearCV:
         """Effective parameters of the base plus ``chosen`` under the current prior."""
         return float(self._k_eff_batch(self._cols(chosen)[None])[0])
 
+    def _wide(self, idx: Tensor) -> bool:
+        """Whether column sets ``idx (L, k)`` have more columns than the rows (observations and prior
+        rows) that determine them: then their pseudo-inverse is cheaper through the rows' Gram."""
+        return idx.shape[1] > self._Aw.shape[0] + int((self._P[idx[0]] != 0).sum())
+
+    def _rows(self, idx: Tensor, train: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The stacked rows ``B (…, L, r, k)`` whose Gram ``BᵀB`` is the normal matrix of the column sets
+        ``idx (L, k)`` (observations, zero outside ``train (F, 3 n_obs)``, then a prior row per column
+        that has one), and the right-hand side ``y`` with ``Bᵀy`` the normal equations' ``b``."""
+        Aw = self._Aw[:, idx].permute(1, 0, 2)  # (L, 3n, k)
+        rw = self._rw.expand(idx.shape[0], -1)
+        P = self._P[idx]  # (L, k): the same prior columns in every set (the base), and the ridge if any
+        has = torch.nonzero(P[0] != 0).flatten()
+        prows = torch.diag_embed(P)[:, has]  # (L, p, k)
+        py = (P * self._x0[idx])[:, has]  # (L, p)
+        if train is not None:
+            Aw = Aw[None] * train[:, None, :, None]
+            rw = rw[None] * train[:, None, :]
+            prows, py = prows.expand(train.shape[0], -1, -1, -1), py.expand(train.shape[0], -1, -1)
+        return torch.cat([Aw, prows], -2), torch.cat([rw, py], -1)
+
     def _k_eff_batch(self, idx: Tensor) -> Tensor:
         """:meth:`k_eff` of ``L`` column sets of one size, ``idx (L, k)``: ``(L,)``."""
+        if self._wide(idx):  # trace((BᵀB)⁺ AᵀA) = ‖(BBᵀ)⁺ B Aᵀ‖²_F, with the rows' smaller Gram
+            B, _ = self._rows(idx, None)
+            M = torch.linalg.pinv(B @ B.mT, rtol=_RTOL, hermitian=True)
+            C = B @ self._Aw[:, idx].permute(1, 2, 0)  # (L, r, 3n)
+            return ((M @ C) ** 2).sum((-1, -2))
         ii, jj = idx[:, :, None], idx[:, None, :]
-        H = torch.linalg.pinv(self._all[0][ii, jj], rtol=1e-12, hermitian=True)
+        H = psd_pinv(self._all[0][ii, jj])
         return (H * self._data_all[0][ii, jj].mT).sum((-1, -2))  # trace(H Gd)
 
     @staticmethod
@@ -126,9 +182,14 @@ class LinearCV:
         A3 = self.A.reshape(-1, 3, self.A.shape[1])
         if not self.folds:
             return torch.stack([row_scores(out_err[:, i], self.rows, self.n_rows, self.c) for i in range(L)], 1)
-        ii, jj = idx[:, :, None], idx[:, None, :]
-        H = torch.linalg.pinv(self._Gf[:, ii, jj], rtol=1e-12, hermitian=True)  # (F, L, k, k)
-        D = -(H @ self._bf[:, idx][..., None])[..., 0]  # (F, L, k)
+        if self._wide(idx):  # (BᵀB)⁺Bᵀ = Bᵀ(BBᵀ)⁺: the same minimum-norm step through the rows' Gram
+            B, y = self._rows(idx, self._train)  # (F, L, r, k), (F, L, r)
+            M = torch.linalg.pinv(B @ B.mT, rtol=_RTOL, hermitian=True)
+            D = -(B.mT @ (M @ y[..., None]))[..., 0]
+        else:
+            ii, jj = idx[:, :, None], idx[:, None, :]
+            H = psd_pinv(self._Gf[:, ii, jj])  # (F, L, k, k)
+            D = -(H @ self._bf[:, idx][..., None])[..., 0]  # (F, L, k)
         for (val_obs, _, _), d in zip(self.folds, D):
             Av = A3[val_obs][..., idx]  # (n_v, 3, L, k)
             pred = self.r[val_obs][..., None] + (Av * d).sum(-1)
