@@ -86,3 +86,45 @@ def test_kept_gravity_features_equal_fresh_ones():
     assert b is a
     torch.testing.assert_close(c, _gravity_features(robot, q2, links, (0.0, 0.0, -9.81)), rtol=0, atol=0)
     assert not torch.equal(a, c)
+
+
+def test_effect_columns_with_turning_joints_and_moving_points():
+    """Elastic deformation twists joints (joint deflections, which also turn the markers) and bends
+    links (point displacements, which turn nothing): its columns through the joint Jacobian equal
+    central differences of the residuals, orientations measured too."""
+    from torchcal.effects.deformation import GravityDeformation
+    from torchcal.kinematics.transforms import so3_exp
+    from torchcal.measure.data import Measurements
+
+    from torchcal.kinematics.robots import shipped
+
+    robot = shipped("ur5e")  # link inertials: gravity loads the joints
+    g = torch.Generator().manual_seed(11)
+    q = random_configs(robot, 20, g)
+    R, t = robot.fk_rt(q)
+    t = t + 1e-4 * torch.randn(t.shape, generator=g, dtype=D)
+    R = so3_exp(1e-3 * torch.randn(*R.shape[:-2], 3, generator=g, dtype=D)) @ R
+    from scipy.spatial.transform import Rotation
+
+    xyzw = torch.as_tensor(Rotation.from_matrix(R.reshape(-1, 3, 3).numpy()).as_quat(), dtype=D)
+    quat = xyzw[:, [3, 0, 1, 2]].reshape(*R.shape[:-2], 4)
+    data = Measurements(q, t, robot.marker_names, robot.joint_names, quaternions=quat)
+    eff = GravityDeformation(robot).bind(data)
+    kinds = {c["label"].split(".")[-1][:4] for c in eff._modes}
+    assert "twis" in kinds and ("bend" in kinds or "shif" in kinds)  # both paths are exercised
+    geo = geometric_start(robot, data, None)
+    theta = 1e-5 * torch.randn(eff.n_params, generator=g, dtype=D)
+    inf = torch.full((eff.n_params,), float("inf"), dtype=D)
+    start = ParamSet.concat(geo, ParamSet(eff.param_names, eff.param_units, theta,
+                                          torch.ones(eff.n_params, dtype=torch.bool), -inf, inf))
+    ctx = Context(robot, data, folds_of(20, 5, 0), c=None, sigma=1e-4, rot_weight=0.2)
+    prob = effect_problem(ctx, start, [eff], data)
+    assert prob.obs.has_orientation and prob._eff_free.numel() == eff.n_params
+    X = prob.x0[None]
+    J = prob.jacobians(X)[0]
+    cols = [prob.params.free_names.index(n) for n in eff.param_names]
+    h = 1e-7
+    E = h * torch.eye(prob.dim, dtype=D)[cols]
+    fd = (prob.residuals(X + E) - prob.residuals(X - E)).T / (2 * h)
+    err = float((fd - J[:, cols]).abs().max()) / float(fd.abs().max())
+    assert float(fd.abs().max()) > 0 and err < 1e-6, err

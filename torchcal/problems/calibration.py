@@ -339,6 +339,7 @@ class EffectCalibrationProblem(Problem):
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         K, S = self.K, self.S
         turns = self.obs.has_orientation
+        R = p = s = None
         if self._geo_free.numel() or self._set_free.numel():
             R, p = self._points(full)
             s = full[:, K:K + S]
@@ -355,16 +356,60 @@ class EffectCalibrationProblem(Problem):
             for b in range(B):
                 J[b, :, cols] = self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K].reshape(-1, len(cols))
         if self._eff_free.numel():
-            k = self._eff_free.numel()
-            h = self.fd_step * torch.clamp(full[:, self._eff_free].abs(), min=1.0)  # (B, k)
-            E = torch.zeros(B, 2 * k, full.shape[1], dtype=full.dtype, device=full.device)
-            ar = torch.arange(k, device=full.device)
-            E[:, ar, self._eff_free] = h
-            E[:, ar + k, self._eff_free] = -h
-            r = self.residual_vectors((full[:, None] + E).reshape(B * 2 * k, -1)).reshape(B, 2 * k, self.n_obs, 3)
-            d = (r[:, :k] - r[:, k:]) / (2 * h)[..., None, None]  # (B, k, n, 3)
-            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = d.permute(0, 2, 3, 1).reshape(B, -1, k)
+            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = self._effect_columns(full, p, s, R)
         return J
+
+    def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None]:
+        """Central differences of the effects' joint deflections ``(B, k, N, dof)`` and robot-base point
+        displacements ``(B, k, N, M, 3)`` by their free parameters at ``full (B, K')`` (None: no effect
+        moves joints / points), every perturbation in one population call of the effects alone."""
+        B, k = full.shape[0], self._eff_free.numel()
+        h = self.fd_step * torch.clamp(full[:, self._eff_free].abs(), min=1.0)  # (B, k)
+        E = torch.zeros(B, 2 * k, full.shape[1], dtype=full.dtype, device=full.device)
+        ar = torch.arange(k, device=full.device)
+        E[:, ar, self._eff_free] = h
+        E[:, ar + k, self._eff_free] = -h
+        F = (full[:, None] + E).reshape(B * 2 * k, -1)
+        out = []
+        for kind in ("joint_delta", "position_delta"):
+            total = None
+            for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+                d = getattr(e, kind)(F[:, a:b], prep)
+                if d is not None:
+                    total = d if total is None else total + d
+            if total is not None:
+                total = total.reshape(B, 2 * k, *total.shape[1:])
+                hh = (2 * h).reshape(B, k, *([1] * (total.ndim - 2)))
+                total = (total[:, :k] - total[:, k:]) / hh
+            out.append(total)
+        return out[0], out[1]
+
+    def _effect_columns(self, full: Tensor, p: Tensor | None, s: Tensor, R: Tensor | None) -> Tensor:
+        """``(B, 3 n_obs, k)`` effect columns: the effects' deflections and displacements per unit
+        parameter (:meth:`_effect_deltas`, no kinematics run for them), carried to the observations
+        through the markers' joint Jacobian at the deflected joints (instrument frame); point
+        displacements turn no frame."""
+        K, B, k = self.K, full.shape[0], self._eff_free.numel()
+        dq, dp = self._effect_deltas(full)
+        if p is None:  # the geometry and set-up are fixed: the points were not needed until now
+            R, p = self._points(full)
+            s = full[:, K:K + self.S]
+        turns = self.obs.has_orientation
+        q = self.joint_values(full) if dq is not None else None
+        Rb = self.robot.base_transform(full[:, :K])[0] if dp is not None else None
+        out = full.new_zeros(B, 3 * self.n_obs, k)
+        for b in range(B):
+            D, W = 0.0, None
+            if dq is not None:
+                Jq = self.robot.joint_jacobian(q[b], full[b, :K], check=False)  # (N, M, 6, dof)
+                D = torch.einsum("nmrd,knd->nmrk", Jq[:, :, :3], dq[b])
+                W = torch.einsum("nmrd,knd->nmrk", Jq[:, :, 3:], dq[b]) if turns else None
+            if dp is not None:
+                D = D + torch.einsum("ij,knmj->nmik", Rb[b], dp[b])
+            if turns and W is None:
+                W = torch.zeros_like(D)
+            out[b] = self.obs.project(p[b], D, s[b], W, None if R is None else R[b]).reshape(-1, k)
+        return out
 
     def observation_weights(self, x: Tensor) -> Tensor:
         """``(n_obs,)`` the loss's IRLS factor per observation at ``x`` (1 for l2)."""
