@@ -125,6 +125,23 @@ def test_joint_jacobian(robot, make_params, make_q):
             assert float(norms.max()) > 1 - 1e-12
 
 
+def test_joint_columns_from_the_parameter_pass(robot, make_params, make_q):
+    """``param_jacobian(..., joints=True)`` gives the joint Jacobian of the same pass: for one vector,
+    and for a population paired with its own joint values, per member."""
+    p = make_params(robot, seed=23)
+    q = make_q(robot, 4, seed=24)
+    for kind, rows in (("position", 3), ("pose", 6)):
+        J, Jq = robot.param_jacobian(q, p, kind=kind, joints=True)
+        torch.testing.assert_close(J, robot.param_jacobian(q, p, kind=kind), rtol=0, atol=0)
+        torch.testing.assert_close(Jq, robot.joint_jacobian(q, p)[:, :, :rows], rtol=1e-12, atol=1e-14)
+    P = torch.stack([p, make_params(robot, seed=25)])
+    Q = torch.stack([q, make_q(robot, 4, seed=26)])
+    _, JqP, pos = robot.param_jacobian(Q, P, kind="pose", joints=True, return_positions=True)
+    for b in range(2):
+        torch.testing.assert_close(JqP[b], robot.joint_jacobian(Q[b], P[b]), rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(pos[b], robot.positions(Q[b], P[b]), rtol=1e-12, atol=1e-14)
+
+
 def test_joint_jacobian_mimic_column(tree_robot, make_q):
     """finger_b mimics finger_a with multiplier -1.5: its angular velocity per unit of finger_a is
     1.5 times the (unit) joint axis."""

@@ -26,10 +26,11 @@ __all__ = ["GRAVITY", "Frames", "Wrenches", "body_inertials", "kinematic_frames"
            "gravity_features"]
 
 GRAVITY = (0.0, 0.0, -9.81)  # m/s², robot base frame with z up
-# gravity_features of the last commands seen, per robot: the loop builds hundreds of problems on
-# the same rows (fits, folds, rounds), and these kinematics are a tenth of its time when recomputed
-_FEATURES: "weakref.WeakKeyDictionary[Robot, list]" = weakref.WeakKeyDictionary()
-_FEATURES_KEPT = 16
+# The gravity features and wrenches of the last commands seen, per robot: the loop builds hundreds of
+# problems on the same rows (fits, folds, rounds), and these kinematics are a large part of its time
+# when recomputed
+_KEPT: "weakref.WeakKeyDictionary[Robot, list]" = weakref.WeakKeyDictionary()
+_KEPT_PER_ROBOT = 32
 
 
 def body_inertials(robot) -> dict[str, tuple[float, np.ndarray]]:
@@ -164,9 +165,19 @@ def gravity_wrenches(robot, q: Tensor, geometry: Tensor | None = None, *, payloa
             computed at; the base frame (instrument registration) is ignored. Default nominal.
         payload_link: the link an unknown payload hangs on (default: the first marker's link).
         inertials: ``link -> (mass, com)``; default :func:`body_inertials` of the URDF.
+
+    Results are kept per robot (:func:`_kept`) and returned again for equal arguments.
     """
-    dt = dict(dtype=robot.dtype, device=robot.device)
     inert = body_inertials(robot) if inertials is None else inertials
+    key = ("wrenches", payload_link, tuple(float(v) for v in gravity),
+           tuple(sorted((k, float(m), tuple(float(c) for c in com)) for k, (m, com) in inert.items())))
+    geo = None if geometry is None else torch.as_tensor(geometry, dtype=robot.dtype, device=robot.device)
+    return _kept(robot, key, (q, geo), lambda: _gravity_wrenches(robot, q, geo, payload_link, gravity, inert))
+
+
+def _gravity_wrenches(robot, q: Tensor, geometry: Tensor | None, payload_link: str | None, gravity,
+                      inert: dict) -> Wrenches:
+    dt = dict(dtype=robot.dtype, device=robot.device)
     payload_link = payload_link or robot.markers[0].link
     fr = kinematic_frames(robot, q, geometry)
     R, o = fr.R, fr.o
@@ -218,19 +229,32 @@ def _beyond(robot, frame: int, mk_frame: list[int]) -> Tensor:
 def gravity_features(robot, q: Tensor, links: list[str], gravity=GRAVITY) -> Tensor:
     """``(N, L, dof, 4)`` features: torque (N·m) on each actuated joint from a unit mass at each
     link's origin (feature 0) and from a unit first moment along the link's x, y, z (features 1–3,
-    N·m per kg·m). Prismatic joints get the force along their axis (N) in feature 0. The last
-    :data:`_FEATURES_KEPT` results per robot are kept, and returned for equal commands."""
-    if q.requires_grad:  # a result kept for later calls must not carry this call's graph
-        return _gravity_features(robot, q, links, gravity)
-    key = (tuple(links), tuple(float(v) for v in gravity))
-    seen = _FEATURES.setdefault(robot, [])
-    for k, q0, F in seen:
-        if k == key and q0.shape == q.shape and q0.device == q.device and torch.equal(q0, q):
-            return F
-    F = _gravity_features(robot, q, links, gravity)
-    seen.append((key, q.detach().clone(), F))
-    del seen[:-_FEATURES_KEPT]
-    return F
+    N·m per kg·m). Prismatic joints get the force along their axis (N) in feature 0. Results are
+    kept per robot (:func:`_kept`) and returned again for equal commands."""
+    return _kept(robot, ("features", tuple(links), tuple(float(v) for v in gravity)), (q,),
+                 lambda: _gravity_features(robot, q, links, gravity))
+
+
+def _kept(robot, key: tuple, tensors: tuple, compute):
+    """``compute()``, or the result kept from an earlier call with an equal ``key`` and equal
+    ``tensors`` (None or tensors) for ``robot`` (the last :data:`_KEPT_PER_ROBOT`). Nothing that
+    carries an autograd graph is kept: a later call must not share this call's graph."""
+    if any(t is not None and t.requires_grad for t in tensors):
+        return compute()
+    seen = _KEPT.setdefault(robot, [])
+    for k, ts, out in seen:
+        if k == key and all(_same(a, b) for a, b in zip(ts, tensors)):
+            return out
+    out = compute()
+    seen.append((key, tuple(None if t is None else t.detach().clone() for t in tensors), out))
+    del seen[:-_KEPT_PER_ROBOT]
+    return out
+
+
+def _same(a: Tensor | None, b: Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is b
+    return a.shape == b.shape and a.device == b.device and a.dtype == b.dtype and torch.equal(a, b)
 
 
 def _gravity_features(robot, q: Tensor, links: list[str], gravity) -> Tensor:

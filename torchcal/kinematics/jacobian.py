@@ -19,7 +19,7 @@ class Jacobians:
     kinematics and layout)."""
 
     def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True,
-                       return_positions: bool = False):
+                       return_positions: bool = False, joints: bool = False):
         """Analytic derivative of the marker poses w.r.t. all K parameters.
 
         Args:
@@ -28,9 +28,12 @@ class Jacobians:
                 the Jacobian of a rotation-vector residual ``log(R R_meas^T)`` at zero.
             return_positions: also return the marker positions ``(…, M, 3)`` (m) computed on the
                 way, which saves a second kinematics pass in least-squares solvers.
+            joints: also return the Jacobian by the joints ``(…, M, 3|6, dof)`` (as
+                :meth:`joint_jacobian`, here with ``kind``'s rows), from the same pass.
         Returns:
             ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population, or for ``q (P, N, dof)``
-            paired with ``params (P, K)`` as in :meth:`positions`).
+            paired with ``params (P, K)`` as in :meth:`positions`); then the joint Jacobian when
+            ``joints``, then the positions when ``return_positions``.
         """
         if kind not in ("position", "pose"):
             raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
@@ -44,7 +47,9 @@ class Jacobians:
         out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
         out.index_add_(-1, self._slot_gather, Jac)
         J = self._unbatch(out[..., :K], pop, q1, 3)
-        return (J, self._unbatch(pw, pop, q1, 2)) if return_positions else J
+        extra = ((self._unbatch(Jac[..., self._slices["offset"]], pop, q1, 3),) if joints else ()) \
+            + ((self._unbatch(pw, pop, q1, 2),) if return_positions else ())
+        return (J, *extra) if extra else J
 
     def joint_jacobian(self, q, params=None, *, check: bool = True) -> Tensor:
         """Geometric Jacobian of every marker w.r.t. the commands ``q``: ``(N, M, 6, dof)``

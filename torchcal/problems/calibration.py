@@ -339,13 +339,15 @@ class EffectCalibrationProblem(Problem):
         pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         K, S = self.K, self.S
         turns = self.obs.has_orientation
-        R = p = s = None
-        if self._geo_free.numel() or self._set_free.numel():
-            R, p = self._points(full)
-            s = full[:, K:K + S]
+        R, p = self._points(full)
+        s = full[:, K:K + S]
+        dq, dp = self._effect_deltas(full) if self._eff_free.numel() else (None, None)
+        Jq = None
+        if self._geo_free.numel() or dq is not None:  # one kinematic pass for both Jacobians
+            Jg, Jq = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
+                                               check=False, joints=True)
         if self._geo_free.numel():
-            Jg = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
-                                           check=False)[..., self._geo_free]
+            Jg = Jg[..., self._geo_free]
             D, W = (Jg[..., :3, :], Jg[..., 3:, :]) if turns else (Jg, None)
             cols = [pos[int(v)] for v in self._geo_free.tolist()]
             for b in range(B):
@@ -356,7 +358,8 @@ class EffectCalibrationProblem(Problem):
             for b in range(B):
                 J[b, :, cols] = self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K].reshape(-1, len(cols))
         if self._eff_free.numel():
-            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = self._effect_columns(full, p, s, R)
+            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = self._effect_columns(full, p, s, R, Jq,
+                                                                                          dq, dp)
         return J
 
     def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None]:
@@ -384,26 +387,21 @@ class EffectCalibrationProblem(Problem):
             out.append(total)
         return out[0], out[1]
 
-    def _effect_columns(self, full: Tensor, p: Tensor | None, s: Tensor, R: Tensor | None) -> Tensor:
-        """``(B, 3 n_obs, k)`` effect columns: the effects' deflections and displacements per unit
-        parameter (:meth:`_effect_deltas`, no kinematics run for them), carried to the observations
-        through the markers' joint Jacobian at the deflected joints (instrument frame); point
-        displacements turn no frame."""
+    def _effect_columns(self, full: Tensor, p: Tensor, s: Tensor, R: Tensor | None, Jq: Tensor | None,
+                        dq: Tensor | None, dp: Tensor | None) -> Tensor:
+        """``(B, 3 n_obs, k)`` effect columns: the effects' deflections ``dq`` and displacements ``dp``
+        per unit parameter (:meth:`_effect_deltas`, no kinematics run for them), carried to the
+        observations through the markers' joint Jacobian ``Jq (B, N, M, 3|6, dof)`` at the deflected
+        joints (instrument frame); point displacements turn no frame."""
         K, B, k = self.K, full.shape[0], self._eff_free.numel()
-        dq, dp = self._effect_deltas(full)
-        if p is None:  # the geometry and set-up are fixed: the points were not needed until now
-            R, p = self._points(full)
-            s = full[:, K:K + self.S]
         turns = self.obs.has_orientation
-        q = self.joint_values(full) if dq is not None else None
         Rb = self.robot.base_transform(full[:, :K])[0] if dp is not None else None
         out = full.new_zeros(B, 3 * self.n_obs, k)
         for b in range(B):
             D, W = 0.0, None
             if dq is not None:
-                Jq = self.robot.joint_jacobian(q[b], full[b, :K], check=False)  # (N, M, 6, dof)
-                D = torch.einsum("nmrd,knd->nmrk", Jq[:, :, :3], dq[b])
-                W = torch.einsum("nmrd,knd->nmrk", Jq[:, :, 3:], dq[b]) if turns else None
+                D = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, :3], dq[b])
+                W = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, 3:], dq[b]) if turns else None
             if dp is not None:
                 D = D + torch.einsum("ij,knmj->nmik", Rb[b], dp[b])
             if turns and W is None:

@@ -38,9 +38,10 @@ def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements
     return ps
 
 
-def fit_folds(ctx: Context, full: ParamSet, prob: EffectCalibrationProblem) -> list[ParamSet]:
+def fit_folds(ctx: Context, full: ParamSet, prob: EffectCalibrationProblem, jac0: Tensor | None = None
+              ) -> list[ParamSet]:
     """Each fold's fit of ``full``'s free set on the other folds' rows, from ``full`` (``prob``: its
-    problem on every training row, with the prior), as
+    problem on every training row, with the prior; ``jac0``: its Jacobian there, if known), as
     :func:`fit_params` without reduction would give them one by one, but as one batched
     Levenberg-Marquardt: the folds are one problem on every training row, each fold's own rows
     masked out (a zero residual and Jacobian row changes nothing), so the kinematics of every fold
@@ -65,7 +66,7 @@ def fit_folds(ctx: Context, full: ParamSet, prob: EffectCalibrationProblem) -> l
         return prob.jacobians(X) * mask[idx, :, None]
 
     x0 = prob.x0.expand(mask.shape[0], k)
-    jac0 = prob.jacobian(prob.x0)[None] * mask[:, :, None]
+    jac0 = (prob.jacobian(prob.x0) if jac0 is None else jac0)[None] * mask[:, :, None]
     res = lm_batched(residuals, jacobian, x0, torch.ones_like(x0, dtype=torch.bool), prob.lower, prob.upper,
                      max_iter=FOLD_MAX_ITER, jac0=jac0)
     out = []
@@ -95,8 +96,8 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     full = fit_params(ctx, start, effects, ctx.data, prior, reduce)
     prior = prior_weights(ctx.robot, full, prior_mm, ctx.sigma, effects)
     prob = effect_problem(ctx, full, effects, ctx.data, prior)
-    x = prob.x0
-    J = prob.data_jacobian(x) * prob.observation_weights(x).repeat_interleave(3)[:, None]
+    J_all = prob.jacobian(prob.x0)  # the data rows (loss-weighted), then the prior's and the gauge's
+    J = J_all[: 3 * prob.n_obs]
     pf = None if prior is None else prior[full.free_index]
     k = effective_params(J, pf)
     info = dict(info or {})
@@ -109,7 +110,7 @@ def evaluate(ctx: Context, label: str, start: ParamSet, effects: list, prior_mm:
     sq = torch.zeros_like(scores)
     if not folds:
         return Model(label, full, list(effects), prior_mm, k, scores, [], info, sq)
-    fits = fit_folds(ctx, full, prob) if ctx.folds else []
+    fits = fit_folds(ctx, full, prob, J_all) if ctx.folds else []
     for f, p in zip(ctx.folds, fits):
         e, rows = observation_errors(ctx, p, effects, ctx.data.subset(f))
         scores[f] = row_scores(e.norm(dim=-1), rows, len(f), ctx.c)
