@@ -66,7 +66,7 @@ from torchcal.pipelines.fitting import fit_identified  # noqa: E402
 from torchcal.problems.identifiability import stacked_jacobian  # noqa: E402
 from torchcal.problems.template import geometric_start  # noqa: E402
 from torchcal.params import ParamSet  # noqa: E402
-from torchcal.problems.calibration import EffectCalibrationProblem  # noqa: E402
+from torchcal.problems.effect_calibration import EffectCalibrationProblem  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
 from torchcal.sim.serial import SimConfig, random_configs, simulated_robot  # noqa: E402
 

@@ -18,7 +18,7 @@ from torchcal.measure.io import load_measurements, save_measurements
 from torchcal.measure.observations import Observations
 from torchcal.measure.setup import Setup
 from torchcal.pipelines.loop.run import run_loop
-from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.effect_calibration import EffectCalibrationProblem
 from torchcal.problems.unseen import unseen
 from torchcal.sim.serial import SimConfig, hide_axes, random_configs, simulate, simulated_robot
 from torchcal.report import report_json

@@ -74,7 +74,7 @@ class Setup:
     the residuals shrink with ``s`` a free fit would shrink the robot towards a point. When the
     data hold nothing but contacts (no position, no distance), ``scale_gauge (K,)`` holds the
     robot's size at the ``reference (K,)`` geometry: ``gᵀ(θ − θ_ref)`` is the relative change of
-    size, and the fit keeps it at zero (:class:`~torchcal.problems.calibration.EffectCalibrationProblem`).
+    size, and the fit keeps it at zero (:class:`~torchcal.problems.effect_calibration.EffectCalibrationProblem`).
     One known length (a distance, a position) removes the need.
     """
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["covariance", "standard_errors", "residual_noise", "unit_variances"]
+__all__ = ["covariance", "standard_errors", "residual_noise", "unit_variances", "psd_pinv", "PINV_RTOL"]
 
 
 def covariance(J: Tensor, residuals: Tensor | None = None, sigma: float | Tensor | None = None, *,
@@ -102,3 +102,31 @@ def unit_variances(A: Tensor, keep: Tensor | None = None, full: bool = False) ->
         R = torch.linalg.qr(torch.cat([A * f[..., None, :], torch.diag_embed(1.0 - f)], -2), mode="r").R
     Rinv = torch.linalg.solve_triangular(R, eye.expand(R.shape), upper=True)
     return Rinv @ Rinv.transpose(-1, -2) if full else (Rinv * Rinv).sum(-1)
+
+
+# pinv's cut in the normal matrices' solves: eigenvalues below this fraction of the largest count as zero
+PINV_RTOL = 1e-12
+# Below this bound of the condition number (‖G‖∞ ‖G⁻¹‖∞, never below the 2-norm's for a symmetric
+# G) every eigenvalue is above the cut, ten times over: there the pseudo-inverse is the inverse
+_SAFE_COND = 0.1 / PINV_RTOL
+
+
+def psd_pinv(G: Tensor) -> Tensor:
+    """``pinv(G, rtol=1e-12, hermitian=True)`` of symmetric positive semi-definite ``G (..., k, k)``.
+
+    Where a Cholesky factor exists and bounds the condition number inside the cut, the
+    pseudo-inverse is the inverse, which the factor gives for a fraction of an eigendecomposition
+    (the linear CV inverts thousands of these per candidate); the others take the eigendecomposition."""
+    if G.shape[-1] == 0:
+        return G.clone()
+    L, info = torch.linalg.cholesky_ex(G)
+    failed = info != 0
+    if bool(failed.any()):  # a factor that broke down holds a zero pivot: invert a stand-in, judged below
+        L = torch.where(failed[..., None, None], torch.eye(G.shape[-1], dtype=G.dtype, device=G.device), L)
+    H = torch.cholesky_inverse(L)
+    cond = G.abs().sum(-1).amax(-1) * H.abs().sum(-1).amax(-1)
+    ok = ~failed & torch.isfinite(cond) & (cond < _SAFE_COND)
+    if not bool(ok.all()):
+        bad = ~ok
+        H[bad] = torch.linalg.pinv(G[bad], rtol=PINV_RTOL, hermitian=True)
+    return H

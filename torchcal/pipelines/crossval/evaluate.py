@@ -17,7 +17,7 @@ from torchcal.pipelines.crossval.models import (Context, Model, effect_problem, 
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.crossval.scores import effective_params, penalised, row_scores
 from torchcal.pipelines.fitting import fit_identified
-from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.effect_calibration import EffectCalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 
 __all__ = ["fit_params", "fit_folds", "rescore", "evaluate", "cv_mean_mm", "evaluate_prior"]

@@ -18,7 +18,7 @@ from torchcal.measure.noise import robust_sigma
 from torchcal.measure.setup import Setup
 from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.scores import rmse_mm
-from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.effect_calibration import EffectCalibrationProblem
 
 __all__ = ["Context", "Model", "folds_of", "orientation_count", "duplicate_groups", "effect_problem", "fit_noise",
            "observation_model", "observation_errors", "noise_sigma_of", "noise_sigma"]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.effect_calibration import EffectCalibrationProblem
 
 __all__ = ["evidence_for", "MAX_PANELS"]
 

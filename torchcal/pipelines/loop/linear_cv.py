@@ -9,45 +9,17 @@ set's solve, so every candidate of a step is scored in one batched pass.
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
+from torchcal.problems.uncertainty import PINV_RTOL, psd_pinv
 
-__all__ = ["LinearCV", "ALIAS_COS", "psd_pinv"]
+__all__ = ["LinearCV", "ALIAS_COS"]
 
 # Two modes whose columns, beyond what the rest of the model explains, have a cosine above this
 # are candidates for one finding (the rule then says whether the data can tell them apart)
 ALIAS_COS = 0.9
-# the pseudo-inverses' cut: eigenvalues below this fraction of the largest count as zero
-_RTOL = 1e-12
-# Below this bound of the condition number (‖G‖∞ ‖G⁻¹‖∞, never below the 2-norm's for a symmetric
-# G) every eigenvalue is above the cut, ten times over: there the pseudo-inverse is the inverse
-_SAFE_COND = 0.1 / _RTOL
-
-
-def psd_pinv(G: Tensor) -> Tensor:
-    """``pinv(G, rtol=1e-12, hermitian=True)`` of symmetric positive semi-definite ``G (..., k, k)``.
-
-    Where a Cholesky factor exists and bounds the condition number inside the cut, the
-    pseudo-inverse is the inverse, which the factor gives for a fraction of an eigendecomposition
-    (the linear CV inverts thousands of these per candidate); the others take the eigendecomposition."""
-    if G.shape[-1] == 0:
-        return G.clone()
-    L, info = torch.linalg.cholesky_ex(G)
-    failed = info != 0
-    if bool(failed.any()):  # a factor that broke down holds a zero pivot: invert a stand-in, judged below
-        L = torch.where(failed[..., None, None], torch.eye(G.shape[-1], dtype=G.dtype, device=G.device), L)
-    H = torch.cholesky_inverse(L)
-    cond = G.abs().sum(-1).amax(-1) * H.abs().sum(-1).amax(-1)
-    ok = ~failed & torch.isfinite(cond) & (cond < _SAFE_COND)
-    if not bool(ok.all()):
-        bad = ~ok
-        H[bad] = torch.linalg.pinv(G[bad], rtol=_RTOL, hermitian=True)
-    return H
-
-
 class LinearCV:
     """Cross-validated scores of adding column groups to a fitted model, to first order.
 
@@ -154,7 +126,7 @@ class LinearCV:
         """:meth:`k_eff` of ``L`` column sets of one size, ``idx (L, k)``: ``(L,)``."""
         if self._wide(idx):  # trace((BᵀB)⁺ AᵀA) = ‖(BBᵀ)⁺ B Aᵀ‖²_F, with the rows' smaller Gram
             B, _ = self._rows(idx, None)
-            M = torch.linalg.pinv(B @ B.mT, rtol=_RTOL, hermitian=True)
+            M = torch.linalg.pinv(B @ B.mT, rtol=PINV_RTOL, hermitian=True)
             C = B @ self._Aw[:, idx].permute(1, 2, 0)  # (L, r, 3n)
             return ((M @ C) ** 2).sum((-1, -2))
         ii, jj = idx[:, :, None], idx[:, None, :]
@@ -184,7 +156,7 @@ class LinearCV:
             return torch.stack([row_scores(out_err[:, i], self.rows, self.n_rows, self.c) for i in range(L)], 1)
         if self._wide(idx):  # (BᵀB)⁺Bᵀ = Bᵀ(BBᵀ)⁺: the same minimum-norm step through the rows' Gram
             B, y = self._rows(idx, self._train)  # (F, L, r, k), (F, L, r)
-            M = torch.linalg.pinv(B @ B.mT, rtol=_RTOL, hermitian=True)
+            M = torch.linalg.pinv(B @ B.mT, rtol=PINV_RTOL, hermitian=True)
             D = -(B.mT @ (M @ y[..., None]))[..., 0]
         else:
             ii, jj = idx[:, :, None], idx[:, None, :]
@@ -202,43 +174,11 @@ class LinearCV:
         idx = self._cols(chosen)
         return self._solve(*self._all, idx) / self.scale[idx]
 
-    def bilinear(self, chosen: list[int], starts: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-        """The full-data step for chosen groups of a bilinear effect (each group ``[u, v_1 … v_S]``,
-        the mode's column ``u + Σ s_i v_i``), by variable projection: for shared parameters ``s``
-        the rest is linear and solved exactly, and only ``s`` is searched, from each of ``starts``.
-        Returns (base step ``(kb,)``, each mode's coefficient ``(K,)``, ``s`` ``(S,)``)."""
-
-        Au = self.A * self.scale
-        base = Au[:, : self.kb]
-        U = torch.stack([Au[:, self.slices[g][0]] for g in chosen], 1)  # (3n, K)
-        V = torch.stack([Au[:, self.slices[g][1:]] for g in chosen], 1)  # (3n, K, S)
-        P = torch.zeros(self.kb + len(chosen), dtype=Au.dtype, device=Au.device)
-        x0 = torch.zeros_like(P)
-        if self.prior is not None:
-            P[: self.kb] = self.prior
-            x0[: self.kb] = self._x0[: self.kb] / self.scale[: self.kb]
-
-        def solve(sv: Tensor) -> tuple[Tensor, Tensor]:
-            cols = torch.cat([base, U + V @ sv], 1)
-            n = cols.norm(dim=0).clamp(min=1e-300)
-            Aw = cols * self._w3[:, None] / n
-            Pn = P / n
-            G = Aw.T @ Aw + torch.diag(Pn * Pn)
-            x = -(torch.linalg.pinv(G, rtol=1e-12, hermitian=True) @ (Aw.T @ self._rw + Pn * Pn * (x0 * n)))
-            res = torch.cat([self._rw + Aw @ x, Pn * (x0 * n + x)])
-            return x / n, res
-
-        from scipy.optimize import least_squares  # scipy costs start-up time; only this fit needs it
-
-        best = None
-        for s0 in starts:
-            fit = least_squares(lambda v: solve(torch.as_tensor(v, dtype=Au.dtype, device=Au.device))[1].cpu().numpy(),
-                                np.asarray(s0.cpu(), dtype=float), method="lm", x_scale="jac", max_nfev=200)
-            if best is None or fit.cost < best.cost:
-                best = fit
-        sv = torch.as_tensor(best.x, dtype=Au.dtype, device=Au.device)
-        x, _ = solve(sv)
-        return x[: self.kb], x[self.kb:], sv
+    def weighted_data(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The IRLS factor per residual entry ``(3 n_obs,)``, the weighted residuals ``(3 n_obs,)`` (m)
+        and the base parameters' fitted values ``(kb,)`` (their own units): what a solve beside this
+        one (:func:`~torchcal.pipelines.loop.bilinear.bilinear_step`) starts from."""
+        return self._w3, self._rw, self._x0[: self.kb] / self.scale[: self.kb]
 
     def add_one(self, chosen: list[int], pool: list[int]) -> tuple[Tensor, Tensor]:
         """Scores ``(n_rows, L)`` and effective parameter counts ``(L,)`` of ``chosen`` plus each

@@ -10,11 +10,12 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.models import Context, Model, effect_problem, fit_noise
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.loop.parts import assemble, split_params
+from torchcal.pipelines.loop.bilinear import bilinear_step
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.loop.records import EffectStart
 from torchcal.pipelines.loop.screen import fitted_payload, screen_family
 from torchcal.pipelines.crossval.scores import T_ACCEPT, compare, penalised
-from torchcal.problems.calibration import EffectCalibrationProblem
+from torchcal.problems.effect_calibration import EffectCalibrationProblem
 
 __all__ = ["effect_start"]
 
@@ -213,7 +214,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     kb = Jb.shape[1]
     step = coef[:kb]
     if shared:
-        step, own, sv = lcv.bilinear(chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
+        step, own, sv = bilinear_step(lcv, chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
         eff.theta = eff.from_bilinear(own, sv).to(robot.dtype)
     else:
         eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
