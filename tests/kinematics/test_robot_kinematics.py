@@ -337,3 +337,21 @@ def test_dh_prismatic_row_parameter_names(scara, dh_tables):
     p[i] = 0.05
     dq = torch.tensor([0.0, 0.0, 0.05, 0.0], dtype=torch.float64)
     torch.testing.assert_close(scara.fk(q, p), scara.fk(q + dq), atol=1e-14, rtol=0)
+
+
+def test_markers_on_one_link_carried_together_equal_one_at_a_time(make_params, make_q):
+    """positions() carries the markers of one link through the chain together: the same points as
+    the marker frames of fk_rt (another code path), one vector and a paired population."""
+    from torchcal import Robot
+
+    pts = ["a@flange=0.01,0,0.1", "b@flange=-0.02,0.03,0.05", "c@link3=0,0.1,0", "d@flange=0,0,0.2"]
+    many = Robot.from_urdf("urdf/kuka_kr5_arc.urdf", markers=pts)
+    assert sorted(len(ms) for ms in many._markers_by_frame().values()) == [1, 3]
+    p = make_params(many, seed=31)
+    q = make_q(many, 6, seed=32)
+    torch.testing.assert_close(many.positions(q, p), many.fk_rt(q, p)[1], rtol=0, atol=1e-14)
+    P = torch.stack([p, make_params(many, seed=33)])
+    Q = torch.stack([q, make_q(many, 6, seed=34)])
+    got = many.positions(Q, P)
+    for b in range(2):
+        torch.testing.assert_close(got[b], many.fk_rt(Q[b], P[b])[1], rtol=0, atol=1e-14)

@@ -246,31 +246,40 @@ class ForwardKinematics:
         P, N = max(O_R.shape[0], qj.shape[0]), q.shape[-2]
         c, s = torch.cos(qj), torch.sin(qj)
         _, mt = self._markers(slots)
-        out = []
-        for m, f in enumerate(self._mk_frame):
-            v = mt[:, m, :, None].expand(P, 3, N)  # (P, 3, N): columns of points, batched over P
+        out = [None] * len(self._mk_frame)
+        # markers on one link ride the same chain: carried together, (P, 3, G, N) for G of them
+        for f, ms in self._markers_by_frame().items():
+            v = mt[:, ms, :].transpose(1, 2)[..., None].expand(P, 3, len(ms), N)
             while f != 0:
                 j = f - 1
                 kind = self._kinds[j]
                 if kind == 1:
                     x, y = v[:, 0], v[:, 1]
-                    cj, sj = c[..., j], s[..., j]
+                    cj, sj = c[:, None, :, j], s[:, None, :, j]
                     v = torch.stack([cj * x - sj * y, sj * x + cj * y, v[:, 2]], 1)
                 elif kind == 2:
-                    v = torch.stack([v[:, 0], v[:, 1], v[:, 2] + qj[..., j]], 1)
+                    v = torch.stack([v[:, 0], v[:, 1], v[:, 2] + qj[:, None, :, j]], 1)
                 # v <- O_t + O_R v as three column updates: cheaper than a batched 3x3 matmul here
-                OR = O_R[:, j]
-                w = torch.addcmul(O_t[:, j, :, None], OR[:, :, 0:1], v[:, 0:1])
+                OR = O_R[:, j, :, :, None]
+                w = torch.addcmul(O_t[:, j, :, None, None], OR[:, :, 0:1], v[:, 0:1])
                 w = torch.addcmul(w, OR[:, :, 1:2], v[:, 1:2])
                 v = torch.addcmul(w, OR[:, :, 2:3], v[:, 2:3])
                 f = self.parent_frame[j]
-            out.append(v)
+            for i, m in enumerate(ms):
+                out[m] = v[:, :, i]
         t = torch.stack(out, 1).transpose(-1, -2).transpose(1, 2)  # (P, N, M, 3)
         bframe = self._base(slots) if base else None
         if bframe is not None:
             Rb, tb = bframe
             t = tb[:, None, None] + (Rb[:, None, None] @ t[..., None])[..., 0]
         return self._unbatch(t, pop, q1, 2)
+
+    def _markers_by_frame(self) -> dict[int, list[int]]:
+        """Marker indices grouped by the frame they sit on, in the order of first appearance."""
+        groups: dict[int, list[int]] = {}
+        for m, f in enumerate(self._mk_frame):
+            groups.setdefault(f, []).append(m)
+        return groups
 
     def base_transform(self, params) -> tuple[Tensor, Tensor]:
         """Instrument frame <- robot base from ``params (K,)`` or ``(P, K)``: rotation
