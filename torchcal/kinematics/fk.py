@@ -249,7 +249,7 @@ class ForwardKinematics:
         out = [None] * len(self._mk_frame)
         # markers on one link ride the same chain: carried together, (P, 3, G, N) for G of them
         for f, ms in self._markers_by_frame().items():
-            v = mt[:, ms, :].transpose(1, 2)[..., None].expand(P, 3, len(ms), N)
+            v = self._pick_markers(mt, ms).transpose(1, 2)[..., None].expand(P, 3, len(ms), N)
             while f != 0:
                 j = f - 1
                 kind = self._kinds[j]
@@ -273,6 +273,14 @@ class ForwardKinematics:
             Rb, tb = bframe
             t = tb[:, None, None] + (Rb[:, None, None] @ t[..., None])[..., 0]
         return self._unbatch(t, pop, q1, 2)
+
+    @staticmethod
+    def _pick_markers(mt: Tensor, ms: list[int]) -> Tensor:
+        """``mt[:, ms]``, by a slice where ``ms`` runs consecutively (an index list would be copied to
+        the device on every call)."""
+        if ms == list(range(ms[0], ms[-1] + 1)):
+            return mt[:, ms[0]:ms[-1] + 1]
+        return torch.stack([mt[:, m] for m in ms], 1)
 
     def _markers_by_frame(self) -> dict[int, list[int]]:
         """Marker indices grouped by the frame they sit on, in the order of first appearance."""
