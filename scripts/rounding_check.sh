@@ -32,6 +32,9 @@ FILES=(
   tests/measure/test_measurement_models.py
   tests/calibrate/test_calibrate.py
   tests/problems/test_identifiability.py
+  tests/problems/test_pseudo_inverse.py
+  tests/loop/test_batched_folds.py
+  tests/loop/test_linear_mode_selection.py
 )
 
 # MKL is what these modes act on: say whether torch uses it, and show that the mode changes the

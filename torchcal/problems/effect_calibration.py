@@ -18,6 +18,8 @@ __all__ = ["EffectCalibrationProblem", "GAUGE_WEIGHT"]
 # Residual (m) of a 100 % change of the robot's size when plane contacts alone cannot see it
 # (:class:`~torchcal.measure.setup.Setup`): stiff enough that noise moves the size by < 1e-6.
 GAUGE_WEIGHT = 10.0
+# the marker frames of up to this many points are kept for the next call (:meth:`EffectCalibrationProblem._points`)
+_KEPT_POINTS = 16
 
 
 class EffectCalibrationProblem(Problem):
@@ -96,7 +98,7 @@ class EffectCalibrationProblem(Problem):
                 self.m += 1
         self._set_free = torch.nonzero(free[K:K + S]).flatten() + K
         self._eff_free = torch.nonzero(free[K + S:]).flatten() + K + S
-        self._memo = None  # (full (1, K'), its marker frames): see _points
+        self._memo = None  # (full (B, K'), its marker frames): see _points
 
     def full(self, X: Tensor) -> Tensor:
         return self.params.expand(X)
@@ -135,14 +137,15 @@ class EffectCalibrationProblem(Problem):
 
     def _points(self, full: Tensor) -> tuple[Tensor | None, Tensor]:
         """Marker rotations (None without measured orientations) and positions at ``full``. The last
-        single point is kept: a least-squares solver asks for the Jacobian (and the loss's weights)
-        where it has just evaluated the residuals, and the kinematics need not run again."""
+        few points (a single fit's, or a batch of CV folds') are kept: a least-squares solver asks for
+        the Jacobian (and the loss's weights) where it has just evaluated the residuals, and the
+        kinematics need not run again."""
         memo = self._memo
-        one = full.shape[0] == 1 and not full.requires_grad  # (a graph is never kept)
-        if one and memo is not None and torch.equal(memo[0], full):
+        few = full.shape[0] <= _KEPT_POINTS and not full.requires_grad  # (a graph is never kept)
+        if few and memo is not None and memo[0].shape == full.shape and torch.equal(memo[0], full):
             return memo[1]
         out = self.marker_frames(full) if self.obs.has_orientation else (None, self.marker_positions(full))
-        if one:
+        if few:
             self._memo = (full.clone(), out)
         return out
 
