@@ -20,6 +20,8 @@ __all__ = ["LinearCV", "ALIAS_COS"]
 # Two modes whose columns, beyond what the rest of the model explains, have a cosine above this
 # are candidates for one finding (the rule then says whether the data can tell them apart)
 ALIAS_COS = 0.9
+
+
 class LinearCV:
     """Cross-validated scores of adding column groups to a fitted model, to first order.
 
