@@ -346,7 +346,7 @@ def test_markers_on_one_link_carried_together_equal_one_at_a_time(make_params, m
 
     pts = ["a@flange=0.01,0,0.1", "b@flange=-0.02,0.03,0.05", "c@link3=0,0.1,0", "d@flange=0,0,0.2"]
     many = Robot.from_urdf("urdf/kuka_kr5_arc.urdf", markers=pts)
-    assert sorted(len(ms) for ms in many._markers_by_frame().values()) == [1, 3]
+    assert sorted(len(ms) for ms in many._mk_groups.values()) == [1, 3]
     p = make_params(many, seed=31)
     q = make_q(many, 6, seed=32)
     torch.testing.assert_close(many.positions(q, p), many.fk_rt(q, p)[1], rtol=0, atol=1e-14)

@@ -3,6 +3,7 @@ one by one on their own rows; the batched Jacobians equal the single ones; kept 
 equal fresh ones."""
 from __future__ import annotations
 
+import pytest
 import torch
 
 from torchcal import Robot
@@ -61,6 +62,23 @@ def test_batched_folds_equal_each_fold_fitted_alone():
         assert float((ea - eb).abs().max()) < 1e-4 * ctx.sigma
         moved = max(moved, float(((alone.values[idx] - full.values[idx]).abs() / se).max()))
     assert moved > 0.01  # each fold fit moved from the full fit, far beyond the tolerance above
+
+
+def test_folds_too_short_for_the_free_set_are_refused_as_alone():
+    """All rows hold more residuals than free parameters, a fold's training rows fewer: the batch
+    refuses with the words a fold fitted alone refuses with."""
+    ctx, start, effects = _case(n=70)
+    prob = effect_problem(ctx, start, effects, ctx.data, None)
+    assert prob.m >= prob.dim > prob.m * 4 // 5  # so the whole set fits and no fold does
+    with pytest.raises(ValueError) as batched:
+        fit_folds(ctx, start, prob)
+    first = next(i for i, f in enumerate(ctx.folds) if 3 * (len(ctx.data) - len(f)) < prob.dim)
+    keep = torch.ones(len(ctx.data), dtype=torch.bool)
+    keep[ctx.folds[first]] = False
+    with pytest.raises(ValueError) as alone:
+        fit_params(ctx, start, effects, ctx.data.subset(keep), None, reduce=False)
+    assert "free parameters (no reduction asked)" in str(alone.value)
+    assert str(batched.value) == str(alone.value)
 
 
 def test_batched_jacobians_equal_single_ones():

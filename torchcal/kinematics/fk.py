@@ -248,7 +248,7 @@ class ForwardKinematics:
         _, mt = self._markers(slots)
         out = [None] * len(self._mk_frame)
         # markers on one link ride the same chain: carried together, (P, 3, G, N) for G of them
-        for f, ms in self._markers_by_frame().items():
+        for f, ms in self._mk_groups.items():
             v = self._pick_markers(mt, ms).transpose(1, 2)[..., None].expand(P, 3, len(ms), N)
             while f != 0:
                 j = f - 1
@@ -281,13 +281,6 @@ class ForwardKinematics:
         if ms == list(range(ms[0], ms[-1] + 1)):
             return mt[:, ms[0]:ms[-1] + 1]
         return torch.stack([mt[:, m] for m in ms], 1)
-
-    def _markers_by_frame(self) -> dict[int, list[int]]:
-        """Marker indices grouped by the frame they sit on, in the order of first appearance."""
-        groups: dict[int, list[int]] = {}
-        for m, f in enumerate(self._mk_frame):
-            groups.setdefault(f, []).append(m)
-        return groups
 
     def base_transform(self, params) -> tuple[Tensor, Tensor]:
         """Instrument frame <- robot base from ``params (K,)`` or ``(P, K)``: rotation

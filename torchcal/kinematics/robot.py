@@ -250,6 +250,9 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         Tm = torch.tensor(np.stack([mk.matrix() for mk in self.markers]), dtype=self.dtype, device=self.device)
         self._mk_R, self._mk_t = Tm[:, :3, :3].contiguous(), Tm[:, :3, 3].contiguous()
         self._mk_frame = [self.link_frame[mk.link] for mk in self.markers]
+        self._mk_groups: dict[int, list[int]] = {}  # markers by the frame they sit on (positions() carries each group)
+        for m, f in enumerate(self._mk_frame):
+            self._mk_groups.setdefault(f, []).append(m)
         self._CmT = self._CfT[self._mk_frame]
         anc = torch.zeros(len(self.joints), len(self.markers), dtype=torch.bool, device=self.device)
         for m, f in enumerate(self._mk_frame):

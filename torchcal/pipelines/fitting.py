@@ -19,7 +19,7 @@ from torchcal.problems.identifiability import analyse_jacobian
 from torchcal.problems.uncertainty import residual_noise, unit_variances
 
 __all__ = ["reduce_free", "fit_identified", "FitOptions", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
-           "imprecise_reason", "implausible_values", "implausible_reason", "SMALL_DATA", "is_small"]
+           "imprecise_reason", "too_few_residuals", "implausible_values", "implausible_reason", "SMALL_DATA", "is_small"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
 # than this (one standard error) is not identified by them, whatever its numerical rank. A marker
@@ -134,6 +134,12 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
             rep.imprecise.append(n)
             rep.reasons[n] = imprecise_reason(n, units[params.free_names.index(n)], se, noise)
     return out, rep
+
+
+def too_few_residuals(m: int, k: int, reduced: bool) -> str:
+    """Why a fit of ``k`` free parameters on ``m`` residuals is refused, and the way out."""
+    return (f"{m} residuals for {k} free parameters{'' if reduced else ' (no reduction asked)'}: measure more poses, "
+            "or fix parameters")
 
 
 def imprecise_reason(name: str, unit: str, se: float, noise: float) -> str:
@@ -269,8 +275,7 @@ class _OneProblem:
         prob = self.make(p)
         m, k = getattr(prob, "m", None), len(p.free_names)
         if m is not None and m < k:
-            raise ValueError(f"{m} residuals for {k} free parameters{'' if opt.reduce else ' (no reduction asked)'}: "
-                             "measure more poses, or fix parameters")
+            raise ValueError(too_few_residuals(m, k, opt.reduce))
         res = opt.solve(prob) if opt.solve is not None else \
             get_solver(opt.method, seed=opt.seed, progress=opt.progress, **dict(opt.options or {})).minimize(prob)
         out = p.clone()

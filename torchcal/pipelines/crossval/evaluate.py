@@ -16,7 +16,7 @@ from torchcal.pipelines.crossval.models import (Context, Model, effect_problem, 
                                                 observation_errors)
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.crossval.scores import effective_params, penalised, row_scores
-from torchcal.pipelines.fitting import fit_identified
+from torchcal.pipelines.fitting import fit_identified, too_few_residuals
 from torchcal.problems.effect_calibration import EffectCalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 
@@ -56,8 +56,7 @@ def fit_folds(ctx: Context, full: ParamSet, prob: EffectCalibrationProblem, jac0
     k = prob.dim
     short = [int(m) for m in mask.sum(1).tolist() if m < k]
     if short:  # as a fold fitted alone would refuse
-        raise ValueError(f"{short[0]} residuals for {k} free parameters (no reduction asked): measure more poses, "
-                         "or fix parameters")
+        raise ValueError(too_few_residuals(short[0], k, reduced=False))
 
     def residuals(X: Tensor, idx: Tensor) -> Tensor:
         return prob.residuals(X) * mask[idx]
