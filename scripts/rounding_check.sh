@@ -35,6 +35,7 @@ FILES=(
   tests/problems/test_pseudo_inverse.py
   tests/loop/test_batched_folds.py
   tests/loop/test_linear_mode_selection.py
+  tests/loop/test_schur_solves.py
 )
 
 # MKL is what these modes act on: say whether torch uses it, and show that the mode changes the

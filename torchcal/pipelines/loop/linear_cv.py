@@ -13,7 +13,8 @@ import torch
 from torch import Tensor
 
 from torchcal.pipelines.crossval.scores import T_ACCEPT, T_EXIT, compare, penalised, row_scores, selection_threshold
-from torchcal.problems.uncertainty import PINV_RTOL, psd_pinv
+from torchcal.pipelines.loop.schur import BaseSchur
+from torchcal.problems.uncertainty import PINV_RTOL
 
 __all__ = ["LinearCV", "ALIAS_COS"]
 
@@ -97,7 +98,18 @@ class LinearCV:
         # the folds' normal equations stacked, so that every fold (and option) is one batched solve
         self._Gf = torch.stack([G for _, G, _ in self.folds]) if self.folds else None
         self._bf = torch.stack([b for _, _, b in self.folds]) if self.folds else None
+        self._schur_at = None  # built when a set is first solved under this prior
         return self
+
+    @property
+    def _schur(self) -> BaseSchur:
+        """Every set's solve through the base's Schur complement: the whole data first, then the folds."""
+        if self._schur_at is None:
+            G, b = self._all[0][None], self._all[1][None]
+            if self.folds:
+                G, b = torch.cat([G, self._Gf]), torch.cat([b, self._bf])
+            self._schur_at = BaseSchur(G, b, self.kb)
+        return self._schur_at
 
     def k_eff(self, chosen: list[int]) -> float:
         """Effective parameters of the base plus ``chosen`` under the current prior."""
@@ -131,9 +143,7 @@ class LinearCV:
             M = torch.linalg.pinv(B @ B.mT, rtol=PINV_RTOL, hermitian=True)
             C = B @ self._Aw[:, idx].permute(1, 2, 0)  # (L, r, 3n)
             return ((M @ C) ** 2).sum((-1, -2))
-        ii, jj = idx[:, :, None], idx[:, None, :]
-        H = psd_pinv(self._all[0][ii, jj])
-        return (H * self._data_all[0][ii, jj].mT).sum((-1, -2))  # trace(H Gd)
+        return self._schur.effective(idx, self._data_all[0])
 
     @staticmethod
     def _solve(G: Tensor, b: Tensor, idx: Tensor) -> Tensor:
@@ -161,9 +171,7 @@ class LinearCV:
             M = torch.linalg.pinv(B @ B.mT, rtol=PINV_RTOL, hermitian=True)
             D = -(B.mT @ (M @ y[..., None]))[..., 0]
         else:
-            ii, jj = idx[:, :, None], idx[:, None, :]
-            H = psd_pinv(self._Gf[:, ii, jj])  # (F, L, k, k)
-            D = -(H @ self._bf[:, idx][..., None])[..., 0]  # (F, L, k)
+            D = -self._schur.solve(idx, torch.arange(1, 1 + len(self.folds), device=idx.device))  # (F, L, k)
         # each set's step spread over all columns, so that a fold's predictions are one product
         # (gathering every set's columns per validation row costs more than the product's zeros)
         steps = D.new_zeros(D.shape[0], L, self.A.shape[1]).scatter_(2, idx.expand(D.shape[0], -1, -1), D)
