@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import fnmatch
+import re
 from dataclasses import dataclass
 
 import torch
@@ -10,6 +11,8 @@ from torch import Tensor
 from torchcal.advice import advice
 
 __all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
+
+_WILDCARD = re.compile(r"[*?\[]")  # what makes a glob pattern more than a name
 
 # The one unit table: SI unit -> (factor, unit) in which people read it. m and rad share the
 # factor, so ratios of the two read unchanged. Spellings of one unit ("rad/N/m", "rad/(N*m)")
@@ -83,7 +86,10 @@ class ParamSet:
         """Indices of parameters whose names match any glob pattern (``"joint_2.*"``, ``"*.dz"``)."""
         if isinstance(patterns, str):
             patterns = [patterns]
-        idx = [i for i, n in enumerate(self.names) if any(fnmatch.fnmatchcase(n, p) for p in patterns)]
+        # a pattern without wildcards matches its own name only: looked up, not matched against every name
+        exact = {p for p in patterns if not _WILDCARD.search(p)}
+        globs = [p for p in patterns if p not in exact]
+        idx = [i for i, n in enumerate(self.names) if n in exact or any(fnmatch.fnmatchcase(n, p) for p in globs)]
         if not idx:
             raise NoSuchParameter(f"no parameter matches {list(patterns)}; names look like {self.names[:4]} … "
                                   + advice("(robot.param_names lists them all)",
