@@ -142,6 +142,37 @@ def test_joint_columns_from_the_parameter_pass(robot, make_params, make_q):
         torch.testing.assert_close(pos[b], robot.positions(Q[b], P[b]), rtol=1e-12, atol=1e-14)
 
 
+def test_a_column_subset_is_the_full_jacobians_columns(robot, make_params, make_q):
+    """``param_jacobian(..., columns=c)`` computes c's columns alone, in c's order: the full Jacobian's
+    columns, with the joint Jacobian of the same pass; for one vector and for a paired population."""
+    p = make_params(robot, seed=31)
+    q = make_q(robot, 5, seed=32)
+    K, names = robot.n_params, robot.param_names
+    g = torch.Generator().manual_seed(33)
+    subsets = [torch.randperm(K, generator=g)[: max(1, K // 3)], torch.arange(K - 1, -1, -1),
+               torch.tensor([i for i, n in enumerate(names) if n.startswith("base.") or n.split(".")[0] in
+                             robot.marker_names])]
+    offsets = robot._slot_gather[robot._slices["offset"]]  # the parameters that move joint zeros (URDF robots)
+    if bool((offsets < K).any()):
+        subsets.append(offsets[offsets < K])
+    P = torch.stack([p, make_params(robot, seed=34)])
+    Q = torch.stack([q, make_q(robot, 5, seed=35)])
+    for kind in ("position", "pose"):
+        J, Jq = robot.param_jacobian(q, p, kind=kind, joints=True)
+        JP, JqP = robot.param_jacobian(Q, P, kind=kind, joints=True)
+        scale = float(J.abs().max())
+        for c in subsets:
+            assert c.numel()
+            sub, sub_q = robot.param_jacobian(q, p, kind=kind, joints=True, columns=c)
+            torch.testing.assert_close(sub, J[..., c], rtol=0, atol=1e-14 * scale)
+            torch.testing.assert_close(sub_q, Jq, rtol=0, atol=1e-14 * scale)
+            torch.testing.assert_close(robot.param_jacobian(q, p, kind=kind, columns=c), J[..., c], rtol=0,
+                                       atol=1e-14 * scale)
+            subP, subP_q = robot.param_jacobian(Q, P, kind=kind, joints=True, columns=c)
+            torch.testing.assert_close(subP, JP[..., c], rtol=0, atol=1e-14 * scale)
+            torch.testing.assert_close(subP_q, JqP, rtol=0, atol=1e-14 * scale)
+
+
 def test_joint_jacobian_mimic_column(tree_robot, make_q):
     """finger_b mimics finger_a with multiplier -1.5: its angular velocity per unit of finger_a is
     1.5 times the (unit) joint axis."""

@@ -13,14 +13,16 @@ from torchcal.kinematics.transforms import rot_y, rot_z, so3_left_jacobian
 
 __all__ = ["Jacobians"]
 
+_KEPT_PLANS = 64  # column plans kept per robot
+
 
 class Jacobians:
     """The Jacobian half of :class:`~torchcal.kinematics.robot.Robot` (a mixin over its forward
     kinematics and layout)."""
 
     def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True,
-                       return_positions: bool = False, joints: bool = False):
-        """Analytic derivative of the marker poses w.r.t. all K parameters.
+                       return_positions: bool = False, joints: bool = False, columns=None):
+        """Analytic derivative of the marker poses w.r.t. all K parameters (or ``columns`` of them).
 
         Args:
             kind: ``"position"``: rows are d(p_x, p_y, p_z) (m per unit); ``"pose"``: three more rows,
@@ -30,10 +32,13 @@ class Jacobians:
                 way, which saves a second kinematics pass in least-squares solvers.
             joints: also return the Jacobian by the joints ``(…, M, 3|6, dof)`` (as
                 :meth:`joint_jacobian`, here with ``kind``'s rows), from the same pass.
+            columns: ``c`` parameter indices (a sequence of ints, or a tensor, which is read on the
+                host): only their columns, in this order, are computed (a fit of a few of the K
+                parameters pays for those few).
         Returns:
             ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population, or for ``q (P, N, dof)``
-            paired with ``params (P, K)`` as in :meth:`positions`); then the joint Jacobian when
-            ``joints``, then the positions when ``return_positions``.
+            paired with ``params (P, K)`` as in :meth:`positions`; ``c`` columns with ``columns``);
+            then the joint Jacobian when ``joints``, then the positions when ``return_positions``.
         """
         if kind not in ("position", "pose"):
             raise ValueError(f"kind must be 'position' or 'pose', got {kind!r}")
@@ -41,15 +46,65 @@ class Jacobians:
         q, slots, pop, q1 = (self._prepare_paired if paired else self._prepare)(q, params, check)
         if slots is None:
             slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
-        Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
-        # a parameter's column is the sum over the slots it moves
-        K = self.n_params
-        out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
-        out.index_add_(-1, self._slot_gather, Jac)
-        J = self._unbatch(out[..., :K], pop, q1, 3)
-        extra = ((self._unbatch(Jac[..., self._slices["offset"]], pop, q1, 3),) if joints else ()) \
+        if columns is not None:
+            plan = self.column_plan(columns, joints)
+            Jac, pw, Jq = self._slot_jacobian(q, slots, kind, plan)  # (P, N, M, r, slots of the columns)
+            out = Jac.new_zeros(*Jac.shape[:-1], plan.n_columns)
+            out.index_add_(-1, plan.param_pos, Jac)
+        else:
+            Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
+            # a parameter's column is the sum over the slots it moves
+            K = self.n_params
+            out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
+            out.index_add_(-1, self._slot_gather, Jac)
+            out, Jq = out[..., :K], Jac[..., self._slices["offset"]]
+        J = self._unbatch(out, pop, q1, 3)
+        extra = ((self._unbatch(Jq, pop, q1, 3),) if joints else ()) \
             + ((self._unbatch(pw, pop, q1, 2),) if return_positions else ())
         return (J, *extra) if extra else J
+
+    def column_plan(self, columns, joints: bool = False) -> SimpleNamespace:
+        """What :meth:`param_jacobian` computes for the parameter ``columns`` (with ``joints``), laid
+        out once per column set and kept: a problem that knows its columns lays it out when it is
+        built, so that no solver step waits for it on a GPU.
+
+        Fields: ``v`` the slot columns of :meth:`_slot_columns` they need (their layout ``lay``),
+        ``mov`` where the movable joints' columns sit among them and ``Mm`` their map to the offsets
+        (every actuated joint when ``joints``), ``take`` each wanted slot's place among ``[base (6),
+        the v columns, the offsets]`` and ``param_pos`` its parameter's place among ``columns``."""
+        key = (tuple(int(c) for c in (columns.tolist() if isinstance(columns, Tensor) else columns)), joints)
+        plan = self._column_plans.get(key)
+        if plan is not None:
+            return plan
+        sl, lay, Jn = self._slices, self._jac_layout, len(self.joints)
+        pos = {c: i for i, c in enumerate(key[0])}
+        wanted = [(s, pos[p]) for s, p in enumerate(self._slot_gather.tolist()) if p in pos]
+        n_orig, o0, m0 = sl["offset"].start - 6, sl["offset"].start, sl["marker"].start
+        dofs = list(range(self.dof)) if joints else [s - o0 for s, _ in wanted if o0 <= s < m0]
+        Mmap = self._Mmap[:, dofs]
+        movj = [j for j in range(Jn) if bool((Mmap[j] != 0).any())]
+        v = sorted({s - 6 for s, _ in wanted if 6 <= s < o0} | {n_orig + j for j in movj}
+                   | {n_orig + Jn + s - m0 for s, _ in wanted if s >= m0})
+        at = {c: i for i, c in enumerate(v)}
+        take = []
+        for s, _ in wanted:
+            take.append(s if s < 6 else 6 + at[s - 6] if s < o0 else 6 + len(v) + dofs.index(s - o0) if s < m0
+                        else 6 + at[n_orig + Jn + s - m0])
+        vt = torch.tensor(v, dtype=torch.long, device=self.device)
+        rot = lay.rot_f[vt] != 0
+        in_ri = torch.full((lay.rot_f.numel(),), -1, dtype=torch.long, device=self.device)
+        in_ri[lay.ri] = torch.arange(lay.ri.numel(), device=self.device)
+        ri = torch.nonzero(rot).flatten()
+        ix = lambda x: torch.tensor(x, dtype=torch.long, device=self.device)  # noqa: E731
+        plan = SimpleNamespace(
+            v=vt, lay=SimpleNamespace(rot_f=lay.rot_f[vt], ri=ri, pidx=lay.pidx[in_ri[vt[ri]]], off=lay.off,
+                                      mask=lay.mask[:, vt]),
+            mov=ix([at[n_orig + j] for j in movj]), Mm=Mmap[movj], take=ix(take), param_pos=ix([i for _, i in wanted]),
+            n_columns=len(key[0]))
+        if len(self._column_plans) >= _KEPT_PLANS:  # a loop tries many sets: keep the recent ones
+            self._column_plans.pop(next(iter(self._column_plans)))
+        self._column_plans[key] = plan
+        return plan
 
     def joint_jacobian(self, q, params=None, *, check: bool = True) -> Tensor:
         """Geometric Jacobian of every marker w.r.t. the commands ``q``: ``(N, M, 6, dof)``
@@ -125,14 +180,20 @@ class Jacobians:
                                pidx=torch.tensor(pidx, dtype=torch.long, device=self.device), off=off,
                                mask=torch.cat(masks, 0).to(self.dtype).T)
 
-    def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str) -> Tensor:
+    def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str, plan: SimpleNamespace | None = None):
         """Derivatives of the marker poses by every slot: ``(P, N, M, r, S)`` (``r`` 3 rows for
         ``kind="position"``, 6 for ``"pose"``), and the marker positions ``(P, N, M, 3)`` (m,
-        instrument frame)."""
+        instrument frame). With a :meth:`column_plan`, by its slots only, then also the joint
+        Jacobian ``(P, N, M, r, dof)`` (None unless the plan has every joint)."""
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
         mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
         axes, pts = self._slot_axes(slots, Rs, ts, JR, Jt, mt)
-        Jv, mw, m_inst = self._slot_columns(slots, axes, pts, kind)  # (P, r, N, M, V)
+        Jv, mw, m_inst = self._slot_columns(slots, axes, pts, kind, plan)  # (P, r, N, M, V)
+        if plan is not None:
+            J_off = Jv[..., plan.mov] @ plan.Mm  # (P, r, N, M, offsets)
+            Jac = torch.cat([self._base_columns(slots, mw, Jv, kind), Jv, J_off], -1)[..., plan.take]
+            Jq = J_off.permute(0, 2, 3, 1, 4) if plan.Mm.shape[1] == self.dof else None
+            return Jac.permute(0, 2, 3, 1, 4), m_inst.permute(0, 2, 3, 1), Jq
         # split back into slot groups; offsets per movable joint -> per actuated joint
         Jn = len(self.joints)
         nu, nd = 6 * len(self._urdf_idx), 4 * len(self._dh_idx)
@@ -195,23 +256,27 @@ class Jacobians:
         pts.append(mt)
         return axes, pts
 
-    def _slot_columns(self, slots: Tensor, axes: list[Tensor], pts: list[Tensor], kind: str
-                      ) -> tuple[Tensor, Tensor, Tensor]:
-        """The non-base columns ``(P, r, N, M, V)`` in the instrument frame: a translation moves a
-        marker along its direction, a rotation by ``axis × (marker − point)`` (and turns it about
-        ``axis``, the last three rows of ``"pose"``), for the markers the slot's joint carries. Also
-        the markers ``Rb·mt`` and their instrument-frame positions, ``(P, 3, N, M)``."""
-        lay = self._jac_layout
+    def _slot_columns(self, slots: Tensor, axes: list[Tensor], pts: list[Tensor], kind: str,
+                      plan: SimpleNamespace | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """The non-base columns ``(P, r, N, M, V)`` in the instrument frame (the plan's ``v`` of them
+        with a :meth:`column_plan`): a translation moves a marker along its direction, a rotation
+        by ``axis × (marker − point)`` (and turns it about ``axis``, the last three rows of
+        ``"pose"``), for the markers the slot's joint carries. Also the markers ``Rb·mt`` and their
+        instrument-frame positions, ``(P, 3, N, M)``."""
+        lay = self._jac_layout if plan is None else plan.lay
         mask, ri, off = lay.mask, lay.ri, lay.off
         P, N, M = pts[-1].shape[0], pts[-1].shape[1], len(self.markers)
         # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
         # every elementwise pass runs over long rows (with the 3 components innermost, as the
         # frames come, each pass cost ~20 ns per element on CPU) and the base rotation is one
         # batched 3 x 3 product per parameter vector.
-        V = sum(x.shape[-1] for x in axes)
+        A = torch.cat(axes, -1)
+        if plan is not None:
+            A = A[..., plan.v]
+        V = A.shape[-1]
         Rb, tb = self._base(slots)
         # the axes in the instrument frame, (P, 3, N, V)
-        a = (Rb @ torch.cat(axes, -1).reshape(P, 3, N * V)).reshape(P, 3, N, V)
+        a = (Rb @ A.reshape(P, 3, N * V)).reshape(P, 3, N, V)
         Vp = off + M
         pw = (Rb @ torch.cat([x.permute(0, 3, 1, 2) for x in pts], -1).reshape(P, 3, N * Vp)).reshape(P, 3, N, Vp)
         mw = pw[..., off:]  # Rb·mt, (P, 3, N, M)

@@ -134,6 +134,7 @@ class Robot(ForwardKinematics, Jacobians, URDFExport):
         self._nominal_cache = self._origins(None)
         self._nominal_cache4 = homogeneous(*self._nominal_cache)
         self._jac_layout = self._jacobian_layout()
+        self._column_plans = {}  # param_jacobian's plans per column subset (Jacobians.column_plan)
 
     def _frame_tree(self) -> None:
         """Frames (0: the root link, j + 1: joint j's child link), each joint's parent frame, and the

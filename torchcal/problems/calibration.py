@@ -62,6 +62,8 @@ class CalibrationProblem(Problem):
         # identifiability reduction (pipelines.fitting), never here: the Jacobian of a problem with
         # more unknowns than residuals is what that reduction reads
         self.m = self.n_obs * self.obs_dim
+        self._free_cols = tuple(idx.tolist())  # the Jacobian's columns, read on the host once
+        robot.column_plan(self._free_cols)
 
     def full(self, X: Tensor) -> Tensor:
         """Free values ``(P, k)`` or ``(k,)`` -> full parameter vectors."""
@@ -92,15 +94,17 @@ class CalibrationProblem(Problem):
 
     def jacobian(self, x: Tensor) -> Tensor:
         """``(k,) -> (m, k)`` Jacobian of :meth:`residuals` (the IRLS approximation under a loss)."""
-        return self.full_jacobian(self.full(x))[:, self.params.free_index]
+        return self.full_jacobian(self.full(x), self._free_cols)
 
-    def full_jacobian(self, full: Tensor) -> Tensor:
-        """``(K,)`` full vector -> ``(m, K)`` Jacobian of :meth:`residuals` in every parameter, free or fixed."""
+    def full_jacobian(self, full: Tensor, columns=None) -> Tensor:
+        """``(K,)`` full vector -> ``(m, K)`` Jacobian of :meth:`residuals` in every parameter, free or
+        fixed (``(m, c)`` in the parameters ``columns`` alone, indices into K)."""
         if self.obs_dim == 3:
-            J, p = self.robot.param_jacobian(self.q, full, kind="position", check=False, return_positions=True)
+            J, p = self.robot.param_jacobian(self.q, full, kind="position", check=False, return_positions=True,
+                                             columns=columns)
             J, p, R = self.obs.project(p, J), p[None], None
         else:
-            J = self.robot.param_jacobian(self.q, full, kind="pose", check=False)
+            J = self.robot.param_jacobian(self.q, full, kind="pose", check=False, columns=columns)
             R, p = self.robot.fk_rt(self.q, full[None], check=False)
             J = _as_poses(self.obs.project(p[0], J[..., :3, :], None, J[..., 3:, :], R[0]), 0)
         w = None if self.weights is None else self.weights.sqrt()

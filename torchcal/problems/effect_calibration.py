@@ -90,6 +90,7 @@ class EffectCalibrationProblem(Problem):
         free = params.free.clone()
         K, S = self.K, self.S
         self._geo_free = torch.nonzero(free[:K]).flatten()
+        self._geo_cols = tuple(self._geo_free.tolist())  # the kinematics' column plan is keyed on the host
         self._gauge = None
         if setup is not None and setup.scale_gauge is not None:
             g = setup.scale_gauge[self._geo_free]
@@ -187,11 +188,12 @@ class EffectCalibrationProblem(Problem):
         s = full[:, K:K + S]
         dq, dp = self._effect_deltas(full) if self._eff_free.numel() else (None, None)
         Jq = None
-        if self._geo_free.numel() or dq is not None:  # one kinematic pass for both Jacobians
-            Jg, Jq = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
-                                               check=False, joints=True)
+        if self._geo_free.numel() or dq is not None:  # one kinematic pass for both Jacobians, the free columns only
+            Jg = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
+                                           check=False, joints=dq is not None, columns=self._geo_cols)
+            if dq is not None:
+                Jg, Jq = Jg
         if self._geo_free.numel():
-            Jg = Jg[..., self._geo_free]
             D, W = (Jg[..., :3, :], Jg[..., 3:, :]) if turns else (Jg, None)
             cols = [pos[int(v)] for v in self._geo_free.tolist()]
             for b in range(B):

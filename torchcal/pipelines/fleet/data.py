@@ -92,17 +92,11 @@ class FleetData:
         b, N, M = idx.numel(), self.q.shape[1], self.seen.shape[2]
         q = self.q[idx] if q is None else q
         K = X.shape[1]
-        runs = _runs(range(K) if cols is None else cols)  # copying runs of columns beats a gather
-        out = X.new_empty(b, N * M * 3, sum(e - a for a, e in runs))
+        out = X.new_empty(b, N * M * 3, K if cols is None else len(cols))
         step = max(1, _CHUNK.get(X.device.type, 1 << 24) // (N * M * 3 * K))
         for a in range(0, b, step):
-            J = robot.param_jacobian(q[a:a + step], X[a:a + step], check=False)
-            seen = self.seen[idx[a:a + step]][..., None, None]
-            dst = out[a:a + step].view(*J.shape[:-1], -1)
-            at = 0
-            for c0, c1 in runs:
-                torch.mul(J[..., c0:c1], seen, out=dst[..., at:at + c1 - c0])
-                at += c1 - c0
+            J = robot.param_jacobian(q[a:a + step], X[a:a + step], check=False, columns=cols)
+            torch.mul(J, self.seen[idx[a:a + step]][..., None, None], out=out[a:a + step].view(J.shape))
         return out
 
     def error_vectors(self, robot: Robot, X: Tensor) -> Tensor:
@@ -149,17 +143,6 @@ def _observations(datasets: list[Measurements]) -> list[int]:
             out[r] = int(ends[at + n - 1] - (ends[at - 1] if at else 0)) if n else 0
             at += n
     return out
-
-
-def _runs(cols) -> list[tuple[int, int]]:
-    """Ascending column indices as ``[start, stop)`` runs of consecutive ones."""
-    runs: list[list[int]] = []
-    for c in cols:
-        if runs and runs[-1][1] == c:
-            runs[-1][1] += 1
-        else:
-            runs.append([c, c + 1])
-    return [(a, e) for a, e in runs]
 
 
 def _named(data, names, what: str) -> tuple[list[str], list]:
