@@ -136,6 +136,8 @@ class Batch:
         self.everyone = torch.arange(B, device=x.device)
         self.cols = self.lin.columns(free)
         self.pos = _positions(columns, self.cols, K)
+        # every one of the callback's columns is worked on, in order: its Jacobian is used as it comes
+        self.as_given = columns is None and self.cols.numel() == K
         self.full = x.clone()
         self._linearise_start(jac0)
         cols = self.cols
@@ -156,7 +158,7 @@ class Batch:
             self.J = jac0
         if isinstance(self.J, Tensor):
             self.J = self.J.to(_F64)
-        self.Jc = self.lin.take(self.J, self.pos)  # the columns the solver works on
+        self.Jc = self.J if self.as_given else self.lin.take(self.J, self.pos)  # the columns the solver works on
 
     def _damping_start(self) -> None:
         """Normal equations, scaling, damping and the stopping state at the start."""
@@ -211,9 +213,17 @@ class Batch:
             if isinstance(Jn, Tensor):
                 Jn = Jn.to(_F64)
             lin = self.lin
-            lin.put(self.J, idx, Jn)
-            Jn = lin.take(Jn, self.pos)
-            lin.put(self.Jc, idx, Jn)
+            # every problem at once (a single fit, always): the new Jacobian replaces the old, no copy
+            whole = idx.numel() == self.everyone.numel()
+            if whole:
+                self.J = Jn
+            else:
+                lin.put(self.J, idx, Jn)
+            Jn = Jn if self.as_given else lin.take(Jn, self.pos)
+            if whole:
+                self.Jc = Jn
+            else:
+                lin.put(self.Jc, idx, Jn)
             lin.put(self.A, idx, lin.gram(Jn, self.free[idx]))
             self.n_jac[idx] += 1
             self.xJ[idx] = self.x[idx]
@@ -351,7 +361,7 @@ def lm_batched(residuals: Callable[[Tensor, Tensor], Tensor], jacobian: Callable
         columns: ``(c,)`` the parameters (indices into K) whose columns the jacobian callback
             returns (default all K); every parameter a problem fits must be among them.
         jac0: ``(B, m, c)`` the Jacobian at ``x0`` when the caller has it (saves one evaluation);
-            float64 is used as it is and updated in place (it becomes the returned ``jacobian``).
+            float64 is used as it is, and may be written in place.
     Returns:
         a :class:`BatchedLMResult`.
     """

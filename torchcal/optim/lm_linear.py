@@ -46,7 +46,8 @@ class DenseCholesky:
 
     @staticmethod
     def rows(T: Tensor, idx: Tensor) -> Tensor:
-        return T[idx]
+        # the iteration's index sets are ascending and unique: as many as there are rows is all of them
+        return T if idx.numel() == T.shape[0] else T[idx]
 
     @staticmethod
     def put(T: Tensor, idx: Tensor, V: Tensor) -> None:
@@ -122,7 +123,7 @@ class Arrow:
 
     @staticmethod
     def rows(T: tuple, idx: Tensor) -> tuple:
-        return tuple(t[idx] for t in T)
+        return T if idx.numel() == T[0].shape[0] else tuple(t[idx] for t in T)
 
     @staticmethod
     def put(T: tuple, idx: Tensor, V: tuple) -> None:
