@@ -85,20 +85,21 @@ class Jacobians:
         movj = [j for j in range(Jn) if bool((Mmap[j] != 0).any())]
         v = sorted({s - 6 for s, _ in wanted if 6 <= s < o0} | {n_orig + j for j in movj}
                    | {n_orig + Jn + s - m0 for s, _ in wanted if s >= m0})
+        # translations first, then rotations: the columns are then two blocks, each written once
+        is_rot = lay.rot_f.tolist()
+        v = [c for c in v if not is_rot[c]] + [c for c in v if is_rot[c]]
+        n_trans = sum(1 for c in v if not is_rot[c])
         at = {c: i for i, c in enumerate(v)}
         take = []
         for s, _ in wanted:
             take.append(s if s < 6 else 6 + at[s - 6] if s < o0 else 6 + len(v) + dofs.index(s - o0) if s < m0
                         else 6 + at[n_orig + Jn + s - m0])
-        vt = torch.tensor(v, dtype=torch.long, device=self.device)
-        rot = lay.rot_f[vt] != 0
-        in_ri = torch.full((lay.rot_f.numel(),), -1, dtype=torch.long, device=self.device)
-        in_ri[lay.ri] = torch.arange(lay.ri.numel(), device=self.device)
-        ri = torch.nonzero(rot).flatten()
         ix = lambda x: torch.tensor(x, dtype=torch.long, device=self.device)  # noqa: E731
+        vt = ix(v)
+        in_ri = {c: i for i, c in enumerate(lay.ri.tolist())}  # a rotational column's place in pidx
         plan = SimpleNamespace(
-            v=vt, lay=SimpleNamespace(rot_f=lay.rot_f[vt], ri=ri, pidx=lay.pidx[in_ri[vt[ri]]], off=lay.off,
-                                      mask=lay.mask[:, vt]),
+            v=vt, lay=SimpleNamespace(rot_f=lay.rot_f[vt], n_trans=n_trans, off=lay.off, mask=lay.mask[:, vt],
+                                      pidx=lay.pidx[ix([in_ri[c] for c in v[n_trans:]])]),
             mov=ix([at[n_orig + j] for j in movj]), Mm=Mmap[movj], take=ix(take), param_pos=ix([i for _, i in wanted]),
             n_columns=len(key[0]))
         if len(self._column_plans) >= _KEPT_PLANS:  # a loop tries many sets: keep the recent ones
@@ -264,7 +265,7 @@ class Jacobians:
         ``"pose"``), for the markers the slot's joint carries. Also the markers ``Rb·mt`` and their
         instrument-frame positions, ``(P, 3, N, M)``."""
         lay = self._jac_layout if plan is None else plan.lay
-        mask, ri, off = lay.mask, lay.ri, lay.off
+        mask, off = lay.mask, lay.off
         P, N, M = pts[-1].shape[0], pts[-1].shape[1], len(self.markers)
         # Layout (P, 3, N, M, V): the slot index innermost and the 3 components outside, so that
         # every elementwise pass runs over long rows (with the 3 components innermost, as the
@@ -283,11 +284,18 @@ class Jacobians:
         m_inst = mw + tb[:, :, None, None]  # marker positions, instrument frame
         # lever arms from each rotational column's point to the markers: the translation tb cancels
         at = pw[..., lay.pidx]
-        ar, lev = a[..., ri][:, :, :, None, :], mw[..., None] - at[:, :, :, None, :]
+        # a plan's rotational columns are its last ones: a slice, and the columns one concatenation
+        nt = None if plan is None else lay.n_trans
+        ar = a[..., lay.ri] if plan is None else a[..., nt:]
+        ar, lev = ar[:, :, :, None, :], mw[..., None] - at[:, :, :, None, :]
         ax_, ay_, az_ = ar.unbind(1)
         lx, ly, lz = lev.unbind(1)
-        lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
-        lin.index_copy_(-1, ri, torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1))
+        turned = torch.stack([ay_ * lz - az_ * ly, az_ * lx - ax_ * lz, ax_ * ly - ay_ * lx], 1)
+        if plan is None:
+            lin = a[:, :, :, None, :].expand(P, 3, N, M, V).clone()  # translations: the axis itself
+            lin.index_copy_(-1, lay.ri, turned)
+        else:
+            lin = torch.cat([a[:, :, :, None, :nt].expand(P, 3, N, M, nt), turned], -1)
         lin *= mask
         if kind != "pose":
             return lin, mw, m_inst

@@ -100,6 +100,7 @@ class EffectCalibrationProblem(Problem):
         self._set_free = torch.nonzero(free[K:K + S]).flatten() + K
         self._eff_free = torch.nonzero(free[K + S:]).flatten() + K + S
         self._memo = None  # (full (B, K'), its marker frames): see _points
+        self._extra_rows = None  # the Jacobian's prior and gauge rows: see _fixed_rows
 
     def full(self, X: Tensor) -> Tensor:
         return self.params.expand(X)
@@ -180,8 +181,6 @@ class EffectCalibrationProblem(Problem):
         kinematics of every point in one call (a batch of CV folds costs little more than one fold)."""
         full = self.full(X)
         B = full.shape[0]
-        J = torch.zeros(B, 3 * self.n_obs, self.params.free_index.numel(), dtype=full.dtype, device=full.device)
-        pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
         K, S = self.K, self.S
         turns = self.obs.has_orientation
         R, p = self._points(full)
@@ -193,20 +192,23 @@ class EffectCalibrationProblem(Problem):
                                            check=False, joints=dq is not None, columns=self._geo_cols)
             if dq is not None:
                 Jg, Jq = Jg
+
+        def per_point(f) -> Tensor:  # (B, 3 n_obs, c) from each point's (n_obs, 3, c)
+            out = [f(b).reshape(3 * self.n_obs, -1) for b in range(B)]
+            return out[0][None] if B == 1 else torch.stack(out)
+        # the free entries run geometry, set-up, effects (free_index ascends): the columns are three blocks
+        blocks = []
         if self._geo_free.numel():
             D, W = (Jg[..., :3, :], Jg[..., 3:, :]) if turns else (Jg, None)
-            cols = [pos[int(v)] for v in self._geo_free.tolist()]
-            for b in range(B):
-                J[b, :, cols] = self.obs.project(p[b], D[b], s[b], None if W is None else W[b],
-                                                 None if R is None else R[b]).reshape(-1, len(cols))
+            blocks.append(per_point(lambda b: self.obs.project(p[b], D[b], s[b], None if W is None else W[b],
+                                                               None if R is None else R[b])))
         if self._set_free.numel():
-            cols = [pos[int(v)] for v in self._set_free.tolist()]
-            for b in range(B):
-                J[b, :, cols] = self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K].reshape(-1, len(cols))
+            blocks.append(per_point(lambda b: self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K]))
         if self._eff_free.numel():
-            J[:, :, [pos[int(v)] for v in self._eff_free.tolist()]] = self._effect_columns(full, p, s, R, Jq,
-                                                                                          dq, dp)
-        return J
+            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp))
+        if not blocks:
+            return full.new_zeros(B, 3 * self.n_obs, 0)
+        return blocks[0] if len(blocks) == 1 else torch.cat(blocks, -1)
 
     def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None]:
         """Central differences of the effects' joint deflections ``(B, k, N, dof)`` and robot-base point
@@ -271,15 +273,28 @@ class EffectCalibrationProblem(Problem):
         if self.loss.kind != "l2":
             r = self.residual_vectors(self.full(X))
             J = J * self.loss.scales((r * r).sum(-1))[1].repeat_interleave(3, dim=-1)[..., None]
-        pos = {int(v): i for i, v in enumerate(self.params.free_index.tolist())}
-        B, k = J.shape[0], J.shape[-1]
-        if self._prior is not None:
-            idx, w = self._prior
-            P = torch.zeros(B, idx.numel(), k, dtype=J.dtype, device=J.device)
-            P[:, torch.arange(idx.numel(), device=J.device), [pos[int(v)] for v in idx.tolist()]] = w
-            J = torch.cat([J, P], 1)
-        if self._gauge is not None:
-            row = torch.zeros(B, 1, k, dtype=J.dtype, device=J.device)
-            row[:, 0, [pos[int(v)] for v in self._geo_free.tolist()]] = GAUGE_WEIGHT * self._gauge[0]
-            J = torch.cat([J, row], 1)
-        return J
+        extra = self._fixed_rows()
+        if extra is None:
+            return J
+        return torch.cat([J, extra.expand(J.shape[0], -1, -1)], 1)
+
+    def _fixed_rows(self) -> Tensor | None:
+        """``(1, rows, n_free)`` the Jacobian's prior and gauge rows, which no point changes (built
+        once); None without either."""
+        if self._prior is None and self._gauge is None:
+            return None
+        if self._extra_rows is None:
+            free = self.params.free_index
+            pos = {int(v): i for i, v in enumerate(free.tolist())}
+            rows = []
+            if self._prior is not None:
+                idx, w = self._prior
+                P = w.new_zeros(idx.numel(), free.numel())
+                P[torch.arange(idx.numel(), device=w.device), [pos[int(v)] for v in idx.tolist()]] = w
+                rows.append(P)
+            if self._gauge is not None:
+                row = self._gauge[0].new_zeros(1, free.numel())
+                row[0, [pos[int(v)] for v in self._geo_free.tolist()]] = GAUGE_WEIGHT * self._gauge[0]
+                rows.append(row)
+            self._extra_rows = torch.cat(rows)[None]
+        return self._extra_rows
