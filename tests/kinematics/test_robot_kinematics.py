@@ -171,6 +171,10 @@ def test_a_column_subset_is_the_full_jacobians_columns(robot, make_params, make_
             subP, subP_q = robot.param_jacobian(Q, P, kind=kind, joints=True, columns=c)
             torch.testing.assert_close(subP, JP[..., c], rtol=0, atol=1e-14 * scale)
             torch.testing.assert_close(subP_q, JqP, rtol=0, atol=1e-14 * scale)
+        # no parameter column at all (a fit of effects alone): the joint Jacobian still comes
+        none, none_q = robot.param_jacobian(q, p, kind=kind, joints=True, columns=())
+        assert none.shape == J.shape[:-1] + (0,)
+        torch.testing.assert_close(none_q, Jq, rtol=0, atol=1e-14 * scale)
 
 
 def test_joint_jacobian_mimic_column(tree_robot, make_q):

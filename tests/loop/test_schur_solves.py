@@ -140,3 +140,13 @@ def test_linear_cv_fold_solves_equal_the_full_pseudo_inverse():
         H = torch.linalg.pinv(cv._all[0][ii, jj], rtol=PINV_RTOL, hermitian=True)
         k_ref = float((H * cv._data_all[0][ii, jj].mT).sum((-1, -2)))
         assert cv.k_eff(chosen) == pytest.approx(k_ref, abs=1e-8), chosen
+
+
+def test_no_base_columns_solves_whole():
+    G, b, _ = _systems(5, 0, kb=4)
+    sch = BaseSchur(G, b, 0)
+    assert not sch.usable
+    cols = [0, 2, 5, 9]
+    ref = _pinv_solve(G, b, cols)[..., 0]
+    assert torch.allclose(sch.solve(torch.tensor([cols]), torch.arange(G.shape[0]))[:, 0], ref, rtol=0,
+                          atol=1e-9 * float(ref.abs().max()))

@@ -40,6 +40,9 @@ class BaseSchur:
 
     def __init__(self, G: Tensor, b: Tensor, kb: int):
         self.kb, self.G, self.b = kb, G, b
+        self.usable = kb > 0  # without a base there is nothing to eliminate: every set is solved whole
+        if not self.usable:
+            return
         Gbb = G[:, :kb, :kb]
         Hbb, ok = safe_inverse(Gbb)
         self.usable = bool(ok.all())
