@@ -150,3 +150,25 @@ def test_no_base_columns_solves_whole():
     ref = _pinv_solve(G, b, cols)[..., 0]
     assert torch.allclose(sch.solve(torch.tensor([cols]), torch.arange(G.shape[0]))[:, 0], ref, rtol=0,
                           atol=1e-9 * float(ref.abs().max()))
+
+
+def test_an_ill_conditioned_base_still_finds_an_exact_dependence():
+    """Two base columns 3e-4 apart (a base block conditioned near 1e7) and a candidate that is exactly
+    a sum of base columns: the Schur complement, formed through the base's factor, leaves that
+    dependence at rounding level, so the set is pinv's minimum-norm solve and not a division by rounding."""
+    gen = torch.Generator().manual_seed(6)
+    kb = 6
+    A = torch.randn(50, kb + 2, generator=gen, dtype=F64)
+    A[:, 1] = A[:, 0] + 3e-4 * torch.randn(50, generator=gen, dtype=F64)
+    A[:, kb] = A[:, 0] - 0.5 * A[:, 3]
+    A = A / A.norm(dim=0)
+    y = torch.randn(50, generator=gen, dtype=F64)
+    G, b = (A.T @ A)[None], (A.T @ y)[None]
+    sch = BaseSchur(G, b, kb)
+    assert sch.usable
+    cols = list(range(kb + 1))
+    _, ok = sch._solve(torch.tensor([[0]]), torch.arange(1))
+    assert bool(ok.all())
+    ref = _pinv_solve(G, b, cols)[0, :, 0]
+    got = sch.solve(torch.tensor([cols]), torch.arange(1))[0, 0]
+    assert torch.allclose(got, ref, rtol=0, atol=1e-6 * float(ref.abs().max()))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["covariance", "standard_errors", "residual_noise", "unit_variances", "psd_pinv", "safe_inverse", "PINV_RTOL"]
+__all__ = ["covariance", "standard_errors", "residual_noise", "unit_variances", "psd_pinv", "safe_cholesky", "PINV_RTOL"]
 
 
 def covariance(J: Tensor, residuals: Tensor | None = None, sigma: float | Tensor | None = None, *,
@@ -111,18 +111,18 @@ PINV_RTOL = 1e-12
 _SAFE_COND = 0.1 / PINV_RTOL
 
 
-def safe_inverse(G: Tensor) -> tuple[Tensor, Tensor]:
-    """The inverse of symmetric positive semi-definite ``G (..., k, k)`` by Cholesky, and ``(...)``
-    bool where it is also the pseudo-inverse: the factor exists and bounds the condition number
-    (``‖G‖∞ ‖G⁻¹‖∞``) inside pinv's cut ten times over. Where it is not, the inverse returned is of
-    a stand-in and must not be used."""
+def safe_cholesky(G: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The Cholesky factor ``L`` and the inverse of symmetric positive semi-definite ``G (..., k, k)``,
+    and ``(...)`` bool where the inverse is also the pseudo-inverse: the factor exists and bounds the
+    condition number (``‖G‖∞ ‖G⁻¹‖∞``) inside pinv's cut ten times over. Where it is not, the
+    factor and inverse returned are of a stand-in and must not be used."""
     L, info = torch.linalg.cholesky_ex(G)
     failed = info != 0
     if bool(failed.any()):  # a factor that broke down holds a zero pivot: invert a stand-in, judged below
         L = torch.where(failed[..., None, None], torch.eye(G.shape[-1], dtype=G.dtype, device=G.device), L)
     H = torch.cholesky_inverse(L)
     cond = G.abs().sum(-1).amax(-1) * H.abs().sum(-1).amax(-1)
-    return H, ~failed & torch.isfinite(cond) & (cond < _SAFE_COND)
+    return L, H, ~failed & torch.isfinite(cond) & (cond < _SAFE_COND)
 
 
 def psd_pinv(G: Tensor) -> Tensor:
@@ -133,7 +133,7 @@ def psd_pinv(G: Tensor) -> Tensor:
     (the linear CV inverts thousands of these per candidate); the others take the eigendecomposition."""
     if G.shape[-1] == 0:
         return G.clone()
-    H, ok = safe_inverse(G)
+    _, H, ok = safe_cholesky(G)
     if not bool(ok.all()):
         bad = ~ok
         H[bad] = torch.linalg.pinv(G[bad], rtol=PINV_RTOL, hermitian=True)

@@ -20,12 +20,15 @@ from types import SimpleNamespace
 import torch
 from torch import Tensor
 
-from torchcal.problems.uncertainty import PINV_RTOL, psd_pinv, safe_inverse
+from torchcal.problems.uncertainty import PINV_RTOL, psd_pinv, safe_cholesky
 
 __all__ = ["BaseSchur"]
 
 # How far the eigenvalue bounds must clear the cut for a set's solve to count as pinv's
 _MARGIN = 10.0
+# the rounding of a computed eigenvalue of the Schur complement, in units of eps times the set's largest
+# diagonal entry (formed through the base's factor, an exact dependence leaves about one)
+_ULPS = 16.0
 
 
 class BaseSchur:
@@ -44,17 +47,21 @@ class BaseSchur:
         if not self.usable:
             return
         Gbb = G[:, :kb, :kb]
-        Hbb, ok = safe_inverse(Gbb)
+        Lb, Hbb, ok = safe_cholesky(Gbb)
         self.usable = bool(ok.all())
         if not self.usable:
             return
-        C = G[:, :kb, kb:]
+        # through the factor, not the inverse: S = Ggg − WᵀW with W = L⁻¹C is then as accurate as
+        # the matrix itself (an exactly dependent column leaves an eigenvalue at rounding level), however
+        # ill-conditioned the base
+        W = torch.linalg.solve_triangular(Lb, G[:, :kb, kb:], upper=False)
+        u = torch.linalg.solve_triangular(Lb, b[:, :kb, None], upper=False)
         self.Hbb = Hbb
-        self.Y = Hbb @ C  # (E, kb, g): each candidate column's regression on the base
-        self.z = (Hbb @ b[:, :kb, None])[..., 0]
-        S = G[:, kb:, kb:] - C.mT @ self.Y
+        self.Y = torch.linalg.solve_triangular(Lb.mT, W, upper=True)  # (E, kb, g): each candidate's regression on the base
+        self.z = torch.linalg.solve_triangular(Lb.mT, u, upper=True)[..., 0]
+        S = G[:, kb:, kb:] - W.mT @ W
         self.S = 0.5 * (S + S.mT)
-        self.s = b[:, kb:] - (C.mT @ self.z[..., None])[..., 0]
+        self.s = b[:, kb:] - (W.mT @ u)[..., 0]
         self.Gg_abs = G[:, kb:, kb:].abs()
         self.Gg_diag = G[:, kb:, kb:].diagonal(dim1=-2, dim2=-1)
         self.base_diag = Gbb.diagonal(dim1=-2, dim2=-1).amax(-1)
@@ -74,10 +81,12 @@ class BaseSchur:
         # blocks' λmax bounds
         top_lo = torch.maximum(self.base_diag[e, None], self.Gg_diag[e][:, J].amax(-1))
         top_hi = self.base_hi[e, None] + self.Gg_abs[e][:, J[:, :, None], J[:, None, :]].sum(-1).amax(-1)
+        # each computed μ within rounding of S's own: a few ulps of the set's largest diagonal entry
+        err = _ULPS * torch.finfo(mu.dtype).eps * top_lo[..., None]
         # an eigenvalue μ of S leaves one of the set's matrix below μ: zero far under the cut
-        zero = mu <= (PINV_RTOL / _MARGIN) * top_lo[..., None]
+        zero = mu + err <= (PINV_RTOL / _MARGIN) * top_lo[..., None]
         # the others stay above min(λmin(Gbb), μ₊) / (2 + 2‖Y‖²) (Courant-Fischer on (vb + Y vg, vg))
-        mu_plus = torch.where(zero, torch.full_like(mu, float("inf")), mu).amin(-1)
+        mu_plus = torch.where(zero, torch.full_like(mu, float("inf")), mu - err).amin(-1)
         floor = torch.minimum(self.base_lo[e, None], mu_plus) / (2.0 + 2.0 * (YJ * YJ).sum((-1, -2)))
         ok = floor > (PINV_RTOL * _MARGIN) * top_hi
         inv = torch.where(zero, torch.zeros_like(mu), 1.0 / torch.where(zero, torch.ones_like(mu), mu))
