@@ -149,7 +149,7 @@ class LinearCV:
     def _solve(G: Tensor, b: Tensor, idx: Tensor) -> Tensor:
         """Minimum-norm step: directions the columns (unit norm) cannot tell apart, to 1e-6 of
         the largest singular value, get no share of it, rather than huge values that cancel."""
-        return -(torch.linalg.pinv(G[idx][:, idx], rtol=1e-12, hermitian=True) @ b[idx])
+        return -(torch.linalg.pinv(G[idx][:, idx], rtol=PINV_RTOL, hermitian=True) @ b[idx])
 
     def _cols(self, chosen: list[int]) -> Tensor:
         return torch.tensor(list(range(self.kb)) + [i for g in chosen for i in self.slices[g]], device=self.A.device)
@@ -212,7 +212,7 @@ class LinearCV:
         G, b = self._all
         Gd = self._data_all[0]
         _, U, sch = self._rank_one(G, b, S, J)
-        Hinv = torch.linalg.pinv(G[S][:, S], rtol=1e-12, hermitian=True)
+        Hinv = torch.linalg.pinv(G[S][:, S], rtol=PINV_RTOL, hermitian=True)
         k0 = float(torch.trace(Hinv @ Gd[S][:, S]))
         g = G[S][:, J]
         h = G[J, J]
@@ -240,7 +240,7 @@ class LinearCV:
         """For each column ``j`` of ``J`` added to the set ``S``: its coefficient ``x_j``, the
         set's change per unit of it (``U[:, j]``, the set's solve of ``j``'s column) and the Schur
         complement ``s_j`` (0 when the set spans it: then ``x_j = 0``)."""
-        Hinv = torch.linalg.pinv(G[S][:, S], rtol=1e-12, hermitian=True)
+        Hinv = torch.linalg.pinv(G[S][:, S], rtol=PINV_RTOL, hermitian=True)
         g = G[S][:, J]  # (k, L)
         U = Hinv @ g
         h = G[J, J]

@@ -2,7 +2,7 @@
 
 Every column set the linear CV scores is the fitted model's base columns plus a few candidate
 columns, and every fold's (and the whole data's) normal matrix holds the same base block. Once
-that block is inverted per system, a set costs a solve the size of its candidate columns: the
+that block is factored per system, a set costs a solve the size of its candidate columns: the
 Schur complement of the base in the set's matrix is a principal submatrix of the one over all
 candidate columns.
 
