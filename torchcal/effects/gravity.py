@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -42,12 +43,20 @@ def body_inertials(robot) -> dict[str, tuple[float, np.ndarray]]:
     text = robot.urdf_text
     if not text:
         return {}
+    # each effect built on the robot asks again, and parsing the URDF each time cost a tenth of a
+    # small loop: the answer depends only on the text and the modelled links, so it is kept
+    kept = _inertials_of(text, tuple(robot.link_frame))
+    return {k: (m, com.copy()) for k, (m, com) in kept.items()}
+
+
+@lru_cache(maxsize=8)
+def _inertials_of(text: str, modelled: tuple[str, ...]) -> dict[str, tuple[float, np.ndarray]]:
     inert = read_inertials(text)
     _, joints, _ = load_joints(text)
     kids: dict[str, list] = {}
     for jt in joints:
         kids.setdefault(jt.parent, []).append(jt)
-    modelled = list(robot.link_frame)  # frame order: sums are the same in every process
+    # modelled is in frame order: sums are the same in every process
     out: dict[str, list] = {}
 
     def add(link: str, m: float, com: np.ndarray) -> None:

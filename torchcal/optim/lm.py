@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from types import SimpleNamespace
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -164,6 +165,10 @@ class LevenbergMarquardt(LocalSolver):
             ``"3-point"`` (batched finite differences, see :class:`LsqEvaluator`).
         seed, progress, callback: see :class:`~torchcal.optim.Solver`; ``callback(iteration,
             fitness)`` is called after every trial step.
+        checkpoint: ``(x (k,)) -> str | None``, the caller's look at the iterate every
+            ``checkpoint_every`` trial steps of a run still going: a string ends the run there (not
+            converged, the string its message). A fit that creeps along a valley of nearly equal
+            solutions can be judged while it creeps, not after ``max_iter`` steps.
 
     Result:
         ``history`` holds ``problem.fitness`` at the current point after each trial step, ``n_evals``
@@ -176,11 +181,15 @@ class LevenbergMarquardt(LocalSolver):
     aliases = ("levenberg-marquardt",)
 
     def __init__(self, settings: LMBatchedOptions | None = None, *, jac: str = "problem", seed: int | None = 0,
-                 progress: bool = False, callback=None, **options):
+                 progress: bool = False, callback=None, checkpoint: Callable[[Tensor], str | None] | None = None,
+                 checkpoint_every: int = 30, **options):
         super().__init__(seed=seed, progress=progress, callback=callback)
         if jac not in JAC_MODES:
             raise ValueError(f"jac must be one of {', '.join(JAC_MODES)}, got {jac!r}")
+        if not (isinstance(checkpoint_every, int) and checkpoint_every >= 1):
+            raise ValueError(f"checkpoint_every must be a whole number of trial steps ≥ 1, got {checkpoint_every!r}")
         self.jac = jac
+        self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
         self.opt = LMBatchedOptions.build(settings, **options)
         self.max_iter = self.opt.max_iter
 
@@ -203,7 +212,7 @@ class LevenbergMarquardt(LocalSolver):
         batch = Batch(residuals, jacobian, x0, torch.ones_like(x0, dtype=torch.bool), lower, upper, opt=self.opt)
         note_device_size(x0.device, batch.r.shape[-1], x0.shape[-1])
         st = SimpleNamespace(problem=problem, ev=ev, batch=batch, sos=problem.fitness_is_sse, mu_history=[],
-                             n_evals=ev.n_res)
+                             n_evals=ev.n_res, t=0)
         st.best = self._fit_at(st)
         if bool(batch.done[0]):
             st.stop = (True, "projected gradient below gtol at the start")
@@ -214,8 +223,16 @@ class LevenbergMarquardt(LocalSolver):
         b = st.batch
         return b.S[0] if st.sos else float(st.problem.fitness(b.at(b.x, b.everyone).to(st.problem.dtype))[0])
 
+    def check(self, problem: Problem, st: SimpleNamespace) -> tuple[bool, str] | None:
+        if self.checkpoint is None or st.t == 0 or st.t % self.checkpoint_every:
+            return None
+        b = st.batch
+        why = self.checkpoint(b.at(b.x, b.everyone)[0])
+        return None if why is None else (False, why)
+
     def step(self, problem: Problem, st: SimpleNamespace, t: int, gen: torch.Generator) -> tuple[bool, str] | None:
         b = st.batch
+        st.t = t
         b.iterate(b.everyone)
         st.mu_history.append(b.mu[0].clone())
         st.best = self._fit_at(st)

@@ -206,6 +206,9 @@ class FitOptions(Options):
         zero_dropped: name prefixes of parameters set to 0 when identifiability drops them (a
             model's optional parts, whose start may hold meaningless values along the directions
             the data cannot see).
+        checkpoint_every: with ``noise`` judged from each fit and the ``"lm"`` method, the trial
+            steps between precision checkpoints of a fit still going (:meth:`_OneProblem._creeping`);
+            None: precision judged at the end of each fit only.
     """
 
     method: str = "lm"
@@ -221,6 +224,7 @@ class FitOptions(Options):
     noise: float | str | Callable | None = None
     plausible: dict | None = None
     zero_dropped: tuple[str, ...] = ()
+    checkpoint_every: int | None = 30
 
 
 def fit_identified(make_problem: Callable[[ParamSet], Problem], params: ParamSet, settings: FitOptions | None = None,
@@ -276,8 +280,13 @@ class _OneProblem:
         m, k = getattr(prob, "m", None), len(p.free_names)
         if m is not None and m < k:
             raise ValueError(too_few_residuals(m, k, opt.reduce))
-        res = opt.solve(prob) if opt.solve is not None else \
-            get_solver(opt.method, seed=opt.seed, progress=opt.progress, **dict(opt.options or {})).minimize(prob)
+        if opt.solve is not None:
+            res = opt.solve(prob)
+        else:
+            extra = {} if not (self.judged and opt.method == "lm" and opt.checkpoint_every) else \
+                {"checkpoint": self._creeping(prob, p), "checkpoint_every": opt.checkpoint_every}
+            res = get_solver(opt.method, seed=opt.seed, progress=opt.progress, **dict(opt.options or {}),
+                             **extra).minimize(prob)
         out = p.clone()
         out.values = prob.full(res.x).detach()
         return out, res, prob
@@ -306,9 +315,29 @@ class _OneProblem:
 
     def noise(self) -> float:
         """The per-axis noise the last fit shows."""
+        return self._noise_at(self.prob, self.res.x)
+
+    def _noise_at(self, prob, x: Tensor) -> float:
         if self.opt.noise == "residuals":
-            return float(residual_noise(self.prob.residuals(self.res.x[None])[0], self.res.x.numel()))
-        return float(self.opt.noise(self.prob, self.res.x))
+            return float(residual_noise(prob.residuals(x[None])[0], x.numel()))
+        return float(self.opt.noise(prob, x))
+
+    def _creeping(self, prob, p: ParamSet) -> Callable[[Tensor], str | None]:
+        """The solver's checkpoint for a fit that has not converged after many steps: precision
+        judged where it stands, as :meth:`judge` would judge it at the end. A fit still going is
+        usually creeping along a valley of nearly equal solutions that a combination of parameters
+        the data barely see spans (a few dozen poses, a full set): it would walk on for hundreds
+        of steps, far from any plausible value, to be judged imprecise there. Stopped at the first
+        checkpoint where a fitted parameter is pinned down worse than its plausible size, it is
+        judged (and refitted without it) at once; a fit where none is goes on unchanged."""
+        def check(x: Tensor) -> str | None:
+            at = p.clone()
+            at.values = prob.full(x).detach()
+            _, rep = self.judge_at(at, self._noise_at(prob, x))
+            vague = [n for n in rep.imprecise if n in at.free_names and n not in self.loose]
+            return None if not vague else (f"stopped while creeping: {', '.join(vague)} pinned down worse than "
+                                           "the plausible size")
+        return check
 
     def judge_at(self, p: ParamSet, noise):
         """Rank (and, with ``noise``, precision) at ``p``'s values over the candidates not fixed
