@@ -15,6 +15,11 @@ meet the same machine at the same time. Figures:
 * ``report_demo``: writing the demo's loop report (``write_loop_report``) after the loop.
 * ``fleet_page``: ``save_fleet`` (``FleetResult.save`` before) with figures on a simulated fleet (``--fleet`` KR5 robots),
   per robot page.
+* Real arms, small sets (the data in ``../shared/data``; skipped, with a message, where it is absent):
+  ``loop_tiago``: the TIAGo's 37 training postures, marker hand_BL (as ``scripts/tiago_loop.py``);
+  ``loop_ur10_17`` and ``loop_ur10_45``: 17 and 45 rows of the IPA UR10 tracker export drawn at random
+  (seed 0), 300 others held out. The export is read once by this tree and handed to both trees as
+  tensors (the base tree has no reader for its decimal commas and degrees).
 
 Compute figures are CPU seconds of the worker process (``time.process_time``; wall seconds too):
 on a shared machine wall time measures the neighbours. Each worker also returns what the loop
@@ -25,7 +30,7 @@ Prints a table to stderr and one JSON line to stdout: per figure the base's and 
 seconds and base / new, the bars of issue 33 and whether each is met.
 
 Usage: python scripts/bench_speed.py [--base-commit bb752dd] [--base-dir /tmp/torchcal-base]
-       [--reps 3] [--only loop_arm9,loop_demo] [--fleet 6] [--save out/bench_speed]
+       [--reps 3] [--only loop_arm9,loop_demo] [--fleet 6] [--data ../shared/data] [--save out/bench_speed]
 """
 from __future__ import annotations
 
@@ -40,7 +45,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE_COMMIT = "bb752dd"
-FIGURES = ("import_torch", "import_torchcal", "help", "loop_arm9", "loop_demo", "report_demo", "fleet_page")
+FIGURES = ("import_torch", "import_torchcal", "help", "loop_arm9", "loop_demo", "report_demo", "fleet_page",
+           "loop_tiago", "loop_ur10_17", "loop_ur10_45")
+LOOPS = ("loop_arm9", "loop_demo", "loop_tiago", "loop_ur10_17", "loop_ur10_45")
+DATA = ROOT.parent / "shared" / "data"
 
 
 # ----------------------------------------------------------------------------- workers (one tree each)
@@ -101,6 +109,50 @@ def worker_loop_demo() -> dict:
     return {"wall_s": wall, "cpu_s": cpu, "report_wall_s": rwall, "report_cpu_s": rcpu, **_loop_summary(res)}
 
 
+def worker_loop_tiago(data: Path) -> dict:
+    from torchcal import Robot, load_measurements, run_loop
+
+    urdf, names = data / "tiago_48_hey5.urdf", [f"hand_{c}@wrist_ft_tool_link" for c in ("BL", "BR", "TR", "TL")]
+    every, robot = Robot.from_urdf(urdf, markers=names), Robot.from_urdf(urdf, markers=names[:1])
+    train = load_measurements(data / "train.csv", every).select_markers(["hand_BL"])
+    test = load_measurements(data / "test.csv", every).select_markers(["hand_BL"])
+    res, wall, cpu = _timed(lambda: run_loop(robot, train, test, seed=0, log=None))
+    return {"wall_s": wall, "cpu_s": cpu, **_loop_summary(res)}
+
+
+def ur10_tensors(data: Path, out: Path) -> Path:
+    """The IPA UR10 export read by this tree, saved as the tensors of its rows (what both trees read)."""
+    import torch
+
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import ipa_ur10
+
+    _, d = ipa_ur10.read(data)
+    torch.save({"q": d.q, "positions": d.positions, "quaternions": d.quaternions, "marker_names": d.marker_names,
+                "joint_names": d.joint_names, "covariates": d.covariates, "robot": d.robot}, out)
+    return out
+
+
+def worker_loop_ur10(tensors: Path, n_train: int) -> dict:
+    import torch
+
+    from torchcal import Robot, run_loop
+    from torchcal.measure.data import Measurements
+    from torchcal.sim.ur10 import ur10_urdf
+
+    d = torch.load(tensors)
+    robot = Robot.from_urdf(ur10_urdf(), markers=["tmac@flange=0,0,0.109"])
+    order = torch.randperm(d["q"].shape[0], generator=torch.Generator().manual_seed(0))
+
+    def rows(idx):
+        return Measurements(q=d["q"][idx], positions=d["positions"][idx], quaternions=d["quaternions"][idx],
+                            marker_names=d["marker_names"], joint_names=d["joint_names"], robot=d["robot"],
+                            covariates={k: v[idx] for k, v in d["covariates"].items()})
+    train, test = rows(order[:n_train]), rows(order[n_train:n_train + 300])
+    res, wall, cpu = _timed(lambda: run_loop(robot, train, test, seed=0, log=None))
+    return {"wall_s": wall, "cpu_s": cpu, **_loop_summary(res)}
+
+
 def worker_fleet_page(n_robots: int) -> dict:
     from torchcal import Robot
     from torchcal.pipelines.fleet.run import calibrate_fleet
@@ -136,8 +188,9 @@ def _wall(cmd: list[str], trees: dict[str, Path], reps: int) -> dict[str, float]
     return best
 
 
-def _worker(name: str, tree: Path, fleet: int) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", name, "--fleet", str(fleet)]
+def _worker(name: str, tree: Path, fleet: int, data: str | None = None) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", name, "--fleet", str(fleet)] \
+        + (["--data", data] if data else [])
     p = subprocess.run(cmd, cwd=tree, env=_env(tree), check=True, capture_output=True, text=True)
     return json.loads(p.stdout.strip().splitlines()[-1])
 
@@ -171,14 +224,32 @@ def main(argv=None) -> dict:
     ap.add_argument("--only", help="comma-separated figures (default all): " + ", ".join(FIGURES))
     ap.add_argument("--fleet", type=int, default=6, help="robots of the fleet figure")
     ap.add_argument("--save", help="a folder for each worker's full output (decisions, parameters), per tree")
+    ap.add_argument("--data", default=str(DATA), help="the shared data folder (tiago_mocap, ipa_ur10)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.worker:
         out = {"loop_arm9": worker_loop_arm9, "loop_demo": worker_loop_demo,
+               "loop_tiago": lambda: worker_loop_tiago(Path(a.data)),
+               "loop_ur10_17": lambda: worker_loop_ur10(Path(a.data), 17),
+               "loop_ur10_45": lambda: worker_loop_ur10(Path(a.data), 45),
                "fleet_page": lambda: worker_fleet_page(a.fleet)}[a.worker]()
         print(json.dumps(out))
         return out
     only = set(a.only.split(",")) if a.only else set(FIGURES)
+    # the real arms' data, where it is: each worker gets its folder (TIAGo) or its rows as tensors (UR10)
+    given = {}
+    tiago, ur10 = Path(a.data) / "tiago_mocap", Path(a.data) / "ipa_ur10"
+    if {"loop_tiago"} & only:
+        if (tiago / "train.csv").is_file():
+            given["loop_tiago"] = str(tiago)
+        else:
+            print(f"loop_tiago skipped: no TIAGo data at {tiago}", file=sys.stderr)
+    if {"loop_ur10_17", "loop_ur10_45"} & only:
+        if (ur10 / "measurements_joint_configurations.csv").is_file():
+            rows = str(ur10_tensors(ur10, Path(tempfile.mkdtemp()) / "ur10_rows.pt"))
+            given.update({n: rows for n in ("loop_ur10_17", "loop_ur10_45")})
+        else:
+            print(f"loop_ur10_17, loop_ur10_45 skipped: no IPA UR10 data at {ur10}", file=sys.stderr)
     trees = {"base": _base_tree(a.base_commit, Path(a.base_dir)), "new": ROOT}
     fig: dict[str, dict] = {}
     py = sys.executable
@@ -188,14 +259,16 @@ def main(argv=None) -> dict:
         if name in only:
             fig[name] = _wall(cmd, trees, a.reps)
     runs: dict[str, dict] = {}
-    for name in ("loop_arm9", "loop_demo", "fleet_page"):
+    for name in (*LOOPS, "fleet_page"):
         want = name in only or (name == "loop_demo" and "report_demo" in only)
+        if name in ("loop_tiago", "loop_ur10_17", "loop_ur10_45") and name not in given:
+            want = False
         if want:
-            runs[name] = {tag: _worker(name, tree, a.fleet) for tag, tree in trees.items()}
+            runs[name] = {tag: _worker(name, tree, a.fleet, given.get(name)) for tag, tree in trees.items()}
             if a.save:
                 Path(a.save).mkdir(parents=True, exist_ok=True)
                 (Path(a.save) / f"{name}.json").write_text(json.dumps(runs[name]))
-    for name in ("loop_arm9", "loop_demo", "fleet_page"):
+    for name in (*LOOPS, "fleet_page"):
         if name in runs and name in only:
             fig[name] = {tag: r["cpu_s"] for tag, r in runs[name].items()}
             fig[name + "_wall"] = {tag: r["wall_s"] for tag, r in runs[name].items()}
@@ -206,7 +279,7 @@ def main(argv=None) -> dict:
         v["ratio"] = round(v["base"] / v["new"], 2) if v.get("new") else None
         v["base"], v["new"] = round(v["base"], 3), round(v["new"], 3)
     out: dict = {"bench": "speed", "base_commit": a.base_commit, "figures": fig}
-    for name in ("loop_arm9", "loop_demo"):
+    for name in LOOPS:
         if name in runs:
             same, diff = _same(runs[name]["base"], runs[name]["new"])
             out[name + "_same_decisions"], out[name + "_max_param_diff"] = same, diff
