@@ -9,6 +9,12 @@ contribution taken back, and :class:`~torchcal.pipelines.loop.linear_cv.LinearCV
 to that model. A mode that no longer passes the rule at the exit threshold (``t > T_EXIT`` and a
 lower penalised error) is removed, the weakest first, and the model refitted without it; it is
 not tried again in that run.
+
+Each removal is judged with the others in, so modes that stand in for one another can each look
+redundant while together they carry what the data need: removed one after another, the model
+falls back to where it was rounds ago, and the next rounds find the same modes again. So the
+removals are also judged together: a removal after which the model as it was before any of them
+passes the exit rule against the pruned one does not happen, and pruning stops there.
 """
 from __future__ import annotations
 
@@ -71,7 +77,7 @@ def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model,
     """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
     and what left, with its t when it left. The modes just accepted (``protect``: ``(effect name,
     label)``) passed the rule against everything before them and are not judged again here."""
-    gone = []
+    gone, before = [], m
     for _ in range(sum(len(e.modes()) for e in m.effects)):
         weak = weakest_mode(ctx, m, protect)
         if weak is None:
@@ -90,8 +96,15 @@ def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model,
             del effects[k], kept_parts[k]
         params = ParamSet.concat(geo, *kept_parts)
         params.free[: ctx.n_geo] = m.info["candidates"]
+        pruned = evaluate(ctx, m.label, params, effects, m.prior_mm, info=m.info)
+        t_all, pen_ok, _ = compare(pruned.scores, before.scores, pruned.k, before.k, ctx.n_obs)
+        if t_all > T_EXIT and pen_ok:  # with the modes gone before it, this one took what the data need
+            if say is not None:
+                say(f"{eff.name}: mode {label} stays (t = {t:.1f} alone, but without it and the {len(gone)} "
+                    f"gone before it the model is worse: t = {t_all:.1f})")
+            break
         gone.append({"effect": eff.name, "mode": label, "t": t})
         if say is not None:
             say(f"{eff.name}: mode {label} leaves (t = {t:.1f} once the later findings are in)")
-        m = evaluate(ctx, m.label, params, effects, m.prior_mm, info=m.info)
+        m = pruned
     return m, gone
