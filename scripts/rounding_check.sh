@@ -36,6 +36,9 @@ FILES=(
   tests/loop/test_batched_folds.py
   tests/loop/test_linear_mode_selection.py
   tests/loop/test_schur_solves.py
+  tests/optim/test_lm_checkpoint.py
+  tests/calibrate/test_creeping_fit.py
+  tests/loop/test_prune_together.py
 )
 
 # MKL is what these modes act on: say whether torch uses it, and show that the mode changes the
