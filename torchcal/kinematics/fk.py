@@ -244,7 +244,13 @@ class ForwardKinematics:
         O_R, O_t = self._origins(slots)
         qj = self._joint_values(q, slots)  # (P, N, J)
         P, N = max(O_R.shape[0], qj.shape[0]), q.shape[-2]
-        c, s = torch.cos(qj), torch.sin(qj)
+        # per joint j, as views taken by one integer index each (a slice per use cost more than the
+        # arithmetic at tens of poses): cos, sin and value (P, 1, 1, N), the origin's columns
+        # (P, 3, 1, 1) and its translation (P, 3, 1, 1)
+        by_joint = qj.permute(2, 0, 1)[:, :, None, None]
+        c, s = torch.cos(by_joint), torch.sin(by_joint)
+        cols = O_R.permute(1, 3, 0, 2)[..., None, None]  # (J, column, P, 3, 1, 1)
+        trans = O_t.transpose(0, 1)[..., None, None]
         _, mt = self._markers(slots)
         out = [None] * len(self._mk_frame)
         # markers on one link ride the same chain: carried together, (P, 3, G, N) for G of them
@@ -253,17 +259,14 @@ class ForwardKinematics:
             while f != 0:
                 j = f - 1
                 kind = self._kinds[j]
+                x, y, z = v.split(1, 1)  # (P, 1, G, N) each
                 if kind == 1:
-                    x, y = v[:, 0], v[:, 1]
-                    cj, sj = c[:, None, :, j], s[:, None, :, j]
-                    v = torch.stack([cj * x - sj * y, sj * x + cj * y, v[:, 2]], 1)
+                    x, y = c[j] * x - s[j] * y, s[j] * x + c[j] * y
                 elif kind == 2:
-                    v = torch.stack([v[:, 0], v[:, 1], v[:, 2] + qj[:, None, :, j]], 1)
+                    z = z + by_joint[j]
                 # v <- O_t + O_R v as three column updates: cheaper than a batched 3x3 matmul here
-                OR = O_R[:, j, :, :, None]
-                w = torch.addcmul(O_t[:, j, :, None, None], OR[:, :, 0:1], v[:, 0:1])
-                w = torch.addcmul(w, OR[:, :, 1:2], v[:, 1:2])
-                v = torch.addcmul(w, OR[:, :, 2:3], v[:, 2:3])
+                O = cols[j]
+                v = torch.addcmul(torch.addcmul(torch.addcmul(trans[j], O[0], x), O[1], y), O[2], z)
                 f = self.parent_frame[j]
             for i, m in enumerate(ms):
                 out[m] = v[:, :, i]
