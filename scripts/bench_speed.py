@@ -47,7 +47,8 @@ ROOT = Path(__file__).resolve().parents[1]
 BASE_COMMIT = "bb752dd"
 FIGURES = ("import_torch", "import_torchcal", "help", "loop_arm9", "loop_demo", "report_demo", "fleet_page",
            "loop_tiago", "loop_ur10_17", "loop_ur10_45")
-LOOPS = ("loop_arm9", "loop_demo", "loop_tiago", "loop_ur10_17", "loop_ur10_45")
+REAL_ARMS = ("loop_tiago", "loop_ur10_17", "loop_ur10_45")  # need ../shared/data
+LOOPS = ("loop_arm9", "loop_demo", *REAL_ARMS)
 DATA = ROOT.parent / "shared" / "data"
 
 
@@ -261,7 +262,7 @@ def main(argv=None) -> dict:
     runs: dict[str, dict] = {}
     for name in (*LOOPS, "fleet_page"):
         want = name in only or (name == "loop_demo" and "report_demo" in only)
-        if name in ("loop_tiago", "loop_ur10_17", "loop_ur10_45") and name not in given:
+        if name in REAL_ARMS and name not in given:
             want = False
         if want:
             runs[name] = {tag: _worker(name, tree, a.fleet, given.get(name)) for tag, tree in trees.items()}

@@ -44,7 +44,7 @@ def test_a_removal_the_data_need_does_not_happen(monkeypatch):
     assert gone == [] and out is m
     assert "joint_a2.twist stays" in said[0]
     # what the guard read: the refit without it is clearly worse than the model with it
-    forced = _without(ctx, m, "joint_a2.twist")
+    forced = prune_mod.without_mode(ctx, m, 0, "joint_a2.twist")
     t, pen_ok, _ = compare(forced.scores, m.scores, forced.k, m.k, ctx.n_obs)
     assert t > T_EXIT and pen_ok
 
@@ -74,22 +74,6 @@ def test_removals_stop_where_together_they_cost_what_the_data_need(monkeypatch):
     t, pen_ok, _ = compare(out.scores, m.scores, out.k, m.k, ctx.n_obs)
     assert not (t > T_EXIT and pen_ok)
     # ... while against the model without the shoulder's twist too, it does
-    forced = _without(ctx, out, "joint_a2.twist")
+    forced = prune_mod.without_mode(ctx, out, 0, "joint_a2.twist")
     t, pen_ok, _ = compare(forced.scores, m.scores, forced.k, m.k, ctx.n_obs)
     assert t > T_EXIT and pen_ok
-
-
-def _without(ctx, m, label):
-    """``m`` refitted without the mode ``label`` (as prune refits)."""
-    from torchcal.effects import effect_params
-    from torchcal.params import ParamSet
-    from torchcal.pipelines.loop.parts import split_params
-
-    geo, parts = split_params(m.params, ctx.robot, m.effects)
-    eff = m.effects[0]
-    new = eff.with_modes([lab for lab, _ in eff.modes() if lab != label])
-    old = dict(zip(eff.param_names, parts[0].values.tolist()))
-    new.theta = new.theta.new_tensor([old.get(n, 0.0) for n in new.param_names])
-    params = ParamSet.concat(geo, effect_params([new]))
-    params.free[: ctx.n_geo] = m.info["candidates"]
-    return evaluate(ctx, m.label, params, [new], m.prior_mm, info=m.info)

@@ -27,7 +27,7 @@ from torchcal.pipelines.loop.parts import split_params
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.crossval.scores import T_EXIT, compare
 
-__all__ = ["prune", "weakest_mode"]
+__all__ = ["prune", "weakest_mode", "without_mode"]
 
 
 def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
@@ -73,6 +73,25 @@ def weakest_mode(ctx: Context, m: Model, protect=frozenset()) -> tuple[int, str,
     return worst
 
 
+def without_mode(ctx: Context, m: Model, k: int, label: str) -> Model:
+    """``m`` refitted without the mode ``label`` of its ``k``-th effect (the effect gone when it was
+    its last mode); every other value starts where ``m`` has it."""
+    eff = m.effects[k]
+    keep = [lab for lab, _ in eff.modes() if lab != label]
+    geo, parts = split_params(m.params, ctx.robot, m.effects)
+    effects, kept_parts = list(m.effects), list(parts)
+    if keep:
+        new = eff.with_modes(keep)
+        old = dict(zip(eff.param_names, parts[k].values.tolist()))
+        new.theta = new.theta.new_tensor([old.get(n, 0.0) for n in new.param_names])
+        effects[k], kept_parts[k] = new, effect_params([new])
+    else:
+        del effects[k], kept_parts[k]
+    params = ParamSet.concat(geo, *kept_parts)
+    params.free[: ctx.n_geo] = m.info["candidates"]
+    return evaluate(ctx, m.label, params, effects, m.prior_mm, info=m.info)
+
+
 def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model, list[dict]]:
     """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
     and what left, with its t when it left. The modes just accepted (``protect``: ``(effect name,
@@ -83,28 +102,16 @@ def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model,
         if weak is None:
             break
         k, label, t = weak
-        eff = m.effects[k]
-        keep = [lab for lab, _ in eff.modes() if lab != label]
-        geo, parts = split_params(m.params, ctx.robot, m.effects)
-        effects, kept_parts = list(m.effects), list(parts)
-        if keep:
-            new = eff.with_modes(keep)
-            old = dict(zip(eff.param_names, parts[k].values.tolist()))
-            new.theta = new.theta.new_tensor([old.get(n, 0.0) for n in new.param_names])
-            effects[k], kept_parts[k] = new, effect_params([new])
-        else:
-            del effects[k], kept_parts[k]
-        params = ParamSet.concat(geo, *kept_parts)
-        params.free[: ctx.n_geo] = m.info["candidates"]
-        pruned = evaluate(ctx, m.label, params, effects, m.prior_mm, info=m.info)
+        name = m.effects[k].name
+        pruned = without_mode(ctx, m, k, label)
         t_all, pen_ok, _ = compare(pruned.scores, before.scores, pruned.k, before.k, ctx.n_obs)
         if t_all > T_EXIT and pen_ok:  # with the modes gone before it, this one took what the data need
             if say is not None:
-                say(f"{eff.name}: mode {label} stays (t = {t:.1f} alone, but without it and the {len(gone)} "
+                say(f"{name}: mode {label} stays (t = {t:.1f} alone, but without it and the {len(gone)} "
                     f"gone before it the model is worse: t = {t_all:.1f})")
             break
-        gone.append({"effect": eff.name, "mode": label, "t": t})
+        gone.append({"effect": name, "mode": label, "t": t})
         if say is not None:
-            say(f"{eff.name}: mode {label} leaves (t = {t:.1f} once the later findings are in)")
+            say(f"{name}: mode {label} leaves (t = {t:.1f} once the later findings are in)")
         m = pruned
     return m, gone
