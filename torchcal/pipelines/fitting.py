@@ -2,6 +2,7 @@
 judge again at the solution, and refit while the identifiable set grows."""
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -16,9 +17,10 @@ from torchcal.params import ParamSet, display_unit
 from torchcal.pipelines.rounds import fit_rounds
 from torchcal.problems.base import Problem
 from torchcal.problems.identifiability import analyse_jacobian
+from torchcal.problems.identifiability_report import IdentifiabilityReport
 from torchcal.problems.uncertainty import residual_noise, unit_variances
 
-__all__ = ["reduce_free", "fit_identified", "FitOptions", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
+__all__ = ["reduce_free", "rank_judged", "fit_identified", "FitOptions", "PLAUSIBLE", "check_plausible", "imprecise", "drop_imprecise",
            "imprecise_reason", "too_few_residuals", "implausible_values", "implausible_reason", "SMALL_DATA", "is_small"]
 
 # Plausible size of a geometric error (per unit): a parameter the data pin down only to worse
@@ -105,19 +107,32 @@ def imprecise(J, names: list[str], units: list[str], noise: float, plausible: di
     return {names[i]: float(se[0, i]) for _, i in order}
 
 
-def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, markers=(), kind="position",
-                prefer=None, noise: float | None = None, plausible: dict | None = None):
-    """Fix the free parameters of ``params`` that the problem's Jacobian cannot identify: those
-    numerically dependent on others (:func:`~torchcal.problems.identifiability.analyse_jacobian`) and, given
-    the per-axis ``noise`` (m), those it determines worse than their :data:`PLAUSIBLE` size.
-
-    Returns (a copy of ``params`` with them fixed, the identifiability report)."""
+def rank_judged(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, markers=(), kind="position",
+                prefer=None) -> tuple[Tensor, list[str], IdentifiabilityReport]:
+    """The first half of :func:`reduce_free`: the Jacobian ``(m, k)`` of ``make_problem(params)`` at its
+    start over ``params``' free entries, their units, and what the Jacobian can identify
+    (:func:`~torchcal.problems.identifiability.analyse_jacobian`), before any precision judgement."""
     prob = make_problem(params)
     # a problem with a prior counts its rows: a prior holds what the data cannot tell apart, and
     # splits an exact tie among its parameters rather than putting all of it on one
     J = prob.jacobian(prob.x0)
     units = [params.units[i] for i in params.free_index.tolist()]
-    rep = analyse_jacobian(J, params.free_names, units, markers=markers, kind=kind, prefer=prefer)
+    return J, units, analyse_jacobian(J, params.free_names, units, markers=markers, kind=kind, prefer=prefer)
+
+
+def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *, markers=(), kind="position",
+                prefer=None, noise: float | None = None, plausible: dict | None = None,
+                ranked: tuple[Tensor, list[str], IdentifiabilityReport] | None = None):
+    """Fix the free parameters of ``params`` that the problem's Jacobian cannot identify: those
+    numerically dependent on others (:func:`~torchcal.problems.identifiability.analyse_jacobian`) and, given
+    the per-axis ``noise`` (m), those it determines worse than their :data:`PLAUSIBLE` size.
+
+    ``ranked``: :func:`rank_judged` of the same problem at the same values, when the caller has it
+    (it is not changed).
+
+    Returns (a copy of ``params`` with them fixed, the identifiability report)."""
+    J, units, rep = ranked or rank_judged(make_problem, params, markers=markers, kind=kind, prefer=prefer)
+    rep = copy.deepcopy(rep)
     out = params.clone()
     if rep.dropped:
         out.fix(*rep.dropped)
@@ -270,6 +285,7 @@ class _OneProblem:
         self.loose: dict[str, str] = {}
         self.p, self.res, self.prob, self.rep = params, None, None, None
         self.grown: tuple | None = None
+        self.ranked: tuple | None = None  # (free, values, rank_judged there) of the last judgement
 
     def run(self, p: ParamSet):
         """One solve of ``p``'s free entries: (fitted ParamSet, Result, the problem)."""
@@ -302,8 +318,13 @@ class _OneProblem:
 
     def reduce(self, p: ParamSet, noise):
         opt = self.opt
-        return reduce_free(self.make, p, markers=opt.markers, kind=opt.kind, prefer=opt.prefer, noise=noise,
-                           plausible=opt.plausible)
+        # a judgement of rank and one of precision at the same values follow each other (after a fit
+        # whose set stopped growing): the Jacobian and the rank analysis are the same, made once
+        last = self.ranked
+        if not (last and torch.equal(last[0], p.free) and torch.equal(last[1], p.values)):
+            last = self.ranked = (p.free.clone(), p.values.clone(),
+                                  rank_judged(self.make, p, markers=opt.markers, kind=opt.kind, prefer=opt.prefer))
+        return reduce_free(self.make, p, noise=noise, plausible=opt.plausible, ranked=last[2])
 
     def zeroed(self, p: ParamSet) -> ParamSet:
         """``p`` with the optional parts identifiability dropped set to 0."""
