@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from torchcal import calibrate  # noqa: E402
 from torchcal.kinematics.robots import shipped  # noqa: E402
-from torchcal.pipelines.fitting import PLAUSIBLE  # noqa: E402
+from torchcal.pipelines.precision import PLAUSIBLE  # noqa: E402
 from torchcal.sim.serial import SimConfig, simulate  # noqa: E402
 
 

@@ -408,7 +408,7 @@ def test_unseen_markers_still_count_for_the_others():
 def test_drop_imprecise_equals_refitting_from_scratch():
     """The rank-one downdates of drop_imprecise give the drops a plain loop gives, which inverts the
     normalised Gram matrix of the remaining columns anew after every drop (pinv)."""
-    from torchcal.pipelines.fitting import drop_imprecise
+    from torchcal.pipelines.precision import drop_imprecise
     g = torch.Generator().manual_seed(11)
     B, m, k = 6, 40, 8
     J = torch.randn(B, m, k, generator=g, dtype=torch.float64)

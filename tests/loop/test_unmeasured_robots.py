@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from torchcal import Robot, calibrate
-from torchcal.pipelines.fitting import implausible_values
+from torchcal.pipelines.precision import implausible_values
 from torchcal.pipelines.loop.run import run_loop
 from torchcal.sim.cases import make_case
 from torchcal.sim.serial import SimConfig, simulate

@@ -24,7 +24,8 @@ from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate_prior import PriorChoice, choose_prior
 from torchcal.pipelines.calibration_result import CalibrationResult
-from torchcal.pipelines.fitting import check_plausible, fit_identified, implausible_values, is_small, reduce_free
+from torchcal.pipelines.fitting import fit_identified, is_small, reduce_free
+from torchcal.pipelines.precision import check_plausible, implausible_values
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.template import candidate_template
 from torchcal.problems.uncertainty import standard_errors
@@ -62,7 +63,7 @@ class CalibrateOptions(Options):
         polish: run LM after a swarm method (default: no, so swarm results are reported as
             they are).
         plausible: the largest plausible error per unit (default
-            :data:`~torchcal.pipelines.fitting.PLAUSIBLE`: 10 mm, 10 mrad). With position data and
+            :data:`~torchcal.pipelines.precision.PLAUSIBLE`: 10 mm, 10 mrad). With position data and
             a gradient method, a parameter whose standard error (at the noise the fit's residuals
             show) exceeds it is fixed at its start and the fit repeated; ``{}`` keeps every
             parameter of full rank. A joint moved or turned by more than it in the final model

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import SMALL_DATA, implausible_values, is_small
+from torchcal.pipelines.fitting import SMALL_DATA, is_small
+from torchcal.pipelines.precision import implausible_values
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, plausible_scale
 from torchcal.pipelines.crossval.models import Context, Model, duplicate_groups, effect_problem, fit_noise, folds_of
 from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior

@@ -15,7 +15,7 @@ from torchcal.measure.trust import stage_problems
 from torchcal.optim import Result
 from torchcal.outputs import staged_dir
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason
+from torchcal.pipelines.precision import PLAUSIBLE, implausible_reason
 
 __all__ = ["CalibrationResult", "write_instrument"]
 

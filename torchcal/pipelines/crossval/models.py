@@ -40,7 +40,7 @@ class Context:
     setup: Setup | None = None
     rot_weight: float | None = None
     soft: bool = True  # a family may be kept whole under a CV-chosen prior (False: modes chosen one by one)
-    plausible: dict | None = None  # the largest plausible joint error per unit (None: fitting.PLAUSIBLE)
+    plausible: dict | None = None  # the largest plausible joint error per unit (None: precision.PLAUSIBLE)
 
     @property
     def n_obs(self) -> float:

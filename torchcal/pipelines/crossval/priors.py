@@ -8,7 +8,7 @@ from torch import Tensor
 from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.models import Context, Model
 from torchcal.pipelines.crossval.scores import penalised
-from torchcal.pipelines.fitting import implausible_values
+from torchcal.pipelines.precision import implausible_values
 
 __all__ = ["PRIOR_SCALES_MM", "prior_weights", "plausible_scale"]
 

@@ -28,7 +28,8 @@ from torchcal.kinematics.robot import Robot
 from torchcal.optim import Result
 from torchcal.optim.lm_linear import arrow_solve, lm_arrow
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import FitOptions, imprecise
+from torchcal.pipelines.fitting import FitOptions
+from torchcal.pipelines.precision import imprecise
 from torchcal.pipelines.fleet.coupled_model import CoupledModel, block_layout, fleet_compliance
 from torchcal.pipelines.fleet.data import FleetData, check_rows
 from torchcal.pipelines.fleet.identify import decide, explain

@@ -13,7 +13,8 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.optim.lm_batched import lm_batched
-from torchcal.pipelines.fitting import FitOptions, drop_imprecise
+from torchcal.pipelines.fitting import FitOptions
+from torchcal.pipelines.precision import drop_imprecise
 from torchcal.pipelines.fleet.data import BASE_NAMES, FleetData, check_rows
 from torchcal.params import ParamSet
 from torchcal.pipelines.fleet.identify import FleetDecision, check_rank, decide
@@ -189,7 +190,7 @@ class _Batch:
 
 def _imprecise(d: FleetDecision, kept: Tensor, limit: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
     """``(drop, se)``: ``(B, k)`` the kept candidates each robot's data pin down worse than ``limit``
-    (:func:`~torchcal.pipelines.fitting.drop_imprecise`) and their standard errors. Only the
+    (:func:`~torchcal.pipelines.precision.drop_imprecise`) and their standard errors. Only the
     columns some robot keeps take part: the others are outside every robot's set anyway."""
     use = torch.nonzero(kept.any(0)).flatten()
     # the judgement's R factor times the column norms has the Jacobian's Gram matrix in k rows

@@ -9,7 +9,7 @@ from typing import Any
 from torchcal.advice import advice
 from torchcal.options import Options
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import check_plausible
+from torchcal.pipelines.precision import check_plausible
 
 __all__ = ["FleetOptions"]
 

@@ -22,7 +22,7 @@ from torchcal.measure.stats import errors_by_marker_batched
 from torchcal.optim.lm_batched import BatchedLMResult
 from torchcal.optim.result import Result
 from torchcal.pipelines.calibration_result import CalibrationResult
-from torchcal.pipelines.fitting import imprecise_reason
+from torchcal.pipelines.precision import imprecise_reason
 from torchcal.pipelines.fleet.identify import FleetDecision, explain
 from torchcal.pipelines.fleet.solution import FleetSolution
 

@@ -21,7 +21,8 @@ from dataclasses import dataclass, field, replace
 
 from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
-from torchcal.pipelines.fitting import implausible_values, is_small
+from torchcal.pipelines.fitting import is_small
+from torchcal.pipelines.precision import implausible_values
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, plausible_scale
 from torchcal.pipelines.crossval.models import Context, Model, effect_problem, noise_sigma, orientation_count
 from torchcal.pipelines.crossval.evaluate import cv_mean_mm, evaluate, evaluate_prior, fit_params

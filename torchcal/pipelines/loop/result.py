@@ -10,7 +10,7 @@ from torchcal.measure.trust import FOREIGN, stage_problems
 from torchcal.params import ParamSet
 from torchcal.pipelines.loop.records import Candidate, Finding
 from torchcal.pipelines.crossval.scores import OUTLIER_K, T_ACCEPT
-from torchcal.pipelines.fitting import PLAUSIBLE, implausible_reason, implausible_values
+from torchcal.pipelines.precision import PLAUSIBLE, implausible_reason, implausible_values
 
 __all__ = ["LoopResult"]
 

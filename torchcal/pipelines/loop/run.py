@@ -36,7 +36,7 @@ from torchcal.measure.setup import Setup, check_heldout, needs_setup
 from torchcal.measure.stats import noise_floor
 from torchcal.measure.trust import stage_problems
 from torchcal.options import Options
-from torchcal.pipelines.fitting import check_plausible
+from torchcal.pipelines.precision import check_plausible
 from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order, fold_groups
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
@@ -79,7 +79,7 @@ class LoopOptions(Options):
         soft: a linear family may be kept whole under a Gaussian prior whose scale CV chooses,
             when that beats choosing its modes one by one (False: modes one by one only).
         plausible: the largest plausible joint error per unit (default
-            :data:`~torchcal.pipelines.fitting.PLAUSIBLE`, 10 mm and 10 mrad): a geometric set moving
+            :data:`~torchcal.pipelines.precision.PLAUSIBLE`, 10 mm and 10 mrad): a geometric set moving
             a joint further is not chosen, and a final model doing so is refused (:meth:`LoopResult.problems`).
         progress: a progress bar over the diagnosis candidates (tqdm).
         log: a print-like function for progress lines (``None`` to stay quiet); lines also go
