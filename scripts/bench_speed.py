@@ -239,7 +239,9 @@ def main(argv=None) -> dict:
     only = set(a.only.split(",")) if a.only else set(FIGURES)
     # the real arms' data, where it is: each worker gets its folder (TIAGo) or its rows as tensors (UR10)
     given = {}
-    tiago, ur10 = Path(a.data) / "tiago_mocap", Path(a.data) / "ipa_ur10"
+    # absolute: each worker runs in its own tree, where a relative path would mean another folder
+    data = Path(a.data).resolve()
+    tiago, ur10 = data / "tiago_mocap", data / "ipa_ur10"
     if {"loop_tiago"} & only:
         if (tiago / "train.csv").is_file():
             given["loop_tiago"] = str(tiago)
