@@ -51,14 +51,17 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
                 ranked: tuple[Tensor, list[str], IdentifiabilityReport] | None = None):
     """Fix the free parameters of ``params`` that the problem's Jacobian cannot identify: those
     numerically dependent on others (:func:`~torchcal.problems.identifiability.analyse_jacobian`) and, given
-    the per-axis ``noise`` (m), those it determines worse than their :data:`PLAUSIBLE` size.
+    the per-axis ``noise`` (m), those it determines worse than their plausible size
+    (:data:`~torchcal.pipelines.precision.PLAUSIBLE`).
 
     ``ranked``: :func:`rank_judged` of the same problem at the same values, when the caller has it
     (it is not changed).
 
     Returns (a copy of ``params`` with them fixed, the identifiability report)."""
-    J, units, rep = ranked or rank_judged(make_problem, params, markers=markers, kind=kind, prefer=prefer)
-    rep = copy.deepcopy(rep)
+    if ranked is None:
+        J, units, rep = rank_judged(make_problem, params, markers=markers, kind=kind, prefer=prefer)
+    else:  # the caller keeps it: the precision judgement below writes to a copy
+        J, units, rep = ranked[0], ranked[1], copy.deepcopy(ranked[2])
     out = params.clone()
     if rep.dropped:
         out.fix(*rep.dropped)
