@@ -10,8 +10,9 @@ per stage, and the noise floor. Two simulators:
    on a 7-joint arm, a coupled wrist with backlash, a link warmed by the motor of the second
    temperature column, twist with bent seats, harmonics with twist, a clean arm with irrelevant logs;
    and issue 32's parameters that change with a driver: a zero stepping at an unknown row, an
-   instrument frame drifting with time, a tool point per level of a text column, a stiffness that
-   changes with torque, a linear track whose carriage bows and pitches along its travel.
+   instrument frame drifting with time, one settling after the instrument is switched on, a tool
+   point per level of a text column, a stiffness that changes with torque, a linear track whose
+   carriage bows and pitches along its travel.
 
 Prints markdown tables and one JSON line. The noise floor is the mean Euclidean norm of the
 simulated noise on the held-out rows.
@@ -55,6 +56,7 @@ PUT_IN = {"payload_12kg": "12 kg tool, joints 2-4 compliant", "payload_0kg": "no
           "clean_covariates": "7 joints: geometry only, 4 irrelevant covariates",
           "zero_step": "the elbow's zero shifts 1.9 mrad at row 210 (no time column)",
           "instrument_drift": "the instrument frame turns 0.8 mrad/h and creeps 0.1 mm/h (time column)",
+          "instrument_settle": "the instrument frame turns 0.5 mrad and rises 0.06 mm, settling in 15 min (time)",
           "tool_levels": "the tool point differs 12 mm / 4 mm for tool = probe (text column)",
           "torque_stiffness": "shoulder 20 µrad/(N·m) up to ±15 N·m, half beyond; 5 kg tool",
           "prismatic_guide": "UR5e on a 1.5 m track: the carriage bows 40 µm and pitches 0.3 mrad"}

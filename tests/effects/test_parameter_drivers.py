@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.effects import ParameterDrivers
-from torchcal.effects.shapes import shape_column, step_breaks
+from torchcal.effects.shapes import settle_tags, shape_column, step_breaks
 from torchcal.kinematics.robots import shipped
 
 
@@ -59,6 +59,20 @@ def test_step_breaks_and_shapes():
     assert torch.allclose(hinge, torch.clamp(x - 3, min=0))
 
 
+def test_settling_shapes_start_at_the_first_value_on_a_grid_of_time_constants():
+    """A settling ``exp(-(x - x0)/tau)``: 1 at the session's start and before it, e^-1 one time
+    constant later; the time constants run from the span / sqrt(2) down in steps of 2^(1/4)."""
+    x = torch.tensor([100.0, 160.0, 400.0, 1300.0], dtype=torch.float64)
+    tags = settle_tags(x)
+    taus = [float(t[3:].split("@")[0]) for t in tags]
+    assert len(tags) == 24 and all(t.endswith("@100") for t in tags)
+    assert abs(taus[0] - 1200 / 2 ** 0.5) < 1e-3 and all(abs(a / b - 2 ** 0.25) < 1e-5 for a, b in zip(taus, taus[1:]))
+    col = shape_column("exp300@100", torch.tensor([50.0, 100.0, 400.0, 1000.0], dtype=torch.float64), 0.0, 1.0)
+    want = torch.tensor([1.0, 1.0, torch.e ** -1, torch.e ** -3], dtype=torch.float64)
+    assert torch.allclose(col, want, rtol=1e-12)
+    assert settle_tags(torch.full((5,), 3.0, dtype=torch.float64)) == []  # a driver that never moves
+
+
 def test_words_say_the_finding_in_units():
     robot, q, geo, cov = _robot_and_rows()
     eff = ParameterDrivers(robot, geometry=geo, terms=[("elbow_joint.offset", "row", "step212.5"),
@@ -69,6 +83,12 @@ def test_words_say_the_finding_in_units():
     assert "joint elbow_joint's zero shifts by 1.9 mrad at row 213, and stays" == words[0]
     assert "0.8 mrad per hour" in words[1] and "instrument frame" in words[1]
     assert "differs by 12.4 mm for tool = probe" in words[2]
+    eff = ParameterDrivers(robot, geometry=geo, terms=[("base.rx", "time:time", "exp900@0")])
+    eff.theta = torch.tensor([-0.5e-3], dtype=torch.float64)  # 0.5 mrad below its settled value at the start
+    assert eff.describe() == ["the instrument frame (turn about x) moves by 0.5 mrad as it settles along time (time), "
+                              "with a time constant of 15 min"]
+    assert eff.mode_words("base.rx~time:time~exp900@0") == (
+        "the instrument frame (turn about x) settles along time (time), with a time constant of 15 min")
 
 
 def test_saved_and_loaded_effect_predicts_the_same():

@@ -1,5 +1,6 @@
 """The loop's any-parameter, any-driver family on small simulated sets: a step found at the right
-row, rows of one instant kept in one fold, and nothing accepted on a clean set."""
+row, a settling with its time constant, rows of one instant kept in one fold, and nothing accepted
+on a clean set."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -38,6 +39,24 @@ def test_a_zero_step_is_found_at_its_row():
     steps = [m for m in modes if "~row~step" in m]
     assert steps, modes
     assert abs(float(steps[0].split("step")[1]) - 49.5) < 1e-9
+
+
+@pytest.mark.slow
+def test_a_settling_zero_is_found_with_its_time_constant():
+    """The elbow's zero settles by 1.5 mrad with a time constant of 20 rows (a joint warming up;
+    no time column): the loop names a settling of the elbow's zero (or an alias of it) in the row
+    order, its time constant within two grid steps (2^(1/2)) of 20 rows, and the held-out rows
+    measured after the session, where the zero has settled, end near the noise."""
+    settle = Drift("offset:elbow_joint", "row", lambda r: 1.5e-3 * np.exp(-r / 20.0))
+    robot, train, test = _sets([settle], 120, 40, seed=5)
+    res = run_loop(robot, train, test, seed=5, log=None, candidates=["parameter_drivers"], elm=False)
+    modes = [m for a in res.accepted for m in a["modes"]]
+    settles = [m for m in modes if "~row~exp" in m]
+    assert settles, modes
+    tau = float(settles[0].split("~exp")[1].split("@")[0])
+    assert 20 / 2 ** 0.5 <= tau <= 20 * 2 ** 0.5, settles
+    geo = next(s for s in res.stages if s["name"] == "geometric")["test"]["mean_mm"]
+    assert res.stages[-1]["test"]["mean_mm"] < 0.5 * geo, res.stages
 
 
 @pytest.mark.slow

@@ -15,7 +15,8 @@ following the gravity torque piecewise. This family holds them all::
 * **drivers** (:mod:`torchcal.effects.drivers`): each joint's position (prismatic ones in m), the
   gravity torque at each joint, time or the row order, each numeric covariate, each text column;
 * **shapes** (:mod:`torchcal.effects.shapes`): linear, smooth (quadratic spline), periodic
-  (harmonics of an angle), a step at an unknown time or row, piecewise-linear, one value per level.
+  (harmonics of an angle), a step at an unknown time or row, a settling from the session's start,
+  piecewise-linear, one value per level.
 
 A zero offset acts as ``Δq`` on its joint, exactly; every other parameter acts through its column
 of the geometric Jacobian at the fitted geometry (a marker displacement, first order in ``Δθ``,
@@ -37,8 +38,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
-from torchcal.effects.shapes import (harmonic_tags, knee_tags, screen_tags, shape_column, smooth_tags,
-                                     step_breaks)
+from torchcal.effects.shapes import grid_tags, harmonic_tags, screen_tags, shape_column, smooth_tags
 from torchcal.effects.terms import _neighbours
 from torchcal.effects import anydriver_words as words
 from torchcal.measure.levels import LEVEL_SEP, factor_levels
@@ -177,19 +177,16 @@ class ParameterDrivers(Effect):
         return out  # knees (hinges, clips) and steps: the best of their grids, chosen by the screening
 
     def breaks(self, driver: str, data, tq: Tensor | None = None) -> list[str]:
-        """Every step or knee ``driver`` can have on ``data``: steps in time and rows, hinges
-        (and clips of a torque) at fine quantiles of the others; none for a text column
-        (``tq``: :meth:`torques` on ``data``, when known)."""
+        """Every step, settling or knee ``driver`` can have on ``data``
+        (:func:`~torchcal.effects.shapes.grid_tags`); none for a text column (``tq``: :meth:`torques`
+        on ``data``, when known)."""
         kind = driver_kind(driver)
         if kind == "level":
             return []
         if kind == "torque" and tq is None:
             tq = self.torques(data.q)
         x = driver_values(self.robot, driver, data.q, data.covariates, tq)
-        x = x[torch.isfinite(x)]
-        if kind in ("time", "row"):
-            return [f"step{b:.10g}" for b in step_breaks(x)]
-        return knee_tags(kind, x)
+        return grid_tags(kind, x[torch.isfinite(x)])
 
     def expanded(self, pairs: list[tuple[str, str]], data, steps: dict | None = None) -> "ParameterDrivers":
         """A copy whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair ->

@@ -6,6 +6,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_unit, driver_words
+from torchcal.effects.shapes import settle_parts
 from torchcal.params import display_unit
 
 __all__ = ["coef_unit", "axis_label", "parameter_words", "mode_words", "describe"]
@@ -55,6 +56,16 @@ def _rate(v: float, unit: str, robot, driver: str) -> str:
     return f"{_value(v, unit)} per {du}"
 
 
+def _span(v: float, robot, driver: str) -> str:
+    """A length along a driver (a time constant): minutes or hours for time in s."""
+    du = driver_unit(robot, driver)
+    if du == "s" and v >= 5400:
+        return f"{v / 3600:.3g} h"
+    if du == "s" and v >= 90:
+        return f"{v / 60:.3g} min"
+    return f"{v:.3g} {'rows' if driver_kind(driver) == 'row' else du}"
+
+
 def mode_words(eff, label: str) -> str:
     p, d, tag = label.split("~")
     if p.endswith(".point"):
@@ -64,6 +75,9 @@ def mode_words(eff, label: str) -> str:
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"
     if tag.startswith("step"):
         return f"{what} steps at {driver_words(d)} = {float(tag[4:]):.6g}"
+    if tag.startswith("exp"):
+        tau = _span(settle_parts(tag)[0], eff.robot, d)
+        return f"{what} settles along {driver_words(d)}, with a time constant of {tau}"
     shape = {"lin": "linearly", "quad": "in a bow", "cube": "in an S"}.get(tag)
     if shape is None:
         shape = ("in a smooth curve" if tag.startswith("spl") else "periodically" if tag[:3] in ("sin", "cos")
@@ -80,6 +94,10 @@ def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
         at = float(tag[4:])
         where = f"row {int(at + 0.5)}" if driver_kind(d) == "row" else f"{driver_words(d)} = {at:.6g}"
         return f"{what} shifts by {_value(v, unit)} at {where}, and stays"
+    if tag.startswith("exp"):
+        # the column is 1 at the start and 0 once settled: the parameter moves by -v as it settles
+        return (f"{what} moves by {_value(-v, unit)} as it settles along {driver_words(d)}, with a time constant "
+                f"of {_span(settle_parts(tag)[0], eff.robot, d)}")
     if tag == "lin":
         return f"{what} changes {_rate(v, unit, eff.robot, d)} ({driver_words(d)})"
     if tag.startswith("hinge"):

@@ -9,25 +9,31 @@ Tags (the strings a saved model carries):
 * ``spl<k>``: ``((x − k) / h)²₊`` a quadratic spline piece from the knot ``k`` on (smooth);
 * ``sin<n>`` / ``cos<n>``: harmonic ``n`` of an angle (periodic);
 * ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
+* ``exp<τ>@<x₀>``: ``exp(−(x − x₀)₊ / τ)`` (a first-order settling from the session's start ``x₀``
+  with time constant ``τ``: a tracker or a frame warming up, a creep dying away);
 * ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``);
 * ``sat<k>``: ``x`` clipped to ``±k`` (a torque driver: a stiffness that changes beyond ``±k``, a
   dead zone or a saturation about zero load);
 * ``lvl=<level>``: ``1`` where a text column reads ``level`` (one value per level).
 
 Knots of the smooth and piecewise shapes sit at quantiles of the training values; step breaks
-at the midpoints between consecutive distinct training values (every place a step can be seen).
+at the midpoints between consecutive distinct training values (every place a step can be seen);
+settling time constants on a geometric grid of the training span (:func:`settle_tags`).
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-__all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "screen_tags",
-           "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES"]
+__all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "settle_tags",
+           "grid_tags", "screen_tags", "settle_parts", "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES", "SETTLE_STEPS"]
 
 HARMONICS = 2                      # highest harmonic of an angle driver
 KNOT_QUANTILES = (1 / 3, 2 / 3)    # knots of the quadratic spline, as quantiles of the training values
 HINGE_QUANTILES = (0.2, 0.4, 0.6, 0.8)  # break points of the piecewise-linear shapes
+# settling time constants: the training span over 2^(k/4), k = 2 … SETTLE_STEPS + 1 (span/1.4 to
+# span/76, each 19 % from the next); a slower settling is a rate or a bow, a faster one a step
+SETTLE_STEPS = 24
 
 
 def _num(tag: str, prefix: str) -> float:
@@ -54,12 +60,16 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return (torch.clamp(x - _num(tag, "spl"), min=0) / h) ** 2
     if tag.startswith("step"):
         return (x >= _num(tag, "step")).to(x.dtype)
+    if tag.startswith("exp"):
+        tau, x0 = settle_parts(tag)
+        return torch.exp(-torch.clamp(x - x0, min=0) / tau)
     if tag.startswith("hinge"):
         return torch.clamp(x - _num(tag, "hinge"), min=0)
     if tag.startswith("sat"):
         k = _num(tag, "sat")
         return torch.clamp(x, min=-k, max=k)
-    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, spl<k>, sin<n>, cos<n>, step<k>, hinge<k>, lvl=<level>")
+    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, spl<k>, sin<n>, cos<n>, step<k>, exp<tau>@<x0>, "
+                     "hinge<k>, sat<k>, lvl=<level>")
 
 
 def _quantiles(x: Tensor, qs) -> list[float]:
@@ -101,6 +111,31 @@ def step_breaks(x: Tensor, min_side: int = 3) -> list[float]:
     counts = torch.tensor([int((x.double() < m).sum()) for m in mids.tolist()])
     ok = (counts >= min_side) & (counts <= x.numel() - min_side)
     return [float(f"{float(m):.10g}") for m in mids[ok]]
+
+
+def settle_parts(tag: str) -> tuple[float, float]:
+    """``exp<τ>@<x₀>`` -> ``(τ, x₀)`` in the driver's unit."""
+    tau, _, x0 = tag[3:].partition("@")
+    return float(tau), float(x0)
+
+
+def settle_tags(x: Tensor, n: int = SETTLE_STEPS) -> list[str]:
+    """First-order settlings from the first training value on, with time constants ``span / 2^(k/4)``,
+    ``k = 2 … n + 1`` (none when the values do not vary)."""
+    lo, hi = float(x.min()), float(x.max())
+    if not hi > lo:
+        return []
+    return [f"exp{(hi - lo) / 2 ** (k / 4):.6g}@{lo:.10g}" for k in range(2, n + 2)]
+
+
+def grid_tags(kind: str, x: Tensor) -> list[str]:
+    """Every shape on a grid a driver of ``kind`` (:func:`~torchcal.effects.drivers.driver_kind`) can
+    take on its training values ``x``: for time and rows, a step at every break and a settling
+    from the session's start (a frame that drifts until it settles); for the others, knees
+    (:func:`knee_tags`)."""
+    if kind in ("time", "row"):
+        return [f"step{b:.10g}" for b in step_breaks(x)] + settle_tags(x)
+    return knee_tags(kind, x)
 
 
 def screen_tags(kind: str, revolute: bool) -> list[str]:

@@ -8,6 +8,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``instrument_drift``: the tracker settles: its frame turns 0.8 mrad per hour about its y axis
   and creeps 0.1 mm per hour along x, over an hour's campaign (``time`` column, s); held-out
   rows are drawn from the same session;
+* ``instrument_settle``: the tracker warms up after it is switched on: its frame turns 0.5 mrad about
+  its x axis and rises 0.06 mm, settling with a time constant of 15 min (``time`` column, s);
+  held-out rows from the same session;
 * ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
   12 mm and 4 mm off the gripper's;
 * ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
@@ -54,6 +57,13 @@ def _settle(t):
     return np.stack([0.1e-3 * h, 0 * h, 0 * h, 0 * h, 0.8e-3 * h, 0 * h], -1)
 
 
+def _warm_up(t):
+    h = (t - t[0] if t.ndim else t) / 3600.0
+    f = 1.0 - np.exp(-h / 0.25)
+    z = 0 * h
+    return np.stack([z, z, 0.06e-3 * f, 0.5e-3 * f, z, z], -1)
+
+
 def _probe(tool):
     return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
 
@@ -76,6 +86,11 @@ DRIFT_CASES: dict[str, dict] = {
                          "covariates": {"time": ("time", {})},
                          "physics": dict(drifts=[Drift("instrument", "cov:time", _settle,
                                                        "the instrument turns 0.8 mrad/h and creeps 0.1 mm/h")])},
+    "instrument_settle": {**_UR5E, "named": ["parameter_drivers"], "interleave": True,
+                          "covariates": {"time": ("time", {})},
+                          "physics": dict(drifts=[Drift("instrument", "cov:time", _warm_up,
+                                                        "the instrument turns 0.5 mrad and rises 0.06 mm, "
+                                                        "settling in 15 min")])},
     "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
                     "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
                                                   "the probe's point is 12 mm, 4 mm off the gripper's")])},
