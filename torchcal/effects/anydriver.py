@@ -45,7 +45,7 @@ from torchcal.measure.levels import LEVEL_SEP, factor_levels
 
 __all__ = ["ParameterDrivers", "MAX_STEPS"]
 
-MAX_STEPS = 8  # steps and knees offered per (parameter, driver) pair: the best by the screening projection
+MAX_STEPS = 8  # steps, settlings and knees offered per (parameter, driver) pair: the best by the screening
 
 
 def _levels(tag: str) -> bool:
@@ -174,7 +174,7 @@ class ParameterDrivers(Effect):
         out = ["lin"] + smooth_tags(x)
         if rev:
             out += harmonic_tags()
-        return out  # knees (hinges, clips) and steps: the best of their grids, chosen by the screening
+        return out  # steps, settlings and knees (hinges, clips): the best of their grids, chosen by the screening
 
     def breaks(self, driver: str, data, tq: Tensor | None = None) -> list[str]:
         """Every step, settling or knee ``driver`` can have on ``data``

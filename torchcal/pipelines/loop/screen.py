@@ -10,8 +10,9 @@ harmonic of an angle, the levels of a text column) explain ``‖P r‖²``, whic
 per-axis σ is χ² with as many degrees of freedom as columns. A pair is kept when that is
 improbable at the level :data:`ALPHA` shared among all pairs (Bonferroni), the strongest
 :data:`MAX_PAIRS` at most; a driver none of whose pairs passes is not expanded at all. For a time
-or row driver, every break a step can sit at is scored the same way, one column each, and the
-best :data:`~torchcal.effects.anydriver.MAX_STEPS` are offered; so are the knees of the
+or row driver, every break a step can sit at and every time constant of a settling are scored the
+same way, one column each, and the best :data:`~torchcal.effects.anydriver.MAX_STEPS` are offered;
+so are the knees of the
 piecewise-linear shapes of the other drivers (hinges, and clips of a torque, on a fine grid).
 
 Screening only prunes: what is kept is still chosen by the cross-validated rule, at the Bonferroni
@@ -87,7 +88,7 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
 
 def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
                 w3: Tensor) -> list[float]:
-    """The :data:`MAX_STEPS` steps or knees of ``pair``'s driver that explain the most, one column each."""
+    """The :data:`MAX_STEPS` steps, settlings or knees of ``pair``'s driver that explain the most, one column each."""
     p, d = pair
     breaks = eff.breaks(d, data, eff.torques(data.q) if d.startswith("torque:") else None)
     if not breaks:
