@@ -117,3 +117,31 @@ def test_direct_columns_equal_the_effect_evaluated_term_by_term():
     a, b = eff.linear_basis(prep), Effect.linear_basis(eff, prep)
     assert torch.allclose(a.dq, b.dq, atol=1e-15) and torch.allclose(a.dp, b.dp, atol=1e-15)
     assert a.groups == b.groups
+
+
+def test_the_instrument_frame_per_level_is_one_rigid_mode():
+    """A set-up that differs by level moves the instrument frame as one rigid body: any base
+    coordinate found with a text column expands into all six, in one mode, whose evidence is the
+    markers' displacement (against central differences of the kinematics with the base frame moved
+    on the rows of that level) and whose words say so."""
+    from types import SimpleNamespace
+
+    robot, q, geo, cov = _robot_and_rows()
+    eff = ParameterDrivers(robot, geometry=geo)
+    out = eff.expanded([("base.rz", "level:tool")], SimpleNamespace(q=q, covariates=cov))
+    assert out.terms == [(f"base.{a}", "level:tool", "lvl=b") for a in ("x", "y", "z", "rx", "ry", "rz")]
+    assert [lab for lab, _ in out.modes()] == ["base.frame~level:tool~levels"]
+    assert "instrument frame moves as one rigid body" in out.mode_words("base.frame~level:tool~levels")
+    theta = torch.tensor([0.1e-3, 0.3e-3, -0.1e-3, 0.2e-3, 0.25e-3, 0.1e-3], dtype=torch.float64)
+    prep = out.prepare(q, cov)
+    sig = out.signature(prep, "base.frame~level:tool~levels", theta)
+    eps = 1e-3
+    on = cov["tool=b"][:, None]
+    pp, pm = geo.repeat(q.shape[0], 1), geo.repeat(q.shape[0], 1)
+    pp[:, :6] += eps * on * theta
+    pm[:, :6] -= eps * on * theta
+    fd = (robot.positions(q[:, None], pp) - robot.positions(q[:, None], pm))[:, 0] / (2 * eps)
+    Rb, _ = robot.base_transform(geo)
+    moved = sig["fitted"][:, None, None] * (Rb @ sig["G"][..., None])[..., 0]
+    assert torch.allclose(moved, fd, atol=1e-9), (moved - fd).abs().max()
+    assert bool((sig["fitted"][cov["tool=a"] == 1] == 0).all()) and bool((sig["fitted"][cov["tool=b"] == 1] > 0).all())

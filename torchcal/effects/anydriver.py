@@ -5,7 +5,8 @@ Real cells hold errors no catalogue lists, and they share one form: *some parame
 changes with some driver*. A joint re-mastered mid-session is a zero offset stepping with time; a
 tracker that settles is the instrument frame drifting with time; a linear axis whose carriage
 pitches along its travel is a joint origin following that joint's position; a tool swapped between
-rows is a marker point with one value per tool; a gear that stiffens under load is a zero offset
+rows is a marker point with one value per tool; a set-up changed per session moves the instrument
+frame, one rigid motion per level; a gear that stiffens under load is a zero offset
 following the gravity torque piecewise. This family holds them all::
 
     Δθ_p(row) = Σ_t c_t f_t(driver_t(row))
@@ -40,6 +41,7 @@ from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_to
 from torchcal.effects.gravity import body_inertials
 from torchcal.effects.shapes import grid_tags, harmonic_tags, screen_tags, shape_column, smooth_tags
 from torchcal.effects.terms import _neighbours
+from torchcal.effects import anydriver_evidence as evidence
 from torchcal.effects import anydriver_words as words
 from torchcal.measure.levels import LEVEL_SEP, factor_levels
 
@@ -195,10 +197,10 @@ class ParameterDrivers(Effect):
         levels = factor_levels(data.covariates)
         terms = []
         names = set(self.robot.param_names)
-        whole = []  # a marker point that differs by level: all three coordinates
+        whole = []  # a marker point or the instrument frame that differs by level: all its coordinates
         for p, d in pairs:
-            m = self._point(p) if driver_kind(d) == "level" else None
-            whole += [(f"{m}.{a}", d) for a in ("dx", "dy", "dz")] if m is not None else [(p, d)]
+            m = self._rigid(p) if driver_kind(d) == "level" else None
+            whole += [(c, d) for c in self._coordinates(m)] if m is not None else [(p, d)]
         for p, d in dict.fromkeys(q for q in whole if q[0] in names):
             if driver_kind(d) == "level":
                 f = d.split(":", 1)[1]
@@ -241,18 +243,29 @@ class ParameterDrivers(Effect):
         units = dict(zip(self.robot.param_names, self.robot.param_units))
         return [(f"{p}~{d}~{t}", words.coef_unit(units[p], self.robot, d, t)) for p, d, t in self.terms]
 
-    def _point(self, p: str) -> str | None:
-        """The marker whose point ``p`` is a coordinate of (None: another parameter)."""
+    def _rigid(self, p: str) -> str | None:
+        """The rigid thing ``p`` is a coordinate of: a marker (its point) or ``"base"`` (the instrument
+        frame); None for a joint's parameter."""
         head = p.rsplit(".", 1)[0]
-        return head if head in self.robot.marker_names else None
+        return head if head in self.robot.marker_names or head == "base" else None
+
+    def _coordinates(self, m: str) -> list[str]:
+        """The parameters of the rigid thing ``m`` (:meth:`_rigid`)."""
+        if m == "base":
+            return [f"base.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
+        return [f"{m}.{a}" for a in ("dx", "dy", "dz")]
 
     def _label(self, p: str, d: str, t: str) -> str:
-        """A term's mode: one per term; a text column's levels together, and for a marker point
-        its three coordinates together too (a tool is a point, whatever frame its link turns)."""
+        """A term's mode: one per term; a text column's levels together, and for a rigid thing all its
+        coordinates together too: a marker point's three (a tool is a point, whatever frame its link
+        turns), the instrument frame's six (a set-up moved per level is one rigid motion, whichever
+        of its coordinates the geometry happens to show)."""
         if not _levels(t):
             return f"{p}~{d}~{t}"
-        m = self._point(p)
-        return f"{m}.point~{d}~levels" if m is not None else f"{p}~{d}~levels"
+        m = self._rigid(p)
+        if m is None:
+            return f"{p}~{d}~levels"
+        return f"base.frame~{d}~levels" if m == "base" else f"{m}.point~{d}~levels"
 
     def modes(self):
         out: dict[str, list[int]] = {}
@@ -355,40 +368,8 @@ class ParameterDrivers(Effect):
             dp[..., pos] = G * F[:, pos][:, None, None, :]
         return LinearBasis(dq, dp, [list(c) for _, c in self.modes()])
 
-    def parameter_change(self, theta: Tensor, prep: Prepared, label: str) -> tuple[str, Tensor]:
-        """(parameter, ``(N,)`` its change per row) from the terms of mode ``label``."""
-        idx = dict(self.modes())[label]
-        return self.terms[idx[0]][0], prep.features["F"][:, idx] @ theta[idx]
-
-    def _point_signature(self, prep, label, theta) -> dict:
-        """A marker point per level: its offset's length per row along the direction it moves."""
-        idx = dict(self.modes())[label]
-        pos = prep.features["pos"].tolist()
-        F, G = prep.features["F"], prep.features["G"]
-        disp = 0
-        for i in idx:
-            disp = disp + G[..., pos.index(i)] * (F[:, i] * theta[i])[:, None, None]  # (N, M, 3)
-        size = disp.norm(dim=-1).amax(-1)
-        d = self.terms[idx[0]][1]
-        return {"x": prep.features["X"][d], "xlabel": words.axis_label(self.robot, d), "fitted": size,
-                "ylabel": f"{label.split('~')[0]} offset [m]", "G": disp / size.clamp(min=1e-300)[:, None, None]}
-
-    def signature(self, prep, label, theta):
-        if label.split("~")[0].endswith(".point"):
-            return self._point_signature(prep, label, theta)
-        p, change = self.parameter_change(theta, prep, label)
-        i = dict(self.modes())[label][0]
-        d = self.terms[i][1]
-        offs = self._offset_params()
-        x = prep.features["X"][d]
-        sig = {"x": x, "xlabel": words.axis_label(self.robot, d), "fitted": change,
-               "ylabel": f"{p} [{dict(zip(self.robot.param_names, self.robot.param_units))[p]}]"}
-        if p in offs:
-            sig["dof"] = self.robot.joint_names.index(offs[p])
-        else:
-            k = int((prep.features["pos"] == i).nonzero()[0, 0])
-            sig["G"] = prep.features["G"][..., k]
-        return sig
+    def signature(self, prep: Prepared, label: str, theta: Tensor) -> dict:
+        return evidence.signature(self, prep, label, theta)
 
     def mode_words(self, label: str) -> str:
         return words.mode_words(self, label)

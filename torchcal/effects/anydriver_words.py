@@ -70,6 +70,8 @@ def mode_words(eff, label: str) -> str:
     p, d, tag = label.split("~")
     if p.endswith(".point"):
         return f"the marker point {p[:-6]} takes one value per level of {d.split(':', 1)[1]}"
+    if p.endswith(".frame"):
+        return f"the instrument frame moves as one rigid body (3 shifts, 3 turns) per level of {d.split(':', 1)[1]}"
     what = parameter_words(eff, p)
     if tag == "levels":
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"

@@ -13,6 +13,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
   held-out rows from the same session;
 * ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
   12 mm and 4 mm off the gripper's;
+* ``station_levels``: the tracker is set up twice, logged in a text column ``station``; the second
+  set-up's registration leaves the instrument frame 0.3 mm along y and 0.1 mm down and turned
+  0.25 mrad about y and 0.1 mrad about z from the first's (one rigid motion);
 * ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
   beyond (a gear whose backlash region is soft);
 * ``prismatic_guide``: the UR5e on a 1.5 m linear track whose carriage wanders 40 µm sideways
@@ -68,6 +71,11 @@ def _probe(tool):
     return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
 
 
+def _station(station):
+    moved = (station == "B").astype(float)[:, None]
+    return moved * np.array([0.0, 0.3e-3, -0.1e-3, 0.0, 0.25e-3, 0.1e-3])
+
+
 def _soft_gear(tau, c_soft=2e-5, c_stiff=1e-5, knee=15.0):
     return c_stiff * tau + (c_soft - c_stiff) * np.clip(tau, -knee, knee)
 
@@ -94,6 +102,9 @@ DRIFT_CASES: dict[str, dict] = {
     "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
                     "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
                                                   "the probe's point is 12 mm, 4 mm off the gripper's")])},
+    "station_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"station": ["A", "B"]},
+                       "physics": dict(drifts=[Drift("instrument", "level:station", _station,
+                                                     "set-up B moves the frame 0.3 mm, 0.1 mm, turns 0.25 mrad, 0.1 mrad")])},
     "torque_stiffness": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
                          "physics": dict(payload_kg=5.0, payload_com_m=(0.0, 0.0, 0.1),
                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
