@@ -390,3 +390,31 @@ def test_markers_on_one_link_carried_together_equal_one_at_a_time(make_params, m
     got = many.positions(Q, P)
     for b in range(2):
         torch.testing.assert_close(got[b], many.fk_rt(Q[b], P[b])[1], rtol=0, atol=1e-14)
+
+
+def test_points_moved_per_row_are_the_marker_parameters_moved_per_row(robot, make_params, make_q):
+    """``points`` moves each row's marker points exactly as the markers' own ``dx/dy/dz``
+    parameters moved on that row would (per-row parameter vectors, an independent path through the
+    kinematics); ``param_jacobian(points=)`` is the derivative of those moved points by every
+    parameter (central differences)."""
+    p = make_params(robot, seed=31)
+    q = make_q(robot, 5, seed=32)
+    M = len(robot.marker_names)
+    pts = torch.randn(5, M, 3, generator=torch.Generator().manual_seed(33), dtype=torch.float64) * 0.05
+    idx = torch.tensor([[robot.param_names.index(f"{m}.{a}") for a in ("dx", "dy", "dz")] for m in robot.marker_names])
+    per_row = p.repeat(5, 1)
+    per_row[:, idx.flatten()] += pts.reshape(5, -1)
+    want = robot.positions(q[:, None], per_row)[:, 0]  # each row its own parameter vector
+    torch.testing.assert_close(robot.positions(q, p, points=pts), want, rtol=0, atol=1e-12)
+    R, t = robot.fk_rt(q, p, points=pts)
+    torch.testing.assert_close(t, want, rtol=0, atol=1e-12)
+    torch.testing.assert_close(R, robot.fk_rt(q, p)[0], rtol=0, atol=1e-14)  # points turn no frame
+    torch.testing.assert_close(robot.positions(q[None].expand(2, -1, -1), torch.stack([p, p]), points=pts[None]),
+                               want[None].expand(2, -1, -1, -1), rtol=0, atol=1e-12)
+    J = robot.param_jacobian(q, p, points=pts)
+    fd = torch.stack([(robot.positions(q, p + H * e, points=pts) - robot.positions(q, p - H * e, points=pts)) / (2 * H)
+                      for e in torch.eye(robot.n_params, dtype=torch.float64)], -1)
+    assert rel(J, fd) < 1e-6
+    assert rel(J, robot.param_jacobian(q, p)) > 1e-4  # the moved points change the columns
+    cols = [0, robot.n_params - 1, 3]
+    torch.testing.assert_close(robot.param_jacobian(q, p, points=pts, columns=cols), J[..., cols], rtol=0, atol=1e-13)

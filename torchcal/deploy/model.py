@@ -34,6 +34,9 @@ and optionally
   *robot base* frame (m), applied after FK and before the instrument (base) frame, for effects
   that move points rather than joints (thermal expansion of the links); orientations are left
   as they are;
+* ``point_correction(q, covariates) -> (N, M, 3) | None``: each row's marker points moved on their
+  links along their own error translations (m; a tool that differs by row), carried by the
+  kinematics exactly as the marker points themselves are;
 * ``covariates: list[str]``: the covariates it needs (they become required inputs of the model).
 
 A class is made loadable by :func:`torchcal.effects.register_effect` (the one registry,
@@ -60,7 +63,7 @@ ERROR_NAMES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 @runtime_checkable
 class EffectHook(Protocol):
     """What :class:`CalibratedModel` needs from a physical effect model (see the module
-    docstring; ``position_correction`` and ``covariates`` are optional)."""
+    docstring; ``position_correction``, ``point_correction`` and ``covariates`` are optional)."""
 
     name: str
 
@@ -213,19 +216,21 @@ class CalibratedModel:
         (instrument frame, m)."""
         q = self.robot.check_q(q)
         qj = self.joint_values(q, covariates)
+        cov = self._covariates(covariates, q.shape[0])
+        moved = [d for d in (e.point_correction(q, cov) for e in self.effects if hasattr(e, "point_correction"))
+                 if d is not None]
+        points = sum(moved[1:], moved[0]) if moved else None
         movers = [e for e in self.effects if hasattr(e, "position_correction")]
-        if not movers:
+        if not movers and points is None:
             return self.robot.fk(qj, self.params.values, check=False)
         # position effects act in the robot base frame: FK without the base, map, then the base
         v = self.params.values.clone()
         b = v[self._base_index].clone()
         v[self._base_index] = 0
-        T = self.robot.fk(qj, v, check=False)
-        cov = self._covariates(covariates, q.shape[0])
-        p = T[..., :3, 3]
+        R, p = self.robot.fk_rt(qj, v, check=False, points=points)
         for e in movers:
             p = e.position_correction(p, q, cov)
-        T = homogeneous(T[..., :3, :3], p)
+        T = homogeneous(R, p)
         return homogeneous(so3_exp(b[3:]), b[:3]) @ T
 
     def predict_error(self, q, covariates=None) -> Tensor:

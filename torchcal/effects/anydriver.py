@@ -19,11 +19,13 @@ following the gravity torque piecewise. This family holds them all::
   (harmonics of an angle), a step at an unknown time or row, a settling from the session's start,
   piecewise-linear, one value per level.
 
-A zero offset acts as ``Δq`` on its joint, exactly; every other parameter acts through its column
-of the geometric Jacobian at the fitted geometry (a marker displacement, first order in ``Δθ``,
-which is micro-radians to millimetres). Joint drivers pair with the parameters of joints within
-:data:`~torchcal.effects.terms.REACH` of them along the chain; time, row, covariates and text
-columns pair with every parameter.
+A zero offset acts as ``Δq`` on its joint, exactly; a marker point's coordinate moves the point on
+its link, exactly too (:meth:`point_delta`: the kinematics carry each row's point, so a tool
+centimetres longer turns with the flange at whatever geometry the fit reaches); every other
+parameter acts through its column of the geometric Jacobian at the fitted geometry (a marker
+displacement, first order in ``Δθ``, which is micro-radians to millimetres). Joint drivers pair
+with the parameters of joints within :data:`~torchcal.effects.terms.REACH` of them along the chain;
+time, row, covariates and text columns pair with every parameter.
 
 The loop tries the family last in a round (:attr:`Effect.fallback`): it takes only what no
 catalogued effect explains. Its space is large, so the loop screens each (parameter, driver) pair
@@ -320,6 +322,10 @@ class ParameterDrivers(Effect):
         target = torch.tensor([self.robot.joint_names.index(offs[p]) if p in offs else 0 for p, _, _ in self.terms],
                               dtype=torch.long, device=q.device)
         pos = [i for i, b in enumerate(is_q) if not b]
+        # a marker point's coordinate moves the point on its link (exact, whatever the geometry); any
+        # other parameter displaces the markers through its column at the effect's geometry
+        mk = {f"{m}.{a}": 3 * i + j for i, m in enumerate(self.robot.marker_names) for j, a in enumerate(("dx", "dy", "dz"))}
+        pt = [i for i in pos if self.terms[i][0] in mk]
         G = None
         if pos:
             k = torch.tensor([self.robot.param_names.index(self.terms[i][0]) for i in pos], device=q.device)
@@ -334,8 +340,10 @@ class ParameterDrivers(Effect):
             if _levels(t):
                 X.setdefault(d, torch.zeros_like(c))
                 X[d] = torch.where(c > 0, c * (1 + sorted({u for _, e, u in self.terms if e == d}).index(t)), X[d])
+        ix = lambda v: torch.tensor(v, dtype=torch.long, device=q.device)  # noqa: E731
         return Prepared({"F": F, "X": X, "target": target, "is_q": torch.tensor(is_q, dtype=torch.bool, device=q.device),
-                         "pos": torch.tensor(pos, dtype=torch.long, device=q.device), "G": G})
+                         "pos": ix(pos), "G": G, "pt": ix(pt), "pt_at": ix([mk[self.terms[i][0]] for i in pt]),
+                         "disp": ix([k for k, i in enumerate(pos) if i not in pt])})
 
     def joint_delta(self, theta, prep):
         F, target, is_q = prep.features["F"], prep.features["target"], prep.features["is_q"]
@@ -346,11 +354,20 @@ class ParameterDrivers(Effect):
         return out.index_add_(2, target, th[:, None, :] * F[None])
 
     def position_delta(self, theta, prep):
-        G, pos = prep.features["G"], prep.features["pos"]
-        if G is None:
+        G, pos, disp = prep.features["G"], prep.features["pos"], prep.features["disp"]
+        if G is None or not disp.numel():
             return None
-        Fp = prep.features["F"][:, pos]  # (N, T')
-        return torch.einsum("nmat,nt,pt->pnma", G, Fp, theta[:, pos])
+        t = pos[disp]
+        return torch.einsum("nmat,nt,pt->pnma", G[..., disp], prep.features["F"][:, t], theta[:, t])
+
+    def point_delta(self, theta, prep):
+        pt, at = prep.features["pt"], prep.features["pt_at"]
+        if not pt.numel():
+            return None
+        F = prep.features["F"]
+        out = theta.new_zeros(theta.shape[0], F.shape[0], 3 * len(self.robot.marker_names))
+        out.index_add_(2, at, theta[:, None, pt] * F[None, :, pt])
+        return out.unflatten(-1, (-1, 3))
 
     def linear_basis(self, prep: Prepared) -> LinearBasis:
         """The terms' columns built directly (one per term, the family is linear in its

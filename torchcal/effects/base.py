@@ -6,7 +6,9 @@ An effect acts in one or both of two places:
 * :meth:`Effect.joint_delta`: a correction ``Δq (P, N, dof)`` added to the commanded joint values
   before the kinematics (compliance about a joint axis, backlash, cyclic errors, scale errors);
 * :meth:`Effect.position_delta`: a displacement ``Δp (P, N, M, 3)`` of every marker in the robot
-  base frame, before the instrument frame is applied (bending, a tilting base, thermal growth).
+  base frame, before the instrument frame is applied (bending, a tilting base, thermal growth);
+* :meth:`Effect.point_delta`: a per-row offset ``(P, N, M, 3)`` of the marker points on their own
+  links (a tool that differs by row), which the kinematics carry exactly, whatever the geometry.
 
 Effects are fitted jointly with the geometry. Their features (gravity wrenches, lever arms,
 harmonics of the commands, covariates) depend only on the commanded state and on the geometry
@@ -221,6 +223,13 @@ class Effect:
         or None when the effect moves no point directly."""
         return None
 
+    def point_delta(self, theta: Tensor, prep: Prepared) -> Tensor | None:
+        """``theta (P, k) -> (P, N, M, 3)`` offsets of the marker points along their own error
+        translations (``<marker>.dx/dy/dz``, m), carried by their links as the points themselves are
+        (:meth:`~torchcal.kinematics.fk.ForwardKinematics.positions`'s ``points``); None when the
+        effect moves no marker point on its link."""
+        return None
+
     def _scatter(self, per_joint: Tensor) -> Tensor:
         """``(P, N, len(self.joints)) -> (P, N, dof)`` with zeros for the other joints."""
         idx = torch.tensor([self.robot.joint_names.index(j) for j in self.joints], device=per_joint.device)
@@ -308,6 +317,13 @@ class Effect:
         parameters (the hook :class:`~torchcal.deploy.model.CalibratedModel` calls after FK)."""
         d = self.position_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return p if d is None else p + d[0]
+
+    def point_correction(self, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor | None:
+        """``(N, M, 3)`` the marker points' offsets on their links (m, :meth:`point_delta`) with the
+        fitted parameters, or None (the hook :class:`~torchcal.deploy.model.CalibratedModel` passes
+        to the kinematics)."""
+        d = self.point_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
+        return None if d is None else d[0]
 
     @property
     def covariates(self) -> list[str]:

@@ -165,17 +165,29 @@ class ForwardKinematics:
             Ts[j + 1] = L[:, :, j] if Ts[pf] is None else Ts[pf] @ L[:, :, j]
         return Ts
 
-    def _marker_frames(self, Rs, ts, slots):
+    def _point_shift(self, points: Tensor | None) -> Tensor | None:
+        """``points (P|1, N, M, 3)``: per-row offsets of the marker points along their own error
+        translations (``<marker>.dx/dy/dz``, m) -> the same in the axis-aligned link frames the chain
+        works in."""
+        if points is None:
+            return None
+        A = self._mk_R if self._aligned else self._CmT @ self._mk_R  # (M, 3, 3)
+        return torch.einsum("mij,pnmj->pnmi", A, points.to(self.dtype)[None] if points.ndim == 3 else points)
+
+    def _marker_frames(self, Rs, ts, slots, shift: Tensor | None = None):
+        """Marker frames in the robot-base frame ``(P, N, M, 3, 3)``, ``(P, N, M, 3)``; ``shift``
+        (:meth:`_point_shift`) moves each row's marker points on their links."""
         mR, mt = self._markers(slots)  # (P|1, M, 3, 3)
         outR, outt = [], []
         for m, f in enumerate(self._mk_frame):
+            pt = mt[:, None, m] if shift is None else mt[:, None, m] + shift[:, :, m]  # (P, 1|N, 3)
             if Rs[f] is None:
-                outR.append(mR[:, m][:, None]), outt.append(mt[:, m][:, None])
+                outR.append(mR[:, m][:, None]), outt.append(pt)
             else:
                 outR.append(Rs[f] @ mR[:, None, m])
-                outt.append(ts[f] + (Rs[f] @ mt[:, None, m, :, None])[..., 0])
-        P = max(x.shape[0] for x in outR)
-        N = max(x.shape[1] for x in outR)
+                outt.append(ts[f] + (Rs[f] @ pt[..., None])[..., 0])
+        P = max(x.shape[0] for x in outR + outt)
+        N = max(x.shape[1] for x in outR + outt)
         R = torch.stack([x.expand(P, N, 3, 3) for x in outR], 2)  # (P, N, M, 3, 3)
         t = torch.stack([x.expand(P, N, 3) for x in outt], 2)
         return R, t
@@ -212,21 +224,25 @@ class ForwardKinematics:
             T = homogeneous(*self._fk_rt(q, slots))
         return self._unbatch(T, pop, q1, 3)
 
-    def fk_rt(self, q, params=None, *, check: bool = True, base: bool = True) -> tuple[Tensor, Tensor]:
+    def fk_rt(self, q, params=None, *, check: bool = True, base: bool = True,
+              points: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Like :meth:`fk` but returns rotations ``(..., M, 3, 3)`` and positions ``(..., M, 3)``
         (m) separately, which is cheaper when only positions are needed. ``q`` may be
         ``(P, N, dof)`` paired with a ``(P, K)`` population, as in :meth:`positions`; ``base``:
-        apply the instrument frame (``False``: the robot's own base frame)."""
+        apply the instrument frame (``False``: the robot's own base frame); ``points``: as in
+        :meth:`positions`."""
         paired = isinstance(q, Tensor) and q.ndim == 3
         q, slots, pop, q1 = (self._prepare_paired if paired else self._prepare)(q, params, check)
-        if base and not paired and q.shape[0] * (1 if slots is None else slots.shape[0]) <= self.SMALL_BATCH:
+        small = q.shape[0] * (1 if slots is None else slots.shape[0]) <= self.SMALL_BATCH
+        if base and not paired and points is None and small:
             T = self._fk4(q, slots)
             R, t = T[..., :3, :3], T[..., :3, 3]
         else:
-            R, t = self._fk_rt(q, slots, base)
+            R, t = self._fk_rt(q, slots, base, self._point_shift(points))
         return self._unbatch(R, pop, q1, 3), self._unbatch(t, pop, q1, 2)
 
-    def positions(self, q, params=None, *, check: bool = True, base: bool = True) -> Tensor:
+    def positions(self, q, params=None, *, check: bool = True, base: bool = True,
+                  points: Tensor | None = None) -> Tensor:
         """Marker positions only (m): ``(N, M, 3)``, or ``(P, N, M, 3)`` for a population.
 
         Cheaper than :meth:`fk` for position residuals: each marker point is carried from its
@@ -236,6 +252,10 @@ class ForwardKinematics:
             q: ``(N, dof)``, or ``(P, N, dof)`` paired with a ``(P, K)`` population (joint values
                 that differ per parameter vector, as effect models produce them).
             base: apply the base frame (instrument frame); ``False`` gives robot-base positions.
+            points: ``(N, M, 3)`` or ``(P, N, M, 3)`` m: each row's marker points moved along their
+                own error translations (``<marker>.dx/dy/dz``), exactly as those parameters would
+                move them; a tool that differs by row (one point per tool) is carried by its
+                link as the marker's own point is.
         """
         if isinstance(q, Tensor) and q.ndim == 3:
             q, slots, pop, q1 = self._prepare_paired(q, params, check)
@@ -252,10 +272,13 @@ class ForwardKinematics:
         cols = O_R.permute(1, 3, 0, 2)[..., None, None]  # (J, column, P, 3, 1, 1)
         trans = O_t.transpose(0, 1)[..., None, None]
         _, mt = self._markers(slots)
+        shift = self._point_shift(points)
         out = [None] * len(self._mk_frame)
         # markers on one link ride the same chain: carried together, (P, 3, G, N) for G of them
         for f, ms in self._mk_groups.items():
             v = self._pick_markers(mt, ms).transpose(1, 2)[..., None].expand(P, 3, len(ms), N)
+            if shift is not None:
+                v = v + torch.stack([shift[:, :, m] for m in ms], 2).permute(0, 3, 2, 1)  # (P, 3, G, N)
             while f != 0:
                 j = f - 1
                 kind = self._kinds[j]
@@ -333,9 +356,10 @@ class ForwardKinematics:
             x = x.select(x.ndim - tail - 1, 0)
         return x
 
-    def _fk_rt(self, q: Tensor, slots: Tensor | None, with_base: bool = True) -> tuple[Tensor, Tensor]:
+    def _fk_rt(self, q: Tensor, slots: Tensor | None, with_base: bool = True,
+               shift: Tensor | None = None) -> tuple[Tensor, Tensor]:
         Rs, ts, *_ = self._chain(q, slots)
-        R, t = self._marker_frames(Rs, ts, slots)
+        R, t = self._marker_frames(Rs, ts, slots, shift)
         base = self._base(slots) if with_base else None
         if base is not None:
             Rb, tb = base

@@ -21,7 +21,8 @@ class Jacobians:
     kinematics and layout)."""
 
     def param_jacobian(self, q, params=None, *, kind: str = "position", check: bool = True,
-                       return_positions: bool = False, joints: bool = False, columns=None):
+                       return_positions: bool = False, joints: bool = False, columns=None,
+                       points: Tensor | None = None):
         """Analytic derivative of the marker poses w.r.t. all K parameters (or ``columns`` of them).
 
         Args:
@@ -35,6 +36,9 @@ class Jacobians:
             columns: ``c`` parameter indices (a sequence of ints, or a tensor, which is read on the
                 host): only their columns, in this order, are computed (a fit of a few of the K
                 parameters pays for those few).
+            points: each row's marker points moved, as in
+                :meth:`~torchcal.kinematics.fk.ForwardKinematics.positions`: every column is then
+                taken at the moved points.
         Returns:
             ``(N, M, 3|6, K)`` (``(P, N, M, 3|6, K)`` for a population, or for ``q (P, N, dof)``
             paired with ``params (P, K)`` as in :meth:`positions`; ``c`` columns with ``columns``);
@@ -48,11 +52,11 @@ class Jacobians:
             slots = self._slots(torch.zeros(1, self.n_params, dtype=self.dtype, device=self.device))
         if columns is not None:
             plan = self.column_plan(columns, joints)
-            Jac, pw, Jq = self._slot_jacobian(q, slots, kind, plan)  # (P, N, M, r, slots of the columns)
+            Jac, pw, Jq = self._slot_jacobian(q, slots, kind, plan, points)  # (P, N, M, r, slots of the columns)
             out = Jac.new_zeros(*Jac.shape[:-1], plan.n_columns)
             out.index_add_(-1, plan.param_pos, Jac)
         else:
-            Jac, pw = self._slot_jacobian(q, slots, kind)  # (P, N, M, r, S)
+            Jac, pw = self._slot_jacobian(q, slots, kind, points=points)  # (P, N, M, r, S)
             # a parameter's column is the sum over the slots it moves
             K = self.n_params
             out = Jac.new_zeros(*Jac.shape[:-1], K + 1)
@@ -181,13 +185,14 @@ class Jacobians:
                                pidx=torch.tensor(pidx, dtype=torch.long, device=self.device), off=off,
                                mask=torch.cat(masks, 0).to(self.dtype).T)
 
-    def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str, plan: SimpleNamespace | None = None):
+    def _slot_jacobian(self, q: Tensor, slots: Tensor, kind: str, plan: SimpleNamespace | None = None,
+                       points: Tensor | None = None):
         """Derivatives of the marker poses by every slot: ``(P, N, M, r, S)`` (``r`` 3 rows for
         ``kind="position"``, 6 for ``"pose"``), and the marker positions ``(P, N, M, 3)`` (m,
         instrument frame). With a :meth:`column_plan`, by its slots only, then also the joint
         Jacobian ``(P, N, M, r, dof)`` (None unless the plan has every joint)."""
         Rs, ts, JR, Jt = self._chain(q, slots, keep_joint_frames=True)
-        mR, mt = self._marker_frames(Rs, ts, slots)  # robot-base frame, (P, N, M, ...)
+        mR, mt = self._marker_frames(Rs, ts, slots, self._point_shift(points))  # robot-base frame, (P, N, M, ...)
         axes, pts = self._slot_axes(slots, Rs, ts, JR, Jt, mt)
         Jv, mw, m_inst = self._slot_columns(slots, axes, pts, kind, plan)  # (P, r, N, M, V)
         if plan is not None:

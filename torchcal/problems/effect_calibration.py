@@ -28,8 +28,9 @@ class EffectCalibrationProblem(Problem):
     ``params`` holds the robot's K geometric entries, then the set-up's S unknowns (plane poses and
     fixed points, :class:`~torchcal.measure.setup.Setup`; none for position data), then every
     effect's parameters (:func:`torchcal.effects.effect_params`); its free flags choose what
-    moves. The model: ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics plus
-    ``Σ Δp_effect``, then the instrument frame, then each observation's residual vector
+    moves. The model: ``q_true = q + Σ Δq_effect``, robot-base positions from the kinematics (with
+    each row's marker points moved on their links by ``Σ point_delta``) plus ``Σ Δp_effect``, then
+    the instrument frame, then each observation's residual vector
     (:class:`~torchcal.measure.observations.Observations`: positions, partial positions, plane contacts,
     distances; ``(n_obs, 3)``, m, zero where nothing was measured).
 
@@ -43,10 +44,12 @@ class EffectCalibrationProblem(Problem):
             (:class:`~torchcal.measure.observations.Observations`). Effects that displace points
             (bending, growth) turn no frame: only joint deflections and the geometry do.
 
-    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values, carried
-    through each observation; position effects do not depend on the geometry, whose features are
-    computed once); set-up columns analytic; effect columns by central differences, all
-    perturbations evaluated in one population call.
+    Jacobian: geometric columns analytic (``param_jacobian`` at the corrected joint values and the
+    moved marker points, carried through each observation; position effects do not depend on the
+    geometry, whose features are computed once); set-up columns analytic; effect columns by central
+    differences of the effects alone, all perturbations in one population call, carried through the
+    joint Jacobian (deflections), the instrument frame (displacements) or the marker points' own
+    columns at the current geometry (points moved on their links).
     """
 
     def __init__(self, robot, params: ParamSet, effects: list, data, loss=None, fd_step: float = 1e-6,
@@ -91,6 +94,15 @@ class EffectCalibrationProblem(Problem):
         K, S = self.K, self.S
         self._geo_free = torch.nonzero(free[:K]).flatten()
         self._geo_cols = tuple(self._geo_free.tolist())  # the kinematics' column plan is keyed on the host
+        # effects that move marker points on their links: their columns are the points' own columns
+        # at the current geometry, computed in the same kinematic pass as the geometry's
+        self._jac_cols, self._mk_cols = self._geo_cols, None
+        if any(e.point_delta(params.values.new_zeros(1, e.n_params), p) is not None
+               for e, p in zip(self.effects, self._prep)):
+            mk = [robot.param_names.index(f"{m}.{a}") for m in robot.marker_names for a in ("dx", "dy", "dz")]
+            self._jac_cols = self._geo_cols + tuple(c for c in mk if c not in self._geo_cols)
+            at = {c: i for i, c in enumerate(self._jac_cols)}
+            self._mk_cols = torch.tensor([at[c] for c in mk], device=params.values.device)
         self._gauge = None
         if setup is not None and setup.scale_gauge is not None:
             g = setup.scale_gauge[self._geo_free]
@@ -114,10 +126,23 @@ class EffectCalibrationProblem(Problem):
                 q = q + d
         return q
 
+    def point_offsets(self, full: Tensor) -> Tensor | None:
+        """``(P, N, M, 3)`` each row's marker points moved on their links by the effects (m, along the
+        points' own error translations), or None when no effect moves them."""
+        if self._mk_cols is None:
+            return None
+        total = None
+        for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+            d = e.point_delta(full[:, a:b], prep)
+            if d is not None:
+                total = d if total is None else total + d
+        return total
+
     def marker_positions(self, full: Tensor) -> Tensor:
         """``(P, N, M, 3)`` model positions of every marker in every row (m, instrument frame)."""
         geo = full[:, : self.K]
-        p = self.robot.positions(self.joint_values(full), geo, check=False, base=False)  # (P, N, M, 3)
+        p = self.robot.positions(self.joint_values(full), geo, check=False, base=False,
+                                 points=self.point_offsets(full))  # (P, N, M, 3)
         for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
             d = e.position_delta(full[:, a:b], prep)
             if d is not None:
@@ -129,7 +154,7 @@ class EffectCalibrationProblem(Problem):
         """``(P, N, M, 3, 3)`` marker rotations and ``(P, N, M, 3)`` positions (m), instrument frame;
         the effects' point displacements move the positions only."""
         geo = full[:, : self.K]
-        R, p = self.robot.fk_rt(self.joint_values(full), geo, check=False, base=False)
+        R, p = self.robot.fk_rt(self.joint_values(full), geo, check=False, base=False, points=self.point_offsets(full))
         for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
             d = e.position_delta(full[:, a:b], prep)
             if d is not None:
@@ -185,13 +210,18 @@ class EffectCalibrationProblem(Problem):
         turns = self.obs.has_orientation
         R, p = self._points(full)
         s = full[:, K:K + S]
-        dq, dp = self._effect_deltas(full) if self._eff_free.numel() else (None, None)
-        Jq = None
-        if self._geo_free.numel() or dq is not None:  # one kinematic pass for both Jacobians, the free columns only
+        dq, dp, dl = self._effect_deltas(full) if self._eff_free.numel() else (None, None, None)
+        Jq = Jmk = None
+        if self._jac_cols or dq is not None:  # one kinematic pass for every Jacobian, the columns needed only
             Jg = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
-                                           check=False, joints=dq is not None, columns=self._geo_cols)
+                                           check=False, joints=dq is not None, columns=self._jac_cols,
+                                           points=self.point_offsets(full))
             if dq is not None:
                 Jg, Jq = Jg
+            if self._mk_cols is not None:  # each marker's own three columns: (B, N, M, r, 3)
+                n = len(self.robot.marker_names)
+                Jmk = Jg[..., self._mk_cols].unflatten(-1, (n, 3)).diagonal(dim1=2, dim2=-2).movedim(-1, 2)
+                Jg = Jg[..., : len(self._geo_cols)]
 
         def per_point(f) -> Tensor:  # (B, 3 n_obs, c) from each point's (n_obs, 3, c)
             out = [f(b).reshape(3 * self.n_obs, -1) for b in range(B)]
@@ -205,15 +235,16 @@ class EffectCalibrationProblem(Problem):
         if self._set_free.numel():
             blocks.append(per_point(lambda b: self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K]))
         if self._eff_free.numel():
-            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp))
+            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp, Jmk, dl))
         if not blocks:
             return full.new_zeros(B, 3 * self.n_obs, 0)
         return blocks[0] if len(blocks) == 1 else torch.cat(blocks, -1)
 
-    def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None]:
-        """Central differences of the effects' joint deflections ``(B, k, N, dof)`` and robot-base point
-        displacements ``(B, k, N, M, 3)`` by their free parameters at ``full (B, K')`` (None: no effect
-        moves joints / points), every perturbation in one population call of the effects alone."""
+    def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+        """Central differences of the effects' joint deflections ``(B, k, N, dof)``, robot-base point
+        displacements ``(B, k, N, M, 3)`` and marker points moved on their links ``(B, k, N, M, 3)``
+        by their free parameters at ``full (B, K')`` (None: no effect moves joints / points / marker
+        points), every perturbation in one population call of the effects alone."""
         B, k = full.shape[0], self._eff_free.numel()
         h = self.fd_step * torch.clamp(full[:, self._eff_free].abs(), min=1.0)  # (B, k)
         E = torch.zeros(B, 2 * k, full.shape[1], dtype=full.dtype, device=full.device)
@@ -222,7 +253,7 @@ class EffectCalibrationProblem(Problem):
         E[:, ar + k, self._eff_free] = -h
         F = (full[:, None] + E).reshape(B * 2 * k, -1)
         out = []
-        for kind in ("joint_delta", "position_delta"):
+        for kind in ("joint_delta", "position_delta", "point_delta"):
             total = None
             for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
                 d = getattr(e, kind)(F[:, a:b], prep)
@@ -233,14 +264,16 @@ class EffectCalibrationProblem(Problem):
                 hh = (2 * h).reshape(B, k, *([1] * (total.ndim - 2)))
                 total = (total[:, :k] - total[:, k:]) / hh
             out.append(total)
-        return out[0], out[1]
+        return out[0], out[1], out[2]
 
     def _effect_columns(self, full: Tensor, p: Tensor, s: Tensor, R: Tensor | None, Jq: Tensor | None,
-                        dq: Tensor | None, dp: Tensor | None) -> Tensor:
-        """``(B, 3 n_obs, k)`` effect columns: the effects' deflections ``dq`` and displacements ``dp``
-        per unit parameter (:meth:`_effect_deltas`, no kinematics run for them), carried to the
-        observations through the markers' joint Jacobian ``Jq (B, N, M, 3|6, dof)`` at the deflected
-        joints (instrument frame); point displacements turn no frame."""
+                        dq: Tensor | None, dp: Tensor | None, Jmk: Tensor | None = None,
+                        dl: Tensor | None = None) -> Tensor:
+        """``(B, 3 n_obs, k)`` effect columns: the effects' deflections ``dq``, displacements ``dp`` and
+        marker points moved on their links ``dl`` per unit parameter (:meth:`_effect_deltas`, no
+        kinematics run for them), carried to the observations through the markers' joint Jacobian
+        ``Jq (B, N, M, 3|6, dof)`` at the deflected joints, the instrument frame, and each marker's
+        own point columns ``Jmk (B, N, M, 3|6, 3)`` at the current geometry; points turn no frame."""
         K, B, k = self.K, full.shape[0], self._eff_free.numel()
         turns = self.obs.has_orientation
         Rb = self.robot.base_transform(full[:, :K])[0] if dp is not None else None
@@ -252,6 +285,8 @@ class EffectCalibrationProblem(Problem):
                 W = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, 3:], dq[b]) if turns else None
             if dp is not None:
                 D = D + torch.einsum("ij,knmj->nmik", Rb[b], dp[b])
+            if dl is not None:
+                D = D + torch.einsum("nmra,knma->nmrk", Jmk[b, :, :, :3], dl[b])
             if turns and W is None:
                 W = torch.zeros_like(D)
             out[b] = self.obs.project(p[b], D, s[b], W, None if R is None else R[b]).reshape(-1, k)

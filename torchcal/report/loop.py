@@ -193,6 +193,12 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
         L.append(f"| {g['name']} | {k:.1f} | {g['cv_rmse_mm']:.4f} | {'–' if t is None else f'{t:.1f}'} | {acc} |")
     L += ["", f"Chosen: **{res.geometric['chosen']}**. A larger set is taken only when it passes the rule below, "
               "which is what guards a small data set against over-fitting."]
+    for a in res.geometric.get("again", []):
+        L += ["", f"Judged again after {a['after']} was accepted: it left {a['sigma_now_mm']:.4f} mm of noise per "
+                  f"axis, against the {a['sigma_chosen_mm']:.4f} mm the set was chosen under. "
+              + "; ".join(f"{t['name']}: {t['k_eff']:.1f} parameters, CV {t['cv_rmse_mm']:.4f} mm, t = {t['t']:.1f}, "
+                          f"{'accepted' if t['accepted'] else 'rejected'}" for t in a["tried"])
+              + f". Kept: **{a['chosen']}**."]
     o = res.geometric.get("orientation") or {}
     if o.get("tried"):
         L += ["", f"Orientation weight: **{o['chosen']:.4g} mm/mrad** (0: orientations left out), the "

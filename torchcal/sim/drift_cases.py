@@ -13,6 +13,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
   held-out rows from the same session;
 * ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
   12 mm and 4 mm off the gripper's;
+* ``tool_set``: three tools logged in a text column ``tool``: a probe 75 mm longer than the
+  gripper and a spindle 25 mm aside and 40 mm longer (centimetres: the geometric stage sees only
+  the tools' scatter);
 * ``station_levels``: the tracker is set up twice, logged in a text column ``station``; the second
   set-up's registration leaves the instrument frame 0.3 mm along y and 0.1 mm down and turned
   0.25 mrad about y and 0.1 mrad about z from the first's (one rigid motion);
@@ -71,6 +74,11 @@ def _probe(tool):
     return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
 
 
+def _tool_set(tool):
+    tips = {"gripper": (0.0, 0.0, 0.0), "probe": (0.0, 0.0, 0.075), "spindle": (0.025, 0.0, 0.040)}
+    return np.array([tips[t] for t in tool])
+
+
 def _station(station):
     moved = (station == "B").astype(float)[:, None]
     return moved * np.array([0.0, 0.3e-3, -0.1e-3, 0.0, 0.25e-3, 0.1e-3])
@@ -102,6 +110,9 @@ DRIFT_CASES: dict[str, dict] = {
     "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
                     "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
                                                   "the probe's point is 12 mm, 4 mm off the gripper's")])},
+    "tool_set": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe", "spindle"]},
+                 "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set,
+                                               "a probe 75 mm longer, a spindle 25 mm aside and 40 mm longer")])},
     "station_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"station": ["A", "B"]},
                        "physics": dict(drifts=[Drift("instrument", "level:station", _station,
                                                      "set-up B moves the frame 0.3 mm, 0.1 mm, turns 0.25 mrad, 0.1 mrad")])},

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from torchcal.effects import EFFECTS, build_effect
 from torchcal.measure.data import Measurements
 from torchcal.pipelines.loop.covariates import extrapolation
+from torchcal.pipelines.loop.geometry import geometry_again
 from torchcal.pipelines.crossval.models import Context, Model, noise_sigma
 from torchcal.pipelines.loop.prune import prune
 from torchcal.pipelines.loop.records import Candidate, Trial
@@ -42,6 +43,7 @@ class Diagnosis:
     steps: list[Step] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)
     flags: list[dict] = field(default_factory=list)
+    geometry_again: list[dict] = field(default_factory=list)  # the geometry judged again (geometry_again)
 
 
 def diagnose(ctx: Context, start: Model, names: list[str], test: Measurements | None, say,
@@ -151,6 +153,9 @@ def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> li
         for g in gone:
             tabu.setdefault(g["effect"], set()).add(g["mode"])
         pool = list(dict.fromkeys(pool + [g["effect"] for g in gone]))  # its other modes may still come
+    d.ctx, d.current, again = geometry_again(d.ctx, d.current, say)
+    if again is not None:
+        d.geometry_again.append(dict(again, after=winner.name))
     d.steps.append(Step(winner.name, d.current, winner))
     if not d.current.effects[-1].selectable:  # a family stays a candidate: it may gain modes later
         pool.remove(winner.name)

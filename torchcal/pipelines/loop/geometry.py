@@ -219,3 +219,51 @@ def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, g
     record = {"chosen": best, "estimated": w, "rule": "lowest cross-validated mean position error of the full "
               "geometric model", "tried": [{"weight_mm_per_mrad": k, "cv_mean_mm": v} for k, v in tried.items()]}
     return (best or None), record
+
+
+# the noise an accepted effect leaves must fall this many times below the one the geometry was chosen
+# under before the geometry is judged again: a tool change of centimetres hides every joint origin, a
+# compliance of a tenth of a millimetre hides none
+AGAIN = 3.0
+
+
+def geometry_again(ctx: Context, current: Model, say) -> tuple[Context, Model, dict | None]:
+    """The geometry judged again once the accepted effects leave a noise :data:`AGAIN` times below
+    the one it was chosen under (``ctx.sigma``): every joint origin, plainly and (on small data)
+    under the prior, its scale by CV, each against ``current`` by the rule. The context's noise, which
+    scales the priors, becomes the noise now left. Returns the context, the model (``current`` when
+    nothing wider passes) and what was judged (None when nothing was)."""
+    sigma = noise_sigma(ctx, current)
+    if sigma * AGAIN > ctx.sigma:
+        return ctx, current, None
+    robot, n_obs, n_geo = ctx.robot, ctx.n_obs, ctx.n_geo
+    wide = geometric_start(robot, ctx.data, None, ctx.setup, ctx.rot_weight is not None).free
+    small = is_small(ctx.data, int(wide.sum()))
+    if bool((current.info["candidates"] == wide).all()) and current.prior_mm is None and not small:
+        return ctx, current, None  # already every joint origin, plainly: nothing wider to judge
+    say(f"the effects leave {1e3 * sigma:.4f} mm of noise, {ctx.sigma / sigma:.0f} times below the "
+        f"{1e3 * ctx.sigma:.4f} mm the geometry was chosen under: the geometry is judged again")
+    entry = {"sigma_chosen_mm": 1e3 * ctx.sigma, "sigma_now_mm": 1e3 * sigma, "tried": [], "chosen": "as before"}
+    ctx = ctx.at(ctx.c, sigma)
+    if current.prior_mm is not None:  # its prior now weighs against the noise now left
+        current = evaluate_prior(ctx, current.label, current.params, current.effects, current.prior_mm,
+                                 info=current.info)
+    start = current.params.clone()
+    start.free[:n_geo] = wide
+    info = dict(current.info, candidates=wide.clone())
+    tried = [evaluate(ctx, current.label, start, current.effects, None, info=info)]
+    if small:
+        tried.append(evaluate_prior(ctx, current.label, start, current.effects,
+                                    PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], info=info))
+    best = current
+    for m in sorted(tried, key=lambda m: penalised(m.scores, m.k, n_obs)):
+        name = "every joint origin" + ("" if m.prior_mm is None else f", prior {m.prior_mm:g} mm/mrad")
+        bad = implausible_values(m.params, robot, ctx.plausible)
+        t, _, ok = compare_at(ctx, best, m, n_obs)
+        ok = ok and not bad and best is current
+        entry["tried"].append({"name": name, "k_eff": m.k, "cv_rmse_mm": m.cv_rmse_mm(n_obs), "t": t, "accepted": ok})
+        say(f"geometry again: {name}  {m.k:>5.1f} params  CV {m.cv_rmse_mm(n_obs):.4f} mm  t = {t:.1f}  "
+            f"{'accepted' if ok else 'rejected'}" + (" (moves a joint implausibly far)" if bad else ""))
+        if ok:
+            best, entry["chosen"] = m, name
+    return ctx, best, entry

@@ -26,7 +26,8 @@ class LoopResult:
         stages: per stage, error statistics (mm) on the training and held-out rows.
         accepted / candidates: what was added, and every candidate examined, with the numbers
             that decided (cross-validated) and the held-out gain measured afterwards.
-        geometric: the geometric sets and priors tried and the one chosen.
+        geometric: the geometric sets and priors tried and the one chosen; ``again``: each time the
+            geometry was judged again after an effect (:func:`~torchcal.pipelines.loop.geometry.geometry_again`).
         noise_sigma_mm: robust per-axis noise estimate of the final model (mm);
             ``huber_mm``: the Huber threshold of the last round (mm).
         suspects: training observations beyond ``OUTLIER_K σ̂``: row, marker, error (mm).

@@ -282,7 +282,7 @@ def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, op
     return LoopResult(robot=ctx.robot, params=current.params, effects=current.effects, elm=elm, stages=book.stages,
                       accepted=accepted, candidates=d.candidates,
                       geometric={"chosen": best.label, "sets": geo.sets, "prior_mm": best.prior_mm,
-                                 "orientation": orientation},
+                                 "orientation": orientation, "again": d.geometry_again},
                       n_train=len(train), n_test=0 if book.test is None else len(book.test), noise_floor_mm=noise_mm,
                       noise_floor_source=noise_source, timings=timings, errors=book.errors, evidence=evidence,
                       elm_covariates=elm_covariates(train), geometric_fits=geo.fits, noise_sigma_mm=1e3 * sigma,
