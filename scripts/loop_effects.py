@@ -60,6 +60,7 @@ PUT_IN = {"payload_12kg": "12 kg tool, joints 2-4 compliant", "payload_0kg": "no
           "tool_levels": "the tool point differs 12 mm / 4 mm for tool = probe (text column)",
           "tool_set": "three tools: a probe 75 mm longer, a spindle 25 mm aside and 40 mm longer (text column)",
           "station_levels": "set-up B moves the instrument frame 0.3 mm, 0.1 mm and turns it 0.25, 0.1 mrad (text column)",
+          "setup_change": "the tracker knocked at 50 min: its frame moves 0.2, 0.15 mm and turns 0.2, 0.15 mrad (time)",
           "torque_stiffness": "shoulder 20 µrad/(N·m) up to ±15 N·m, half beyond; 5 kg tool",
           "prismatic_guide": "UR5e on a 1.5 m track: the carriage bows 40 µm and pitches 0.3 mrad"}
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.effects import ParameterDrivers
+from torchcal.effects.anydriver_space import expanded
 from torchcal.effects.shapes import settle_tags, shape_column, step_breaks
 from torchcal.kinematics.robots import shipped
 
@@ -136,7 +137,7 @@ def test_the_instrument_frame_per_level_is_one_rigid_mode():
 
     robot, q, geo, cov = _robot_and_rows()
     eff = ParameterDrivers(robot, geometry=geo)
-    out = eff.expanded([("base.rz", "level:tool")], SimpleNamespace(q=q, covariates=cov))
+    out = expanded(eff, [("base.rz", "level:tool")], SimpleNamespace(q=q, covariates=cov))
     assert out.terms == [(f"base.{a}", "level:tool", "lvl=b") for a in ("x", "y", "z", "rx", "ry", "rz")]
     assert [lab for lab, _ in out.modes()] == ["base.frame~level:tool~levels"]
     assert "instrument frame moves as one rigid body" in out.mode_words("base.frame~level:tool~levels")
@@ -153,3 +154,28 @@ def test_the_instrument_frame_per_level_is_one_rigid_mode():
     moved = sig["fitted"][:, None, None] * (Rb @ sig["G"][..., None])[..., 0]
     assert torch.allclose(moved, fd, atol=1e-9), (moved - fd).abs().max()
     assert bool((sig["fitted"][cov["tool=a"] == 1] == 0).all()) and bool((sig["fitted"][cov["tool=b"] == 1] > 0).all())
+
+
+def test_a_rigid_thing_steps_as_a_whole():
+    """A step found for one coordinate of the instrument frame (or of a marker point) is offered
+    for all of them at that break, one mode: a set-up changed mid-session is one rigid motion. The
+    other shapes stay the coordinate's own; a joint's parameter keeps its step to itself."""
+    from types import SimpleNamespace
+
+    robot, q, geo, cov = _robot_and_rows()
+    mk = robot.marker_names[0]
+    eff = ParameterDrivers(robot, geometry=geo, ranges={"row": (5.5, 5.5)})
+    pairs = [("base.ry", "row"), (f"{mk}.dz", "row"), ("elbow_joint.offset", "row")]
+    steps = {("base.ry", "row"): ["step5.5", "exp4@0"], (f"{mk}.dz", "row"): ["step3.5"],
+             ("elbow_joint.offset", "row"): ["step7.5"]}
+    out = expanded(eff, pairs, SimpleNamespace(q=q, covariates=cov), steps)
+    modes = dict(out.modes())
+    frame = [out.terms[i] for i in modes["base.frame~row~step5.5"]]
+    assert frame == [(f"base.{a}", "row", "step5.5") for a in ("x", "y", "z", "rx", "ry", "rz")]
+    assert [out.terms[i] for i in modes[f"{mk}.point~row~step3.5"]] == [(f"{mk}.{a}", "row", "step3.5")
+                                                                         for a in ("dx", "dy", "dz")]
+    assert "base.ry~row~exp4@0" in modes and "base.ry~row~lin" in modes and "base.rx~row~lin" not in modes
+    assert "elbow_joint.offset~row~step7.5" in modes
+    assert out.mode_words("base.frame~row~step5.5") == (
+        "the instrument frame moves as one rigid body (3 shifts, 3 turns) at row 6, and stays")
+    assert out.mode_words(f"{mk}.point~row~step3.5") == f"the marker point {mk} moves at row 4, and stays"

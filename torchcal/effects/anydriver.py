@@ -41,7 +41,8 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
-from torchcal.effects.shapes import grid_tags, harmonic_tags, screen_tags, shape_column, smooth_tags
+from torchcal.effects.anydriver_space import rigid
+from torchcal.effects.shapes import screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
 from torchcal.effects import anydriver_evidence as evidence
 from torchcal.effects import anydriver_words as words
@@ -171,62 +172,6 @@ class ParameterDrivers(Effect):
                                for c in out.covariates if c in data.covariates}
         return out
 
-    def shapes_for(self, driver: str, x: Tensor) -> list[str]:
-        """Every shape of a (numeric) driver with training values ``x (N,)``, steps aside."""
-        kind = driver_kind(driver)
-        rev = kind == "q" and self.robot.joint_units[self.robot.joint_names.index(driver.split(":", 1)[1])] == "rad"
-        out = ["lin"] + smooth_tags(x)
-        if rev:
-            out += harmonic_tags()
-        return out  # steps, settlings and knees (hinges, clips): the best of their grids, chosen by the screening
-
-    def breaks(self, driver: str, data, tq: Tensor | None = None) -> list[str]:
-        """Every step, settling or knee ``driver`` can have on ``data``
-        (:func:`~torchcal.effects.shapes.grid_tags`); none for a text column (``tq``: :meth:`torques`
-        on ``data``, when known)."""
-        kind = driver_kind(driver)
-        if kind == "level":
-            return []
-        if kind == "torque" and tq is None:
-            tq = self.torques(data.q)
-        x = driver_values(self.robot, driver, data.q, data.covariates, tq)
-        return grid_tags(kind, x[torch.isfinite(x)])
-
-    def expanded(self, pairs: list[tuple[str, str]], data, steps: dict | None = None) -> "ParameterDrivers":
-        """A copy whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair ->
-        the step and knee shapes to offer, :meth:`breaks`)."""
-        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
-        levels = factor_levels(data.covariates)
-        terms = []
-        names = set(self.robot.param_names)
-        whole = []  # a marker point or the instrument frame that differs by level: all its coordinates
-        for p, d in pairs:
-            m = self._rigid(p) if driver_kind(d) == "level" else None
-            whole += [(c, d) for c in self._coordinates(m)] if m is not None else [(p, d)]
-        for p, d in dict.fromkeys(q for q in whole if q[0] in names):
-            if driver_kind(d) == "level":
-                f = d.split(":", 1)[1]
-                terms += [(p, d, f"lvl={lv}") for lv in levels[f][1:]]
-                continue
-            x = driver_values(self.robot, d, data.q, data.covariates, tq)
-            terms += [(p, d, t) for t in self.shapes_for(d, x[torch.isfinite(x)])]
-            terms += [(p, d, t) for t in (steps or {}).get((p, d), [])]
-        return self._copy(terms=terms)
-
-    def space_size(self, pairs: list[tuple[str, str]], data) -> int:
-        """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every
-        step or knee of its grid, every level."""
-        tq = self.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
-        levels = factor_levels(data.covariates)
-        per: dict[str, int] = {}
-        for d in dict.fromkeys(d for _, d in pairs):
-            if driver_kind(d) == "level":
-                per[d] = len(levels[d.split(":", 1)[1]]) - 1
-                continue
-            x = driver_values(self.robot, d, data.q, data.covariates, tq)
-            per[d] = len(self.shapes_for(d, x[torch.isfinite(x)])) + len(self.breaks(d, data, tq))
-        return sum(per[d] for _, d in pairs)
-
     # -- the effect's interface --------------------------------------------------------
     @property
     def covariates(self) -> list[str]:
@@ -245,29 +190,16 @@ class ParameterDrivers(Effect):
         units = dict(zip(self.robot.param_names, self.robot.param_units))
         return [(f"{p}~{d}~{t}", words.coef_unit(units[p], self.robot, d, t)) for p, d, t in self.terms]
 
-    def _rigid(self, p: str) -> str | None:
-        """The rigid thing ``p`` is a coordinate of: a marker (its point) or ``"base"`` (the instrument
-        frame); None for a joint's parameter."""
-        head = p.rsplit(".", 1)[0]
-        return head if head in self.robot.marker_names or head == "base" else None
-
-    def _coordinates(self, m: str) -> list[str]:
-        """The parameters of the rigid thing ``m`` (:meth:`_rigid`)."""
-        if m == "base":
-            return [f"base.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
-        return [f"{m}.{a}" for a in ("dx", "dy", "dz")]
-
     def _label(self, p: str, d: str, t: str) -> str:
         """A term's mode: one per term; a text column's levels together, and for a rigid thing all its
-        coordinates together too: a marker point's three (a tool is a point, whatever frame its link
-        turns), the instrument frame's six (a set-up moved per level is one rigid motion, whichever
-        of its coordinates the geometry happens to show)."""
+        coordinates together too, per level or per step: a marker point's three (a tool is a point,
+        whatever frame its link turns), the instrument frame's six (a set-up moved, per level or
+        mid-session, is one rigid motion, whichever of its coordinates the geometry happens to show)."""
+        m = rigid(p, self.robot.marker_names)
+        whole = "base.frame" if m == "base" else f"{m}.point"
         if not _levels(t):
-            return f"{p}~{d}~{t}"
-        m = self._rigid(p)
-        if m is None:
-            return f"{p}~{d}~levels"
-        return f"base.frame~{d}~levels" if m == "base" else f"{m}.point~{d}~levels"
+            return f"{whole}~{d}~{t}" if m is not None and t.startswith("step") else f"{p}~{d}~{t}"
+        return f"{p}~{d}~levels" if m is None else f"{whole}~{d}~levels"
 
     def modes(self):
         out: dict[str, list[int]] = {}

@@ -68,10 +68,15 @@ def _span(v: float, robot, driver: str) -> str:
 
 def mode_words(eff, label: str) -> str:
     p, d, tag = label.split("~")
-    if p.endswith(".point"):
+    if p.endswith(".point") and tag == "levels":
         return f"the marker point {p[:-6]} takes one value per level of {d.split(':', 1)[1]}"
-    if p.endswith(".frame"):
-        return f"the instrument frame moves as one rigid body (3 shifts, 3 turns) per level of {d.split(':', 1)[1]}"
+    if p.endswith((".point", ".frame")):
+        what = (f"the marker point {p[:-6]} moves" if p.endswith(".point")
+                else "the instrument frame moves as one rigid body (3 shifts, 3 turns)")
+        if tag == "levels":
+            return f"{what} per level of {d.split(':', 1)[1]}"
+        at = float(tag[4:])
+        return f"{what} at {f'row {int(at + 0.5)}' if driver_kind(d) == 'row' else f'{driver_words(d)} = {at:.6g}'}, and stays"
     what = parameter_words(eff, p)
     if tag == "levels":
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"

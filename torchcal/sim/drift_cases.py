@@ -19,6 +19,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``station_levels``: the tracker is set up twice, logged in a text column ``station``; the second
   set-up's registration leaves the instrument frame 0.3 mm along y and 0.1 mm down and turned
   0.25 mrad about y and 0.1 mrad about z from the first's (one rigid motion);
+* ``setup_change``: the tracker knocked and registered again 50 min into the session: its frame
+  moves 0.2 mm along x and 0.15 mm up and turns 0.2 mrad about x and 0.15 mrad about z, and stays
+  (``time`` column, s; held-out rows from the same session);
 * ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
   beyond (a gear whose backlash region is soft);
 * ``prismatic_guide``: the UR5e on a 1.5 m linear track whose carriage wanders 40 µm sideways
@@ -84,6 +87,11 @@ def _station(station):
     return moved * np.array([0.0, 0.3e-3, -0.1e-3, 0.0, 0.25e-3, 0.1e-3])
 
 
+def _knocked(t):
+    moved = ((t - t[0] if t.ndim else t) >= 3000.0).astype(float)[..., None]
+    return moved * np.array([0.2e-3, 0.0, 0.15e-3, 0.2e-3, 0.0, 0.15e-3])
+
+
 def _soft_gear(tau, c_soft=2e-5, c_stiff=1e-5, knee=15.0):
     return c_stiff * tau + (c_soft - c_stiff) * np.clip(tau, -knee, knee)
 
@@ -116,6 +124,9 @@ DRIFT_CASES: dict[str, dict] = {
     "station_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"station": ["A", "B"]},
                        "physics": dict(drifts=[Drift("instrument", "level:station", _station,
                                                      "set-up B moves the frame 0.3 mm, 0.1 mm, turns 0.25 mrad, 0.1 mrad")])},
+    "setup_change": {**_UR5E, "named": ["parameter_drivers"], "interleave": True, "covariates": {"time": ("time", {})},
+                     "physics": dict(drifts=[Drift("instrument", "cov:time", _knocked,
+                                                   "the frame moves 0.2 mm, 0.15 mm and turns 0.2, 0.15 mrad at 50 min")])},
     "torque_stiffness": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
                          "physics": dict(payload_kg=5.0, payload_com_m=(0.0, 0.0, 0.1),
                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",

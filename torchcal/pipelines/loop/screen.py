@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
+from torchcal.effects.anydriver_space import breaks, expanded, space_size
 from torchcal.measure.stats import chi2_sf
 
 __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
@@ -90,18 +91,18 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
                 w3: Tensor) -> list[float]:
     """The :data:`MAX_STEPS` steps, settlings or knees of ``pair``'s driver that explain the most, one column each."""
     p, d = pair
-    breaks = eff.breaks(d, data, eff.torques(data.q) if d.startswith("torque:") else None)
-    if not breaks:
+    grid = breaks(eff, d, data, eff.torques(data.q) if d.startswith("torque:") else None)
+    if not grid:
         return []
     score = []
-    for s in range(0, len(breaks), CHUNK):
-        b = breaks[s:s + CHUNK]
+    for s in range(0, len(grid), CHUNK):
+        b = grid[s:s + CHUNK]
         C = columns(eff._copy(terms=[(p, d, t) for t in b])) * w3[:, None]
         C = C - Q @ (Q.T @ C)
         n2 = (C * C).sum(0)
         score.append(torch.where(n2 > 0, (C.T @ rp) ** 2 / n2.clamp(min=1e-300), torch.zeros_like(n2)))
     top = torch.cat(score).argsort(descending=True)[:MAX_STEPS]
-    return [breaks[int(i)] for i in top]
+    return [grid[int(i)] for i in top]
 
 
 def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float,
@@ -138,6 +139,6 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     offs = set(eff._offset_params())
     kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
     steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept}
-    out = eff.expanded(kept, data, steps)
-    out.n_searched = eff.space_size([pr for _, pr in stats], data)
+    out = expanded(eff, kept, data, steps)
+    out.n_searched = space_size(eff, [pr for _, pr in stats], data)
     return out
