@@ -156,10 +156,11 @@ def test_the_instrument_frame_per_level_is_one_rigid_mode():
     assert bool((sig["fitted"][cov["tool=a"] == 1] == 0).all()) and bool((sig["fitted"][cov["tool=b"] == 1] > 0).all())
 
 
-def test_a_rigid_thing_steps_as_a_whole():
-    """A step found for one coordinate of the instrument frame (or of a marker point) is offered
-    for all of them at that break, one mode: a set-up changed mid-session is one rigid motion. The
-    other shapes stay the coordinate's own; a joint's parameter keeps its step to itself."""
+def test_a_rigid_thing_steps_and_settles_as_a_whole():
+    """A step or a settling found for one coordinate of the instrument frame (or of a marker point)
+    is offered for all of them at that break, one mode: a set-up changed mid-session, or a tracker
+    warming up, is one rigid motion. The other shapes stay the coordinate's own; a joint's parameter
+    keeps its step to itself."""
     from types import SimpleNamespace
 
     robot, q, geo, cov = _robot_and_rows()
@@ -174,7 +175,12 @@ def test_a_rigid_thing_steps_as_a_whole():
     assert frame == [(f"base.{a}", "row", "step5.5") for a in ("x", "y", "z", "rx", "ry", "rz")]
     assert [out.terms[i] for i in modes[f"{mk}.point~row~step3.5"]] == [(f"{mk}.{a}", "row", "step3.5")
                                                                          for a in ("dx", "dy", "dz")]
-    assert "base.ry~row~exp4@0" in modes and "base.ry~row~lin" in modes and "base.rx~row~lin" not in modes
+    assert [out.terms[i] for i in modes["base.frame~row~exp4@0"]] == [(f"base.{a}", "row", "exp4@0")
+                                                                        for a in ("x", "y", "z", "rx", "ry", "rz")]
+    assert "base.ry~row~lin" in modes and "base.rx~row~lin" not in modes
+    assert out.mode_words("base.frame~row~exp4@0") == ("the instrument frame moves as one rigid body (3 shifts, "
+                                                        "3 turns) as it settles along the row order, with a time "
+                                                        "constant of 4 rows")
     assert "elbow_joint.offset~row~step7.5" in modes
     assert out.mode_words("base.frame~row~step5.5") == (
         "the instrument frame moves as one rigid body (3 shifts, 3 turns) at row 6, and stays")

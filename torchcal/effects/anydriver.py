@@ -41,7 +41,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
-from torchcal.effects.anydriver_space import rigid
+from torchcal.effects.anydriver_space import RIGID_BREAKS, rigid
 from torchcal.effects.shapes import screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
 from torchcal.effects import anydriver_evidence as evidence
@@ -198,7 +198,7 @@ class ParameterDrivers(Effect):
         m = rigid(p, self.robot.marker_names)
         whole = "base.frame" if m == "base" else f"{m}.point"
         if not _levels(t):
-            return f"{whole}~{d}~{t}" if m is not None and t.startswith("step") else f"{p}~{d}~{t}"
+            return f"{whole}~{d}~{t}" if m is not None and t.startswith(RIGID_BREAKS) else f"{p}~{d}~{t}"
         return f"{p}~{d}~levels" if m is None else f"{whole}~{d}~levels"
 
     def modes(self):

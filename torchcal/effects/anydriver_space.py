@@ -14,7 +14,9 @@ from torchcal.effects.drivers import driver_kind, driver_values
 from torchcal.effects.shapes import grid_tags, harmonic_tags, smooth_tags
 from torchcal.measure.levels import factor_levels
 
-__all__ = ["rigid", "coordinates", "shapes_for", "breaks", "expanded", "space_size"]
+RIGID_BREAKS = ("step", "exp")
+
+__all__ = ["RIGID_BREAKS", "rigid", "coordinates", "shapes_for", "breaks", "expanded", "space_size"]
 
 
 def rigid(p: str, markers) -> str | None:
@@ -67,7 +69,7 @@ def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None)
         m = rigid(p, robot.marker_names)
         whole += [(c, d) for c in coordinates(m)] if m is not None and driver_kind(d) == "level" else [(p, d)]
         if m is not None:
-            jumps.setdefault((m, d), []).extend(t for t in steps.get((p, d), []) if t.startswith("step"))
+            jumps.setdefault((m, d), []).extend(t for t in steps.get((p, d), []) if t.startswith(RIGID_BREAKS))
     terms = []
     for p, d in dict.fromkeys(q for q in whole if q[0] in names):
         if driver_kind(d) == "level":
@@ -76,7 +78,7 @@ def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None)
         x = driver_values(robot, d, data.q, data.covariates, tq)
         terms += [(p, d, t) for t in shapes_for(eff, d, x[torch.isfinite(x)])]
         own = rigid(p, robot.marker_names) is None
-        terms += [(p, d, t) for t in steps.get((p, d), []) if own or not t.startswith("step")]
+        terms += [(p, d, t) for t in steps.get((p, d), []) if own or not t.startswith(RIGID_BREAKS)]
     for (m, d), tags in jumps.items():
         terms += [(c, d, t) for t in dict.fromkeys(tags) for c in coordinates(m) if c in names]
     return eff._copy(terms=list(dict.fromkeys(terms)))

@@ -75,6 +75,8 @@ def mode_words(eff, label: str) -> str:
                 else "the instrument frame moves as one rigid body (3 shifts, 3 turns)")
         if tag == "levels":
             return f"{what} per level of {d.split(':', 1)[1]}"
+        if tag.startswith("exp"):
+            return f"{what} as it settles along {driver_words(d)}, with a time constant of {_span(settle_parts(tag)[0], eff.robot, d)}"
         at = float(tag[4:])
         return f"{what} at {f'row {int(at + 0.5)}' if driver_kind(d) == 'row' else f'{driver_words(d)} = {at:.6g}'}, and stays"
     what = parameter_words(eff, p)
