@@ -59,6 +59,7 @@ PUT_IN = {"payload_12kg": "12 kg tool, joints 2-4 compliant", "payload_0kg": "no
           "instrument_settle": "the instrument frame turns 0.5 mrad and rises 0.06 mm, settling in 15 min (time)",
           "tool_levels": "the tool point differs 12 mm / 4 mm for tool = probe (text column)",
           "tool_set": "three tools: a probe 75 mm longer, a spindle 25 mm aside and 40 mm longer (text column)",
+          "tool_and_station": "tool_set's three tools and two stations (1.5 mm, 2.5 mrad apart), two text columns",
           "station_levels": "set-up B moves the instrument frame 0.3 mm, 0.1 mm and turns it 0.25, 0.1 mrad (text column)",
           "setup_change": "the tracker knocked at 50 min: its frame moves 0.2, 0.15 mm and turns 0.2, 0.15 mrad (time)",
           "torque_stiffness": "shoulder 20 µrad/(N·m) up to ±15 N·m, half beyond; 5 kg tool",

@@ -116,14 +116,19 @@ def test_direct_columns_equal_the_effect_evaluated_term_by_term():
     eff = ParameterDrivers(robot, geometry=geo, terms=terms, ranges={"row": (5.5, 5.5)})
     prep = eff.prepare(q, cov)
     a, b = eff.linear_basis(prep), Effect.linear_basis(eff, prep)
-    # the marker point moved on its link is no robot-base displacement of the generic form: its column
-    # is the point's own column at the effect's geometry
+    # the marker point moved on its link, and the instrument frame moved per row, are no robot-base
+    # displacements of the generic form: their columns are the point's and the base's own columns at
+    # the effect's geometry
     mk = robot.marker_names[0]
-    own = robot.param_jacobian(q, geo)[..., [robot.param_names.index(f"{mk}.{c}") for c in ("dx", "dy", "dz")]]
-    dl = eff.point_delta(torch.eye(len(terms), dtype=torch.float64), prep)  # (T, N, M, 3)
-    assert float(dl.abs().sum()) > 0 and dl.abs().sum((1, 2, 3)).nonzero().flatten().tolist() == [2]
+    J = robot.param_jacobian(q, geo)
+    own = J[..., [robot.param_names.index(f"{mk}.{c}") for c in ("dx", "dy", "dz")]]
+    frame = J[..., [robot.param_names.index(f"base.{c}") for c in ("x", "y", "z", "rx", "ry", "rz")]]
+    E = torch.eye(len(terms), dtype=torch.float64)
+    dl, df = eff.point_delta(E, prep), eff.frame_delta(E, prep)  # (T, N, M, 3), (T, N, 6)
+    assert dl.abs().sum((1, 2, 3)).nonzero().flatten().tolist() == [2]
+    assert df.abs().sum((1, 2)).nonzero().flatten().tolist() == [1]
     Rb, _ = robot.base_transform(geo)
-    moved = torch.einsum("ij,nmjc,tnmc->nmit", Rb.T, own, dl)
+    moved = torch.einsum("ij,nmjc,tnmc->nmit", Rb.T, own, dl) + torch.einsum("ij,nmjc,tnc->nmit", Rb.T, frame, df)
     assert torch.allclose(a.dq, b.dq, atol=1e-15) and torch.allclose(a.dp, b.dp + moved, atol=1e-15)
     assert a.groups == b.groups
 

@@ -37,6 +37,8 @@ and optionally
 * ``point_correction(q, covariates) -> (N, M, 3) | None``: each row's marker points moved on their
   links along their own error translations (m; a tool that differs by row), carried by the
   kinematics exactly as the marker points themselves are;
+* ``frame_correction(q, covariates) -> (N, 6) | None``: each row's offsets of the instrument frame's
+  parameters (``base.x..rz``; a set-up that differs by row), composed exactly;
 * ``covariates: list[str]``: the covariates it needs (they become required inputs of the model).
 
 A class is made loadable by :func:`torchcal.effects.register_effect` (the one registry,
@@ -52,7 +54,7 @@ from torch import Tensor
 
 from torchcal.elm import ELM
 from torchcal.kinematics.transforms import homogeneous, so3_exp, so3_log
-from torchcal.params import ParamSet
+from torchcal.params import BASE_NAMES, ParamSet
 
 __all__ = ["CalibratedModel", "EffectHook", "pose_error", "apply_pose_error", "ERROR_NAMES"]
 
@@ -63,7 +65,8 @@ ERROR_NAMES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 @runtime_checkable
 class EffectHook(Protocol):
     """What :class:`CalibratedModel` needs from a physical effect model (see the module
-    docstring; ``position_correction``, ``point_correction`` and ``covariates`` are optional)."""
+    docstring; ``position_correction``, ``point_correction``, ``frame_correction`` and ``covariates``
+    are optional)."""
 
     name: str
 
@@ -145,7 +148,7 @@ class CalibratedModel:
         self.covariates = list(covariates or [])
         extra = [c for e in self.effects for c in getattr(e, "covariates", None) or [] if c not in self.covariates]
         self.required_covariates = self.covariates + list(dict.fromkeys(extra))
-        base = [params.index(n) for n in ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")]
+        base = [params.index(n) for n in BASE_NAMES]
         self._base_index = torch.tensor(base, device=params.values.device)
         if residual is not None:
             if not residual.is_fitted:
@@ -220,8 +223,10 @@ class CalibratedModel:
         moved = [d for d in (e.point_correction(q, cov) for e in self.effects if hasattr(e, "point_correction"))
                  if d is not None]
         points = sum(moved[1:], moved[0]) if moved else None
+        frames = [d for d in (e.frame_correction(q, cov) for e in self.effects if hasattr(e, "frame_correction"))
+                  if d is not None]
         movers = [e for e in self.effects if hasattr(e, "position_correction")]
-        if not movers and points is None:
+        if not movers and points is None and not frames:
             return self.robot.fk(qj, self.params.values, check=False)
         # position effects act in the robot base frame: FK without the base, map, then the base
         v = self.params.values.clone()
@@ -231,6 +236,9 @@ class CalibratedModel:
         for e in movers:
             p = e.position_correction(p, q, cov)
         T = homogeneous(R, p)
+        if frames:  # each row's instrument frame: the base parameters plus the row's offsets
+            b = b + sum(frames[1:], frames[0])
+            return homogeneous(so3_exp(b[:, 3:]), b[:, :3])[:, None] @ T
         return homogeneous(so3_exp(b[3:]), b[:3]) @ T
 
     def predict_error(self, q, covariates=None) -> Tensor:

@@ -47,6 +47,7 @@ from torchcal.effects.terms import _neighbours
 from torchcal.effects import anydriver_evidence as evidence
 from torchcal.effects import anydriver_words as words
 from torchcal.measure.levels import LEVEL_SEP, factor_levels
+from torchcal.params import BASE_NAMES
 
 __all__ = ["ParameterDrivers", "MAX_STEPS"]
 
@@ -254,10 +255,12 @@ class ParameterDrivers(Effect):
         target = torch.tensor([self.robot.joint_names.index(offs[p]) if p in offs else 0 for p, _, _ in self.terms],
                               dtype=torch.long, device=q.device)
         pos = [i for i, b in enumerate(is_q) if not b]
-        # a marker point's coordinate moves the point on its link (exact, whatever the geometry); any
-        # other parameter displaces the markers through its column at the effect's geometry
+        # a marker point's coordinate moves the point on its link, a base coordinate the instrument
+        # frame (both exact, whatever the geometry); any other parameter displaces the markers through
+        # its column at the effect's geometry
         mk = {f"{m}.{a}": 3 * i + j for i, m in enumerate(self.robot.marker_names) for j, a in enumerate(("dx", "dy", "dz"))}
         pt = [i for i in pos if self.terms[i][0] in mk]
+        fr = [i for i in pos if self.terms[i][0] in BASE_NAMES]  # the instrument frame per row, exactly too
         G = None
         if pos:
             k = torch.tensor([self.robot.param_names.index(self.terms[i][0]) for i in pos], device=q.device)
@@ -275,7 +278,8 @@ class ParameterDrivers(Effect):
         ix = lambda v: torch.tensor(v, dtype=torch.long, device=q.device)  # noqa: E731
         return Prepared({"F": F, "X": X, "target": target, "is_q": torch.tensor(is_q, dtype=torch.bool, device=q.device),
                          "pos": ix(pos), "G": G, "pt": ix(pt), "pt_at": ix([mk[self.terms[i][0]] for i in pt]),
-                         "disp": ix([k for k, i in enumerate(pos) if i not in pt])})
+                         "fr": ix(fr), "fr_at": ix([BASE_NAMES.index(self.terms[i][0]) for i in fr]),
+                         "disp": ix([k for k, i in enumerate(pos) if i not in pt and i not in fr])})
 
     def joint_delta(self, theta, prep):
         F, target, is_q = prep.features["F"], prep.features["target"], prep.features["is_q"]
@@ -300,6 +304,13 @@ class ParameterDrivers(Effect):
         out = theta.new_zeros(theta.shape[0], F.shape[0], 3 * len(self.robot.marker_names))
         out.index_add_(2, at, theta[:, None, pt] * F[None, :, pt])
         return out.unflatten(-1, (-1, 3))
+
+    def frame_delta(self, theta, prep):
+        fr, at = prep.features["fr"], prep.features["fr_at"]
+        if not fr.numel():
+            return None
+        out = theta.new_zeros(theta.shape[0], prep.features["F"].shape[0], 6)
+        return out.index_add_(2, at, theta[:, None, fr] * prep.features["F"][None, :, fr])
 
     def linear_basis(self, prep: Prepared) -> LinearBasis:
         """The terms' columns built directly (one per term, the family is linear in its

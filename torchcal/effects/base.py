@@ -8,7 +8,9 @@ An effect acts in one or both of two places:
 * :meth:`Effect.position_delta`: a displacement ``Δp (P, N, M, 3)`` of every marker in the robot
   base frame, before the instrument frame is applied (bending, a tilting base, thermal growth);
 * :meth:`Effect.point_delta`: a per-row offset ``(P, N, M, 3)`` of the marker points on their own
-  links (a tool that differs by row), which the kinematics carry exactly, whatever the geometry.
+  links (a tool that differs by row), which the kinematics carry exactly, whatever the geometry;
+* :meth:`Effect.frame_delta`: a per-row offset ``(P, N, 6)`` of the instrument frame's parameters (a
+  set-up that differs by row), each row's frame carried exactly.
 
 Effects are fitted jointly with the geometry. Their features (gravity wrenches, lever arms,
 harmonics of the commands, covariates) depend only on the commanded state and on the geometry
@@ -230,6 +232,12 @@ class Effect:
         effect moves no marker point on its link."""
         return None
 
+    def frame_delta(self, theta: Tensor, prep: Prepared) -> Tensor | None:
+        """``theta (P, k) -> (P, N, 6)`` per-row offsets of the instrument frame's parameters
+        (``base.x, y, z`` m, ``base.rx, ry, rz`` rad), each row's frame carried exactly
+        (:mod:`torchcal.problems.row_frames`); None when the effect does not move the frame."""
+        return None
+
     def _scatter(self, per_joint: Tensor) -> Tensor:
         """``(P, N, len(self.joints)) -> (P, N, dof)`` with zeros for the other joints."""
         idx = torch.tensor([self.robot.joint_names.index(j) for j in self.joints], device=per_joint.device)
@@ -323,6 +331,12 @@ class Effect:
         fitted parameters, or None (the hook :class:`~torchcal.deploy.model.CalibratedModel` passes
         to the kinematics)."""
         d = self.point_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
+        return None if d is None else d[0]
+
+    def frame_correction(self, q: Tensor, covariates: dict[str, Tensor] | None = None) -> Tensor | None:
+        """``(N, 6)`` the instrument frame's per-row offsets (:meth:`frame_delta`) with the fitted
+        parameters, or None (the hook :class:`~torchcal.deploy.model.CalibratedModel` composes)."""
+        d = self.frame_delta(self.theta[None], self.prepare(q, self.clamped(covariates or {})))
         return None if d is None else d[0]
 
     @property

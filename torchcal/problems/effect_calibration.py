@@ -10,8 +10,9 @@ from torch import Tensor
 from torchcal.measure.loss import Loss
 from torchcal.measure.observations import Observations
 from torchcal.measure.setup import Setup
-from torchcal.params import ParamSet
+from torchcal.params import BASE_NAMES, ParamSet
 from torchcal.problems.base import Problem
+from torchcal.problems.row_frames import base_columns, row_frames, turned
 
 __all__ = ["EffectCalibrationProblem", "GAUGE_WEIGHT"]
 
@@ -103,6 +104,10 @@ class EffectCalibrationProblem(Problem):
             self._jac_cols = self._geo_cols + tuple(c for c in mk if c not in self._geo_cols)
             at = {c: i for i, c in enumerate(self._jac_cols)}
             self._mk_cols = torch.tensor([at[c] for c in mk], device=params.values.device)
+        # effects that move the instrument frame per row: each row's frame is carried exactly
+        self._base_idx = [robot.param_names.index(n) for n in BASE_NAMES]
+        self._moves_frame = any(e.frame_delta(params.values.new_zeros(1, e.n_params), p) is not None
+                                for e, p in zip(self.effects, self._prep))
         self._gauge = None
         if setup is not None and setup.scale_gauge is not None:
             g = setup.scale_gauge[self._geo_free]
@@ -138,6 +143,31 @@ class EffectCalibrationProblem(Problem):
                 total = d if total is None else total + d
         return total
 
+    def _row_frames(self, full: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+        """Each row's instrument frame (rotation, translation, left Jacobian; :func:`row_frames`) when
+        an effect moves it, else None (one frame for every row)."""
+        if not self._moves_frame:
+            return None
+        return row_frames(full[:, self._base_idx], self._row_motion(full))
+
+    def _instrument(self, full: Tensor) -> tuple[Tensor, Tensor]:
+        """The instrument frame of every row, ``(P, N|1, 1, 3, 3)`` and ``(P, N|1, 1, 3)`` (broadcast over
+        the markers): each row's own when an effect moves it, else the one frame."""
+        fr = self._row_frames(full)
+        if fr is not None:
+            return fr[0][:, :, None], fr[1][:, :, None]
+        Rb, tb = self.robot.base_transform(full[:, : self.K])
+        return Rb[:, None, None], tb[:, None, None]
+
+    def _row_motion(self, full: Tensor) -> Tensor:
+        """``(P, N, 6)`` each row's offsets of the instrument frame's parameters, the effects' together."""
+        total = full.new_zeros(full.shape[0], len(self.data), 6)
+        for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
+            d = e.frame_delta(full[:, a:b], prep)
+            if d is not None:
+                total = total + d
+        return total
+
     def marker_positions(self, full: Tensor) -> Tensor:
         """``(P, N, M, 3)`` model positions of every marker in every row (m, instrument frame)."""
         geo = full[:, : self.K]
@@ -147,8 +177,8 @@ class EffectCalibrationProblem(Problem):
             d = e.position_delta(full[:, a:b], prep)
             if d is not None:
                 p = p + d
-        Rb, tb = self.robot.base_transform(geo)
-        return tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
+        Rb, tb = self._instrument(full)
+        return tb + (Rb @ p[..., None])[..., 0]
 
     def marker_frames(self, full: Tensor) -> tuple[Tensor, Tensor]:
         """``(P, N, M, 3, 3)`` marker rotations and ``(P, N, M, 3)`` positions (m), instrument frame;
@@ -159,8 +189,8 @@ class EffectCalibrationProblem(Problem):
             d = e.position_delta(full[:, a:b], prep)
             if d is not None:
                 p = p + d
-        Rb, tb = self.robot.base_transform(geo)
-        return Rb[:, None, None] @ R, tb[:, None, None] + (Rb[:, None, None] @ p[..., None])[..., 0]
+        Rb, tb = self._instrument(full)
+        return Rb @ R, tb + (Rb @ p[..., None])[..., 0]
 
     def _points(self, full: Tensor) -> tuple[Tensor | None, Tensor]:
         """Marker rotations (None without measured orientations) and positions at ``full``. The last
@@ -210,8 +240,8 @@ class EffectCalibrationProblem(Problem):
         turns = self.obs.has_orientation
         R, p = self._points(full)
         s = full[:, K:K + S]
-        dq, dp, dl = self._effect_deltas(full) if self._eff_free.numel() else (None, None, None)
-        Jq = Jmk = None
+        dq, dp, dl, df = self._effect_deltas(full) if self._eff_free.numel() else (None, None, None, None)
+        Jq = Jmk = Jg = None
         if self._jac_cols or dq is not None:  # one kinematic pass for every Jacobian, the columns needed only
             Jg = self.robot.param_jacobian(self.joint_values(full), full[:, :K], kind="pose" if turns else "position",
                                            check=False, joints=dq is not None, columns=self._jac_cols,
@@ -222,6 +252,15 @@ class EffectCalibrationProblem(Problem):
                 n = len(self.robot.marker_names)
                 Jmk = Jg[..., self._mk_cols].unflatten(-1, (n, 3)).diagonal(dim1=2, dim2=-2).movedim(-1, 2)
                 Jg = Jg[..., : len(self._geo_cols)]
+        frames = self._row_frames(full)
+        if frames is not None:  # every column at its row's instrument frame, the base's own taken there
+            Rr, tr, Jl = frames
+            Mr = Rr @ self.robot.base_transform(full[:, :K])[0].transpose(-1, -2)[:, None]
+            Jg, Jq, Jmk = (None if J is None else turned(J, Mr) for J in (Jg, Jq, Jmk))
+            frames = base_columns(p, tr, Jl, turns)  # (B, N, M, 3|6, 6)
+            for j, c in enumerate(self._geo_cols if Jg is not None else ()):
+                if c in self._base_idx:
+                    Jg[..., j] = frames[..., self._base_idx.index(c)]
 
         def per_point(f) -> Tensor:  # (B, 3 n_obs, c) from each point's (n_obs, 3, c)
             out = [f(b).reshape(3 * self.n_obs, -1) for b in range(B)]
@@ -235,16 +274,16 @@ class EffectCalibrationProblem(Problem):
         if self._set_free.numel():
             blocks.append(per_point(lambda b: self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K]))
         if self._eff_free.numel():
-            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp, Jmk, dl))
+            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp, Jmk, dl, frames, df))
         if not blocks:
             return full.new_zeros(B, 3 * self.n_obs, 0)
         return blocks[0] if len(blocks) == 1 else torch.cat(blocks, -1)
 
-    def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    def _effect_deltas(self, full: Tensor) -> tuple[Tensor | None, ...]:
         """Central differences of the effects' joint deflections ``(B, k, N, dof)``, robot-base point
-        displacements ``(B, k, N, M, 3)`` and marker points moved on their links ``(B, k, N, M, 3)``
-        by their free parameters at ``full (B, K')`` (None: no effect moves joints / points / marker
-        points), every perturbation in one population call of the effects alone."""
+        displacements ``(B, k, N, M, 3)``, marker points moved on their links ``(B, k, N, M, 3)`` and
+        offsets of the instrument frame's parameters ``(B, k, N, 6)`` by their free parameters at ``full (B, K')`` (None:
+        no effect moves that), every perturbation in one population call of the effects alone."""
         B, k = full.shape[0], self._eff_free.numel()
         h = self.fd_step * torch.clamp(full[:, self._eff_free].abs(), min=1.0)  # (B, k)
         E = torch.zeros(B, 2 * k, full.shape[1], dtype=full.dtype, device=full.device)
@@ -253,7 +292,7 @@ class EffectCalibrationProblem(Problem):
         E[:, ar + k, self._eff_free] = -h
         F = (full[:, None] + E).reshape(B * 2 * k, -1)
         out = []
-        for kind in ("joint_delta", "position_delta", "point_delta"):
+        for kind in ("joint_delta", "position_delta", "point_delta", "frame_delta"):
             total = None
             for e, prep, (a, b) in zip(self.effects, self._prep, self._offs):
                 d = getattr(e, kind)(F[:, a:b], prep)
@@ -264,31 +303,36 @@ class EffectCalibrationProblem(Problem):
                 hh = (2 * h).reshape(B, k, *([1] * (total.ndim - 2)))
                 total = (total[:, :k] - total[:, k:]) / hh
             out.append(total)
-        return out[0], out[1], out[2]
+        return out[0], out[1], out[2], out[3]
 
     def _effect_columns(self, full: Tensor, p: Tensor, s: Tensor, R: Tensor | None, Jq: Tensor | None,
                         dq: Tensor | None, dp: Tensor | None, Jmk: Tensor | None = None,
-                        dl: Tensor | None = None) -> Tensor:
+                        dl: Tensor | None = None, Jf: Tensor | None = None, df: Tensor | None = None) -> Tensor:
         """``(B, 3 n_obs, k)`` effect columns: the effects' deflections ``dq``, displacements ``dp`` and
         marker points moved on their links ``dl`` per unit parameter (:meth:`_effect_deltas`, no
         kinematics run for them), carried to the observations through the markers' joint Jacobian
         ``Jq (B, N, M, 3|6, dof)`` at the deflected joints, the instrument frame, and each marker's
-        own point columns ``Jmk (B, N, M, 3|6, 3)`` at the current geometry; points turn no frame."""
+        own point columns ``Jmk (B, N, M, 3|6, 3)`` at the current geometry, and the base's columns ``Jf
+        (B, N, M, 3|6, 6)`` at each row's frame for the frame's offsets ``df``; points turn no frame."""
         K, B, k = self.K, full.shape[0], self._eff_free.numel()
         turns = self.obs.has_orientation
-        Rb = self.robot.base_transform(full[:, :K])[0] if dp is not None else None
+        # displacements in the robot base frame turn with each row's frame, or with the one frame
+        Rb = None if dp is None else (self._row_frames(full)[0] if Jf is not None else
+                                      self.robot.base_transform(full[:, :K])[0][:, None].expand(B, len(self.data), 3, 3))
         out = full.new_zeros(B, 3 * self.n_obs, k)
         for b in range(B):
-            D, W = 0.0, None
+            D, W = 0.0, 0.0
             if dq is not None:
                 D = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, :3], dq[b])
-                W = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, 3:], dq[b]) if turns else None
+                W = torch.einsum("nmrd,knd->nmrk", Jq[b, :, :, 3:], dq[b]) if turns else 0.0
             if dp is not None:
-                D = D + torch.einsum("ij,knmj->nmik", Rb[b], dp[b])
+                D = D + torch.einsum("nij,knmj->nmik", Rb[b], dp[b])
             if dl is not None:
                 D = D + torch.einsum("nmra,knma->nmrk", Jmk[b, :, :, :3], dl[b])
-            if turns and W is None:
-                W = torch.zeros_like(D)
+            if df is not None:
+                D = D + torch.einsum("nmrc,knc->nmrk", Jf[b, :, :, :3], df[b])
+                W = W + torch.einsum("nmrc,knc->nmrk", Jf[b, :, :, 3:], df[b]) if turns else 0.0
+            W = (torch.zeros_like(D) if isinstance(W, float) else W) if turns else None
             out[b] = self.obs.project(p[b], D, s[b], W, None if R is None else R[b]).reshape(-1, k)
         return out
 

@@ -16,6 +16,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``tool_set``: three tools logged in a text column ``tool``: a probe 75 mm longer than the
   gripper and a spindle 25 mm aside and 40 mm longer (centimetres: the geometric stage sees only
   the tools' scatter);
+* ``tool_and_station``: the three tools of ``tool_set`` and two tracker stations at once, in two text
+  columns; station B's registration leaves the frame 1.5 mm, 1 mm and 0.5 mm off and turned 2, 1 and
+  2.5 mrad (what the tools leave must still be told from the stations);
 * ``station_levels``: the tracker is set up twice, logged in a text column ``station``; the second
   set-up's registration leaves the instrument frame 0.3 mm along y and 0.1 mm down and turned
   0.25 mrad about y and 0.1 mrad about z from the first's (one rigid motion);
@@ -82,6 +85,11 @@ def _tool_set(tool):
     return np.array([tips[t] for t in tool])
 
 
+def _station_b(station):
+    moved = (station == "B").astype(float)[:, None]
+    return moved * np.array([1.5e-3, -1e-3, 0.5e-3, 2e-3, -1e-3, 2.5e-3])
+
+
 def _station(station):
     moved = (station == "B").astype(float)[:, None]
     return moved * np.array([0.0, 0.3e-3, -0.1e-3, 0.0, 0.25e-3, 0.1e-3])
@@ -121,6 +129,10 @@ DRIFT_CASES: dict[str, dict] = {
     "tool_set": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe", "spindle"]},
                  "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set,
                                                "a probe 75 mm longer, a spindle 25 mm aside and 40 mm longer")])},
+    "tool_and_station": {**_UR5E, "named": ["parameter_drivers"],
+                         "levels": {"tool": ["gripper", "probe", "spindle"], "station": ["A", "B"]},
+                         "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set, "three tools"),
+                                                 Drift("instrument", "level:station", _station_b, "two stations")])},
     "station_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"station": ["A", "B"]},
                        "physics": dict(drifts=[Drift("instrument", "level:station", _station,
                                                      "set-up B moves the frame 0.3 mm, 0.1 mm, turns 0.25 mrad, 0.1 mrad")])},

@@ -97,17 +97,36 @@ def _step_words(h: dict, labels: list[str]) -> dict:
             "t": {name(g): t for g, t in h["tried"].items()}}
 
 
-def _screened(ctx: Context, current: Model, prob, eff, lin: tuple):
+def _screened(ctx: Context, current: Model, prob, eff, lin: tuple, superseded: list):
     """A screened family (:mod:`~torchcal.pipelines.loop.screen`) expanded into the pairs that
-    explain something around ``current`` (``lin``: its residuals, Jacobian, IRLS weights and free
-    values), its torques with the payload an accepted effect fitted; None when no pair passes."""
+    explain something around the model without the ``superseded`` effects (``prob`` and ``lin``: its
+    problem, residuals, Jacobian, IRLS weights and free values), its torques with the payload an
+    accepted effect fitted; None when no pair passes. A family accepted before is screened around
+    ``current``, which holds it (without it, what it took would swamp the noise the next pairs are
+    judged against), and keeps its accepted terms."""
+    accepted = [t for s_ in superseded if s_.name == eff.name for t in s_.terms]
+    if accepted:
+        prob, lin = _around_current(ctx, current)
     r, Jb, w, x = lin
     load = fitted_payload(current.effects, current.params)
     if load is not None:  # the gravity torques as the accepted model knows them: with its payload
         eff = eff.with_payload(load[0], load[1], ctx.data)
     # the noise the current model leaves (the context's may date from a model far coarser)
-    return screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x),
-                         ctx.c)
+    out = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x), ctx.c)
+    if out is not None and accepted:
+        out.terms = list(dict.fromkeys(list(accepted) + out.terms))
+    return out
+
+
+def _around_current(ctx: Context, current: Model):
+    """The current model's problem and its linearisation (residuals, Jacobian, IRLS weights, free
+    values): what a family already accepted is screened around, so that its next pairs are judged
+    against the noise the current model leaves, its own accepted terms in."""
+    prior = prior_weights(ctx.robot, current.params, current.prior_mm, ctx.sigma, current.effects)
+    prob = effect_problem(ctx, current.params, current.effects, ctx.data, prior)
+    x = prob.x0
+    return prob, (prob.residual_vectors(current.params.values[None])[0], prob.data_jacobian(x),
+                  prob.observation_weights(x), x)
 
 
 def _screened_rule(lcv: LinearCV, eff) -> None:
@@ -144,7 +163,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     Jb = prob.data_jacobian(x)
     w = prob.observation_weights(x)
     pb = None if prior is None else prior[base.free_index]
-    if getattr(eff, "screened", False) and (eff := _screened(ctx, current, prob, eff, (r, Jb, w, x))) is None:
+    if getattr(eff, "screened", False) and (eff := _screened(ctx, current, prob, eff, (r, Jb, w, x), superseded)) is None:
         return EffectStart(effect=None, prior_mm=current.prior_mm, reason="no (parameter, driver) pair passed the screening")
     cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
