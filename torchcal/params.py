@@ -10,10 +10,7 @@ from torch import Tensor
 
 from torchcal.advice import advice
 
-__all__ = ["ParamSet", "NoSuchParameter", "display_unit", "BASE_NAMES"]
-
-# the instrument (base) frame's parameters of every robot, in their order: shifts (m), rotation vector (rad)
-BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
+__all__ = ["ParamSet", "NoSuchParameter", "display_unit"]
 
 _WILDCARD = re.compile(r"[*?\[]")  # what makes a glob pattern more than a name
 

@@ -54,7 +54,8 @@ from torch import Tensor
 
 from torchcal.elm import ELM
 from torchcal.kinematics.transforms import homogeneous, so3_exp, so3_log
-from torchcal.params import BASE_NAMES, ParamSet
+from torchcal.kinematics.slots import BASE_NAMES
+from torchcal.params import ParamSet
 
 __all__ = ["CalibratedModel", "EffectHook", "pose_error", "apply_pose_error", "ERROR_NAMES"]
 

@@ -44,10 +44,10 @@ from torchcal.effects.gravity import body_inertials
 from torchcal.effects.anydriver_space import RIGID_BREAKS, rigid
 from torchcal.effects.shapes import screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
+from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.effects import anydriver_evidence as evidence
 from torchcal.effects import anydriver_words as words
 from torchcal.measure.levels import LEVEL_SEP, factor_levels
-from torchcal.params import BASE_NAMES
 
 __all__ = ["ParameterDrivers", "MAX_STEPS"]
 

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_values
 from torchcal.effects.shapes import grid_tags, harmonic_tags, smooth_tags
+from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.measure.levels import factor_levels
 
 RIGID_BREAKS = ("step", "exp")
@@ -29,7 +30,7 @@ def rigid(p: str, markers) -> str | None:
 def coordinates(m: str) -> list[str]:
     """The parameters of the rigid thing ``m`` (:func:`rigid`): the frame's six, a point's three."""
     if m == "base":
-        return [f"base.{a}" for a in ("x", "y", "z", "rx", "ry", "rz")]
+        return list(BASE_NAMES)
     return [f"{m}.{a}" for a in ("dx", "dy", "dz")]
 
 

@@ -12,11 +12,12 @@ from dataclasses import dataclass
 
 from torchcal.kinematics.tree import JointSpec, Marker
 
-__all__ = ["SlotLayout", "slot_layout"]
+__all__ = ["SlotLayout", "slot_layout", "BASE_NAMES"]
 
 _ORIGIN_SLOTS = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")
 _DH_SLOTS = ("a", "d", "alpha", "phi")
-_BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
+# the instrument (base) frame's parameters of every robot, in their order: shifts (m), rotation vector (rad)
+BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 # DH errors read best grouped by row: a, d, alpha, theta
 _DH_ORDER = {"da": 0, "dd": 1, "dalpha": 2, "dtheta": 3}
 
@@ -51,7 +52,7 @@ def slot_layout(joints: list[JointSpec], joint_names: list[str], markers: list[M
     ``markers``."""
     entries: list[tuple[str, str, bool]] = []  # (name, unit, free by default)
     slot_param: list[str | None] = []
-    for n in _BASE_NAMES:
+    for n in BASE_NAMES:
         slot_param.append(n)
         entries.append((n, "m" if n[-1] in "xyz" and "r" not in n[5:] else "rad", True))
     urdf_idx = [j for j, jt in enumerate(joints) if jt.dh is None]

@@ -10,7 +10,8 @@ from torch import Tensor
 from torchcal.measure.loss import Loss
 from torchcal.measure.observations import Observations
 from torchcal.measure.setup import Setup
-from torchcal.params import BASE_NAMES, ParamSet
+from torchcal.kinematics.slots import BASE_NAMES
+from torchcal.params import ParamSet
 from torchcal.problems.base import Problem
 from torchcal.problems.row_frames import base_columns, row_frames, turned
 
@@ -252,11 +253,12 @@ class EffectCalibrationProblem(Problem):
                 n = len(self.robot.marker_names)
                 Jmk = Jg[..., self._mk_cols].unflatten(-1, (n, 3)).diagonal(dim1=2, dim2=-2).movedim(-1, 2)
                 Jg = Jg[..., : len(self._geo_cols)]
-        frames = self._row_frames(full)
+        frames, rows = self._row_frames(full), None
         if frames is not None:  # every column at its row's instrument frame, the base's own taken there
             Rr, tr, Jl = frames
             Mr = Rr @ self.robot.base_transform(full[:, :K])[0].transpose(-1, -2)[:, None]
             Jg, Jq, Jmk = (None if J is None else turned(J, Mr) for J in (Jg, Jq, Jmk))
+            rows = Rr  # the robot-base displacements of the effects turn with each row's frame
             frames = base_columns(p, tr, Jl, turns)  # (B, N, M, 3|6, 6)
             for j, c in enumerate(self._geo_cols if Jg is not None else ()):
                 if c in self._base_idx:
@@ -274,7 +276,7 @@ class EffectCalibrationProblem(Problem):
         if self._set_free.numel():
             blocks.append(per_point(lambda b: self.obs.setup_jacobian(p[b], s[b])[..., self._set_free - K]))
         if self._eff_free.numel():
-            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp, Jmk, dl, frames, df))
+            blocks.append(self._effect_columns(full, p, s, R, Jq, dq, dp, Jmk, dl, frames, df, rows))
         if not blocks:
             return full.new_zeros(B, 3 * self.n_obs, 0)
         return blocks[0] if len(blocks) == 1 else torch.cat(blocks, -1)
@@ -307,17 +309,19 @@ class EffectCalibrationProblem(Problem):
 
     def _effect_columns(self, full: Tensor, p: Tensor, s: Tensor, R: Tensor | None, Jq: Tensor | None,
                         dq: Tensor | None, dp: Tensor | None, Jmk: Tensor | None = None,
-                        dl: Tensor | None = None, Jf: Tensor | None = None, df: Tensor | None = None) -> Tensor:
+                        dl: Tensor | None = None, Jf: Tensor | None = None, df: Tensor | None = None,
+                        rows: Tensor | None = None) -> Tensor:
         """``(B, 3 n_obs, k)`` effect columns: the effects' deflections ``dq``, displacements ``dp`` and
         marker points moved on their links ``dl`` per unit parameter (:meth:`_effect_deltas`, no
         kinematics run for them), carried to the observations through the markers' joint Jacobian
         ``Jq (B, N, M, 3|6, dof)`` at the deflected joints, the instrument frame, and each marker's
         own point columns ``Jmk (B, N, M, 3|6, 3)`` at the current geometry, and the base's columns ``Jf
-        (B, N, M, 3|6, 6)`` at each row's frame for the frame's offsets ``df``; points turn no frame."""
+        (B, N, M, 3|6, 6)`` at each row's frame (its rotation ``rows (B, N, 3, 3)``) for the frame's offsets
+        ``df``; points turn no frame."""
         K, B, k = self.K, full.shape[0], self._eff_free.numel()
         turns = self.obs.has_orientation
         # displacements in the robot base frame turn with each row's frame, or with the one frame
-        Rb = None if dp is None else (self._row_frames(full)[0] if Jf is not None else
+        Rb = None if dp is None else (rows if rows is not None else
                                       self.robot.base_transform(full[:, :K])[0][:, None].expand(B, len(self.data), 3, 3))
         out = full.new_zeros(B, 3 * self.n_obs, k)
         for b in range(B):

@@ -15,11 +15,11 @@ from torchcal.measure.memory import check_memory
 from torchcal.measure.records import ErrorDetails, Suspect
 from torchcal.measure.registration import GROSS_FLOOR, GROSS_K
 from torchcal.measure.data import Measurements
+from torchcal.kinematics.slots import BASE_NAMES
 
 __all__ = ["FleetData", "validate_fleet", "register_fleet", "register_fleet_robust", "gross_lists",
            "check_fleet_motion", "check_rows", "BASE_NAMES"]
 
-BASE_NAMES = ("base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz")
 # Jacobian entries evaluated at once, per device: a CPU's caches hold a few hundred robots' worth;
 # a GPU wants large batches but the kinematics' intermediates are ~15 times the Jacobian
 _CHUNK = {"cpu": 1 << 20, "cuda": 1 << 26}

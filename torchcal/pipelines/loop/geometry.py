@@ -222,8 +222,8 @@ def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, g
 
 
 # the noise an accepted effect leaves must fall this many times below the one the geometry was chosen
-# under before the geometry is judged again: a tool change of centimetres hides every joint origin, a
-# compliance of a tenth of a millimetre hides none
+# under before the geometry is judged again: joint origins the rule refused under that much more noise
+# (a tool change of centimetres hides them all) may be seen now
 AGAIN = 3.0
 
 
