@@ -202,6 +202,15 @@ class ParameterDrivers(Effect):
             return f"{whole}~{d}~{t}" if m is not None and t.startswith(RIGID_BREAKS) else f"{p}~{d}~{t}"
         return f"{p}~{d}~levels" if m is None else f"{whole}~{d}~levels"
 
+    def setup_parameters(self) -> dict[str, str]:
+        names = self.param_names
+        out = {}
+        for i, (p, _, _) in enumerate(self.terms):
+            m = rigid(p, self.robot.marker_names)
+            if m is not None:
+                out[names[i]] = "frame" if m == "base" else "marker"
+        return out
+
     def modes(self):
         out: dict[str, list[int]] = {}
         for i, (p, d, t) in enumerate(self.terms):

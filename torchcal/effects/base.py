@@ -157,6 +157,13 @@ class Effect:
         """Parameters every mode needs (an unknown payload): free whenever any mode is."""
         return []
 
+    def setup_parameters(self) -> dict[str, str]:
+        """This effect's parameters that move an unknown of the set-up rather than the robot: full
+        name -> ``"frame"`` (the instrument's frame) or ``"marker"`` (a marker point). Where the data
+        cannot tell such a parameter from a robot error, the set-up's is the one kept, as for the
+        registration itself (:data:`~torchcal.problems.identifiability.DEFAULT_PREFER`). Default: none."""
+        return {}
+
     def with_modes(self, labels: list[str]) -> "Effect":
         """A copy holding only the modes ``labels`` (default: modes are joints)."""
         keep = [j for j in self.joints if j in set(labels)]

@@ -24,7 +24,7 @@ from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate_prior import PriorChoice, choose_prior
 from torchcal.pipelines.calibration_result import CalibrationResult
-from torchcal.pipelines.fitting import fit_identified, is_small, reduce_free
+from torchcal.pipelines.fitting import fit_identified, is_small, nothing_left, reduce_free
 from torchcal.pipelines.precision import check_plausible, implausible_values
 from torchcal.problems.calibration import CalibrationProblem
 from torchcal.problems.template import candidate_template
@@ -290,6 +290,10 @@ class _Fitter:
                                        solve=self.solve, markers=self.robot.marker_names, kind=o.kind,
                                        prefer=o.prefer, reduce=o.reduce, noise=noise, plausible=self.plausible)
             report = rep or report
+            if rep is not None and rep.imprecise and all(n.startswith("base.") for n in p.free_names):
+                # the instrument frame is never fixed for imprecision (it has no plausible size); a
+                # calibration left with it alone has found nothing of the robot
+                raise ValueError(nothing_left({n: rep.reasons[n] for n in rep.imprecise}))
         return p, s, report, loss_obj
 
     def _at(self, cur: ParamSet) -> ParamSet:

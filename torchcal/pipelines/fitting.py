@@ -3,6 +3,7 @@ judge again at the solution, and refit while the identifiable set grows."""
 from __future__ import annotations
 
 import copy
+import glob
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -17,11 +18,12 @@ from torchcal.params import ParamSet
 from torchcal.pipelines.precision import imprecise, imprecise_reason
 from torchcal.pipelines.rounds import fit_rounds
 from torchcal.problems.base import Problem
-from torchcal.problems.identifiability import analyse_jacobian
+from torchcal.problems.identifiability import DEFAULT_PREFER, analyse_jacobian
 from torchcal.problems.identifiability_report import IdentifiabilityReport
 from torchcal.problems.uncertainty import residual_noise
 
-__all__ = ["reduce_free", "rank_judged", "fit_identified", "FitOptions", "too_few_residuals", "SMALL_DATA", "is_small"]
+__all__ = ["reduce_free", "rank_judged", "fit_identified", "FitOptions", "too_few_residuals", "nothing_left",
+           "setup_first", "SMALL_DATA", "is_small"]
 
 # Measured values per candidate parameter below which a data set is small: there a prior, its scale
 # chosen by cross-validation, competes with fitting or fixing each parameter
@@ -67,9 +69,10 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
         out.fix(*rep.dropped)
     if noise is not None and rep.identifiable:
         pos = [params.free_names.index(n) for n in rep.identifiable]
-        # the set-up's planes and fixed points are never dropped for imprecision (no plausible size):
+        # the instrument frame and the set-up's planes and fixed points are never dropped for
+        # imprecision (no plausible size: a tracker stands metres from the robot, turned any way):
         # without them the observations that touch them mean nothing
-        lim = [units[i] if not params.free_names[i].startswith(SETUP_PREFIXES) else "set-up" for i in pos]
+        lim = [units[i] if not params.free_names[i].startswith(("base.", *SETUP_PREFIXES)) else "set-up" for i in pos]
         loose = imprecise(J[:, pos], rep.identifiable, lim, noise, plausible)
         for n, se in loose.items():
             out.fix(n)
@@ -78,6 +81,31 @@ def reduce_free(make_problem: Callable[[ParamSet], Problem], params: ParamSet, *
             rep.imprecise.append(n)
             rep.reasons[n] = imprecise_reason(n, units[params.free_names.index(n)], se, noise)
     return out, rep
+
+
+def setup_first(effects) -> list[list[str]] | None:
+    """Preference tiers (``prefer=`` of :func:`~torchcal.problems.identifiability.analyse_jacobian`)
+    that keep the effects' set-up parameters (:meth:`~torchcal.effects.base.Effect.setup_parameters`)
+    with the set-up's own: a frame per level or in time with the instrument frame, a marker point's
+    motion with the points. A robot error the data cannot tell from them is the one dropped, as
+    it is for the registration; judged the other way, the fit drifts along the tie (a first joint's
+    zero half a radian from where it is, the frames turned back to meet it). None when there are none."""
+    roles = {n: r for e in effects for n, r in e.setup_parameters().items()}
+    if not roles:
+        return None
+    exact = {r: [glob.escape(n) for n, rr in roles.items() if rr == r] for r in ("frame", "marker")}
+    return [DEFAULT_PREFER[0] + exact["frame"], DEFAULT_PREFER[1] + exact["marker"]]
+
+
+def nothing_left(loose: dict[str, str]) -> str:
+    """Why no candidate is left to fit (``loose``: each parameter fixed for imprecision -> why), and
+    the way out."""
+    if not loose:
+        return "no candidate parameter is identifiable from these rows: measure poses that move every joint"
+    n, why = next(iter(loose.items()))
+    fix = advice("plausible={'m': …, 'rad': …}", "--plausible-mm / --plausible-mrad")
+    return (f"nothing left to fit: every identifiable parameter is pinned down worse than its plausible size "
+            f"({len(loose)} fixed, e.g. {why}); loosen the plausible sizes ({fix}) or measure more poses")
 
 
 def too_few_residuals(m: int, k: int, reduced: bool) -> str:
@@ -178,6 +206,7 @@ class _OneProblem:
         self.judged = opt.noise is not None and not isinstance(opt.noise, (int, float))
         self.fixed_nz = None if self.judged else opt.noise  # a noise known before any fit
         self.loose: dict[str, str] = {}
+        self.vague: set[str] = set()  # those of self.loose fixed for imprecision (not for rank)
         self.p, self.res, self.prob, self.rep = params, None, None, None
         self.grown: tuple | None = None
         self.ranked: tuple | None = None  # (free, values, rank_judged there) of the last judgement
@@ -203,13 +232,7 @@ class _OneProblem:
         return out, res, prob
 
     def _nothing_left(self) -> str:
-        """Why no candidate is left to fit, and the way out."""
-        if not self.loose:
-            return "no candidate parameter is identifiable from these rows: measure poses that move every joint"
-        n, why = next(iter(self.loose.items()))
-        fix = advice("plausible={'m': …, 'rad': …}", "--plausible-mm / --plausible-mrad")
-        return (f"nothing left to fit: every identifiable parameter is pinned down worse than its plausible size "
-                f"({len(self.loose)} fixed, e.g. {why}); loosen the plausible sizes ({fix}) or measure more poses")
+        return nothing_left(self.loose)
 
     def reduce(self, p: ParamSet, noise):
         opt = self.opt
@@ -269,6 +292,8 @@ class _OneProblem:
             if n not in rep.reasons:
                 rep.dropped.append(n)
                 rep.reasons[n] = why
+            if n in self.vague and n not in rep.imprecise:  # fixed in an earlier round, for imprecision
+                rep.imprecise.append(n)
         return rep
 
     # ------------------------------------------------------------------ the Rounds hooks
@@ -301,6 +326,7 @@ class _OneProblem:
         imp = [n for n in rep2.imprecise if n not in self.loose]
         tied = [n for n in p.free_names if n not in nxt.free_names and n not in imp]
         self.loose.update({n: rep2.reasons[n] for n in imp})
+        self.vague.update(imp)
         self.loose.update({n: rep2.reasons.get(n, f"{n} depends on other parameters at the solution") for n in tied})
         self.rep = self.keep_reasons(rep2)
         return "restart" if [n for n in imp if n in p.free_names] or tied else None

@@ -25,6 +25,11 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``setup_change``: the tracker knocked and registered again 50 min into the session: its frame
   moves 0.2 mm along x and 0.15 mm up and turns 0.2 mrad about x and 0.15 mrad about z, and stays
   (``time`` column, s; held-out rows from the same session);
+* ``station_far``: the tracker at two stations, logged in a text column ``station``: B stands 0.9 m
+  back, 1.4 m aside and 0.1 m higher than A, turned 0.8 rad about z and 40 and 20 mrad about x and y
+  (metres: the geometric stage, one registration for both, sees nothing of the robot);
+* ``tracker_moved``: the tracker carried to another place at row 180 and the session carried on,
+  with no column to say so: 0.3 m, 0.5 m and 40 mm away, turned 0.45 rad about z and 30 mrad about x;
 * ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
   beyond (a gear whose backlash region is soft);
 * ``prismatic_guide``: the UR5e on a 1.5 m linear track whose carriage wanders 40 µm sideways
@@ -95,6 +100,15 @@ def _station(station):
     return moved * np.array([0.0, 0.3e-3, -0.1e-3, 0.0, 0.25e-3, 0.1e-3])
 
 
+def _far_station(station):
+    moved = (station == "B").astype(float)[:, None]
+    return moved * np.array([-0.9, 1.4, 0.1, 0.04, 0.02, -0.8])
+
+
+def _carried(rows):
+    return (rows >= 180).astype(float)[:, None] * np.array([0.3, -0.5, 0.04, -0.03, 0.0, 0.45])
+
+
 def _knocked(t):
     moved = ((t - t[0] if t.ndim else t) >= 3000.0).astype(float)[..., None]
     return moved * np.array([0.2e-3, 0.0, 0.15e-3, 0.2e-3, 0.0, 0.15e-3])
@@ -139,6 +153,13 @@ DRIFT_CASES: dict[str, dict] = {
     "setup_change": {**_UR5E, "named": ["parameter_drivers"], "interleave": True, "covariates": {"time": ("time", {})},
                      "physics": dict(drifts=[Drift("instrument", "cov:time", _knocked,
                                                    "the frame moves 0.2 mm, 0.15 mm and turns 0.2, 0.15 mrad at 50 min")])},
+    "station_far": {**_UR5E, "named": ["parameter_drivers"], "levels": {"station": ["A", "B"]},
+                    "physics": dict(drifts=[Drift("instrument", "level:station", _far_station,
+                                                  "station B 0.9 m, 1.4 m, 0.1 m away, turned 0.8 rad")])},
+    "tracker_moved": {**_UR5E, "named": ["parameter_drivers"],
+                      "physics": dict(drifts=[Drift("instrument", "row", _carried,
+                                                    "the tracker carried 0.3 m, 0.5 m away and turned 0.45 rad "
+                                                    "at row 180")])},
     "torque_stiffness": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
                          "physics": dict(payload_kg=5.0, payload_com_m=(0.0, 0.0, 0.1),
                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",

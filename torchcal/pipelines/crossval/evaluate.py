@@ -16,7 +16,7 @@ from torchcal.pipelines.crossval.models import (Context, Model, effect_problem, 
                                                 observation_errors)
 from torchcal.pipelines.crossval.priors import PRIOR_SCALES_MM, prior_weights
 from torchcal.pipelines.crossval.scores import effective_params, penalised, row_scores
-from torchcal.pipelines.fitting import fit_identified, too_few_residuals
+from torchcal.pipelines.fitting import fit_identified, setup_first, too_few_residuals
 from torchcal.problems.effect_calibration import EffectCalibrationProblem
 from torchcal.problems.uncertainty import standard_errors
 
@@ -34,7 +34,7 @@ def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements
     noise = fit_noise if prior is None else None
     optional = tuple(f"{e.name}." for e in effects)
     ps, _, _ = fit_identified(make, params, reduce=reduce, markers=ctx.robot.marker_names, options=opts, noise=noise,
-                              zero_dropped=optional, plausible=ctx.plausible)
+                              zero_dropped=optional, plausible=ctx.plausible, prefer=setup_first(effects))
     return ps
 
 

@@ -15,6 +15,7 @@ from torchcal.pipelines.crossval.models import Context, Model, noise_sigma, obse
 from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior, rescore
 from torchcal.pipelines.loop.records import Candidate, Trial
 from torchcal.pipelines.crossval.scores import HUBER_K, compare, penalised, row_scores
+from torchcal.pipelines.fitting import setup_first
 from torchcal.pipelines.loop.stages import elm_inputs, residual_matrix, stage_stats
 from torchcal.pipelines.loop.start import effect_start
 from torchcal.problems.identifiability import analyse_jacobian
@@ -33,7 +34,7 @@ def parameter_table(ctx: Context, m: Model) -> tuple[list, dict]:
              for n, v, u, f in zip(p.names, p.values.tolist(), p.units, p.free.tolist()) if f]
     prob = observation_model(ctx, p, m.effects, ctx.data)
     rep = analyse_jacobian(prob.data_jacobian(prob.x0), p.free_names, [p.units[i] for i in p.free_index.tolist()],
-                           markers=ctx.robot.marker_names)
+                           markers=ctx.robot.marker_names, prefer=setup_first(m.effects))
     fin = lambda x: float(x) if math.isfinite(x) else None  # noqa: E731
     out = {"condition": fin(rep.condition), "O1": fin(rep.O1), "O2": fin(rep.O2), "O3": fin(rep.O3),
            "O4": fin(rep.O4), "rank": rep.rank, "n_params": rep.n_params, "not_seen_by_data": list(rep.dropped)}
