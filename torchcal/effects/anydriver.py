@@ -42,7 +42,7 @@ from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
 from torchcal.effects.anydriver_space import RIGID_BREAKS, rigid
-from torchcal.effects.shapes import screen_tags, shape_column
+from torchcal.effects.shapes import PERIODIC, cycle_label, screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
 from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.effects import anydriver_evidence as evidence
@@ -198,8 +198,9 @@ class ParameterDrivers(Effect):
         mid-session, is one rigid motion, whichever of its coordinates the geometry happens to show)."""
         m = rigid(p, self.robot.marker_names)
         whole = "base.frame" if m == "base" else f"{m}.point"
+        shape = cycle_label(t) if t.startswith(PERIODIC) else t  # a cycle is one finding, whatever its phase
         if not _levels(t):
-            return f"{whole}~{d}~{t}" if m is not None and t.startswith(RIGID_BREAKS) else f"{p}~{d}~{t}"
+            return f"{whole}~{d}~{shape}" if m is not None and t.startswith(RIGID_BREAKS) else f"{p}~{d}~{shape}"
         return f"{p}~{d}~levels" if m is None else f"{whole}~{d}~levels"
 
     def setup_parameters(self) -> dict[str, str]:

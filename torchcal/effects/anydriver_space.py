@@ -1,6 +1,7 @@
 """The search space of :class:`~torchcal.effects.anydriver.ParameterDrivers` beyond its screening:
 every shape of a (parameter, driver) pair, the steps, settlings and knees its driver's grid offers,
-and the rigid things whose coordinates move together (a marker point, the instrument frame).
+the cycles a time driver is searched for, and the rigid things whose coordinates move together (a
+marker point, the instrument frame).
 
 The screening (:mod:`torchcal.pipelines.loop.screen`) keeps the pairs that explain something and the
 best breaks of each; :func:`expanded` turns them into the terms the selection chooses from, and
@@ -11,13 +12,14 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_values
-from torchcal.effects.shapes import grid_tags, harmonic_tags, smooth_tags
+from torchcal.effects.shapes import PERIODIC, grid_tags, harmonic_tags, period_frequencies, smooth_tags
 from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.measure.levels import factor_levels
 
-RIGID_BREAKS = ("step", "exp")
+# shapes a rigid thing takes as a whole, all its coordinates one mode, when one coordinate shows them
+RIGID_BREAKS = ("step", "exp", *PERIODIC)
 
-__all__ = ["RIGID_BREAKS", "rigid", "coordinates", "shapes_for", "breaks", "expanded", "space_size"]
+__all__ = ["RIGID_BREAKS", "rigid", "coordinates", "shapes_for", "breaks", "cycles", "expanded", "space_size"]
 
 
 def rigid(p: str, markers) -> str | None:
@@ -54,6 +56,17 @@ def breaks(eff, driver: str, data, tq: Tensor | None = None) -> list[str]:
     return grid_tags(kind, x[torch.isfinite(x)])
 
 
+def cycles(eff, driver: str, data) -> tuple[list[float], float]:
+    """The frequencies (cycles per driver unit) a time driver is searched for on ``data``
+    (:func:`~torchcal.effects.shapes.period_frequencies`) and its first training value, where each
+    cycle's phase is counted from; no frequency for any other driver."""
+    if driver_kind(driver) != "time":
+        return [], 0.0
+    x = driver_values(eff.robot, driver, data.q, data.covariates, None)
+    x = x[torch.isfinite(x)]
+    return (period_frequencies(x), float(x.min())) if x.numel() else ([], 0.0)
+
+
 def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None):
     """A copy of ``eff`` whose terms are every shape of each of ``pairs`` on ``data`` (``steps``: pair
     -> the breaks to offer, :func:`breaks`). A rigid thing moves as a whole: per level all its
@@ -87,7 +100,7 @@ def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None)
 
 def space_size(eff, pairs: list[tuple[str, str]], data) -> int:
     """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every break of
-    its driver's grid, every level."""
+    its driver's grid, both phases of every cycle searched, every level."""
     tq = eff.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
     levels = factor_levels(data.covariates)
     per: dict[str, int] = {}
@@ -96,5 +109,6 @@ def space_size(eff, pairs: list[tuple[str, str]], data) -> int:
             per[d] = len(levels[d.split(":", 1)[1]]) - 1
             continue
         x = driver_values(eff.robot, d, data.q, data.covariates, tq)
-        per[d] = len(shapes_for(eff, d, x[torch.isfinite(x)])) + len(breaks(eff, d, data, tq))
+        per[d] = (len(shapes_for(eff, d, x[torch.isfinite(x)])) + len(breaks(eff, d, data, tq))
+                  + 2 * len(cycles(eff, d, data)[0]))
     return sum(per[d] for _, d in pairs)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_unit, driver_words
-from torchcal.effects.shapes import settle_parts
+from torchcal.effects.shapes import PERIODIC, cycle_period, period_parts, settle_parts
 from torchcal.params import display_unit
 
 __all__ = ["coef_unit", "axis_label", "parameter_words", "mode_words", "describe"]
@@ -77,6 +77,8 @@ def mode_words(eff, label: str) -> str:
             return f"{what} per level of {d.split(':', 1)[1]}"
         if tag.startswith("exp"):
             return f"{what} as it settles along {driver_words(d)}, with a time constant of {_span(settle_parts(tag)[0], eff.robot, d)}"
+        if tag.startswith("cyc"):
+            return f"{what} in a cycle along {driver_words(d)}, with a period of {_span(cycle_period(tag), eff.robot, d)}"
         at = float(tag[4:])
         return f"{what} at {f'row {int(at + 0.5)}' if driver_kind(d) == 'row' else f'{driver_words(d)} = {at:.6g}'}, and stays"
     what = parameter_words(eff, p)
@@ -87,6 +89,8 @@ def mode_words(eff, label: str) -> str:
     if tag.startswith("exp"):
         tau = _span(settle_parts(tag)[0], eff.robot, d)
         return f"{what} settles along {driver_words(d)}, with a time constant of {tau}"
+    if tag.startswith("cyc"):
+        return f"{what} cycles along {driver_words(d)}, with a period of {_span(cycle_period(tag), eff.robot, d)}"
     shape = {"lin": "linearly", "quad": "in a bow", "cube": "in an S"}.get(tag)
     if shape is None:
         shape = ("in a smooth curve" if tag.startswith("spl") else "periodically" if tag[:3] in ("sin", "cos")
@@ -117,6 +121,10 @@ def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
         k = float(tag[3:])
         return (f"{what} changes by an extra {_rate(v, unit, eff.robot, d)} ({driver_words(d)}) within ±{k:.4g} "
                 f"{driver_unit(eff.robot, d)}, and no further beyond: its stiffness changes there")
+    if tag.startswith(PERIODIC):
+        phase, period, _ = period_parts(tag)
+        return (f"{what} swings by ±{_value(abs(v), unit)} ({phase} phase) along {driver_words(d)}, with a period "
+                f"of {_span(period, eff.robot, d)}")
     if tag[:3] in ("sin", "cos"):
         return f"{what} varies by ±{_value(abs(v), unit)} with {tag[:3]}({tag[3:]}·{d.split(':', 1)[1]})"
     top = 1.0 if tag in ("quad", "cube") else ((mean + half - float(tag[3:])) / (half or 1.0)) ** 2

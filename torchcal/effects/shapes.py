@@ -11,6 +11,9 @@ Tags (the strings a saved model carries):
 * ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
 * ``exp<τ>@<x₀>``: ``exp(−(x − x₀)₊ / τ)`` (a first-order settling from the session's start ``x₀``
   with time constant ``τ``: a tracker or a frame warming up, a creep dying away);
+* ``psin<P>@<x₀>`` / ``pcos<P>@<x₀>``: ``sin`` / ``cos`` of ``2π (x − x₀) / P`` (a time driver: a
+  frame or a part that cycles with the room, air conditioning or a machine nearby, with a period
+  ``P`` nobody logged; both phases together are one cycle of any phase);
 * ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``);
 * ``sat<k>``: ``x`` clipped to ``±k`` (a torque driver: a stiffness that changes beyond ``±k``, a
   dead zone or a saturation about zero load);
@@ -18,7 +21,8 @@ Tags (the strings a saved model carries):
 
 Knots of the smooth and piecewise shapes sit at quantiles of the training values; step breaks
 at the midpoints between consecutive distinct training values (every place a step can be seen);
-settling time constants on a geometric grid of the training span (:func:`settle_tags`).
+settling time constants on a geometric grid of the training span (:func:`settle_tags`); periods on
+a periodogram's grid of frequencies (:func:`period_tags`).
 """
 from __future__ import annotations
 
@@ -26,7 +30,10 @@ import torch
 from torch import Tensor
 
 __all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "settle_tags",
-           "grid_tags", "screen_tags", "settle_parts", "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES", "SETTLE_STEPS"]
+           "grid_tags", "screen_tags", "settle_parts", "period_parts", "period_tag", "period_frequencies", "cycle_label",
+           "cycle_period", "UNIT",
+           "PERIODIC", "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES", "SETTLE_STEPS", "MAX_CYCLES",
+           "PERIOD_OVERSAMPLE"]
 
 HARMONICS = 2                      # highest harmonic of an angle driver
 KNOT_QUANTILES = (1 / 3, 2 / 3)    # knots of the quadratic spline, as quantiles of the training values
@@ -34,6 +41,17 @@ HINGE_QUANTILES = (0.2, 0.4, 0.6, 0.8)  # break points of the piecewise-linear s
 # settling time constants: the training span over 2^(k/4), k = 2 … SETTLE_STEPS + 1 (span/1.4 to
 # span/76, each 19 % from the next); a slower settling is a rate or a bow, a faster one a step
 SETTLE_STEPS = 24
+# cycles of a time driver: from one over the training span up to MAX_CYCLES (and at most a quarter
+# of the distinct times: a cycle needs rows at each of its phases), PERIOD_OVERSAMPLE frequencies
+# per 1/span, a periodogram's grid (between neighbours the phase drifts by 1/16 of a cycle over the
+# whole span; the best one is refined further by the screening)
+MAX_CYCLES = 16
+PERIOD_OVERSAMPLE = 8
+PERIODIC = ("psin", "pcos")
+# a parameter's own column, 1 on every row: never a term of a model (a constant is the parameter
+# itself), but what every shape multiplies, row by row, so that a search over many shapes of one
+# parameter takes its column once
+UNIT = "one"
 
 
 def _num(tag: str, prefix: str) -> float:
@@ -52,6 +70,12 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return ((x - centre) / h) ** 3
     if tag.startswith("lvl="):
         return x
+    if tag == UNIT:
+        return torch.ones_like(x)
+    if tag.startswith(PERIODIC):
+        phase, period, x0 = period_parts(tag)
+        a = (2 * torch.pi / period) * (x - x0)
+        return torch.sin(a) if phase == "sin" else torch.cos(a)
     for p in ("sin", "cos"):
         if tag.startswith(p):
             n = int(tag[3:])
@@ -69,7 +93,7 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         k = _num(tag, "sat")
         return torch.clamp(x, min=-k, max=k)
     raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, spl<k>, sin<n>, cos<n>, step<k>, exp<tau>@<x0>, "
-                     "hinge<k>, sat<k>, lvl=<level>")
+                     "psin<P>@<x0>, pcos<P>@<x0>, hinge<k>, sat<k>, lvl=<level>")
 
 
 def _quantiles(x: Tensor, qs) -> list[float]:
@@ -126,6 +150,39 @@ def settle_tags(x: Tensor, n: int = SETTLE_STEPS) -> list[str]:
     if not hi > lo:
         return []
     return [f"exp{(hi - lo) / 2 ** (k / 4):.6g}@{lo:.10g}" for k in range(2, n + 2)]
+
+
+def period_parts(tag: str) -> tuple[str, float, float]:
+    """``psin<P>@<x₀>`` -> ``("sin", P, x₀)`` (``pcos``: ``"cos"``), in the driver's unit."""
+    period, _, x0 = tag[4:].partition("@")
+    return tag[1:4], float(period), float(x0)
+
+
+def cycle_label(tag: str) -> str:
+    """``cyc<P>@<x₀>``: the label of the mode that holds both phases of the cycle of ``tag``."""
+    return "cyc" + tag[4:]
+
+
+def cycle_period(label: str) -> float:
+    """The period of a ``cyc<P>@<x₀>`` mode label (:func:`cycle_label`)."""
+    return float(label[3:].partition("@")[0])
+
+
+def period_tag(phase: str, period: float, x0: float) -> str:
+    """The tag of one phase (``"sin"`` or ``"cos"``) of a cycle of ``period`` from ``x0``."""
+    return f"p{phase}{period:.8g}@{x0:.10g}"
+
+
+def period_frequencies(x: Tensor) -> list[float]:
+    """Frequencies (cycles per driver unit) of the cycles a time driver with training values ``x``
+    is searched for (:data:`MAX_CYCLES`, :data:`PERIOD_OVERSAMPLE`); none when too few distinct
+    values can show one."""
+    lo, hi = float(x.min()), float(x.max())
+    cycles = min(MAX_CYCLES, int(torch.unique(x.double()).numel()) // 4)
+    if not hi > lo or cycles < 1:
+        return []
+    span = hi - lo
+    return [k / (PERIOD_OVERSAMPLE * span) for k in range(PERIOD_OVERSAMPLE, cycles * PERIOD_OVERSAMPLE + 1)]
 
 
 def grid_tags(kind: str, x: Tensor) -> list[str]:

@@ -11,6 +11,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``instrument_settle``: the tracker warms up after it is switched on: its frame turns 0.5 mrad about
   its x axis and rises 0.06 mm, settling with a time constant of 15 min (``time`` column, s);
   held-out rows from the same session;
+* ``instrument_cycle``: the tracker's frame swings with the air conditioning, a 33-minute cycle of
+  a phase nobody logged: it turns 0.15 mrad about z and 0.08 mrad about y and moves 0.04 mm along x
+  (``time`` column, s; held-out rows from the same session);
 * ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
   12 mm and 4 mm off the gripper's;
 * ``tool_set``: three tools logged in a text column ``tool``: a probe 75 mm longer than the
@@ -81,6 +84,13 @@ def _warm_up(t):
     return np.stack([z, z, 0.06e-3 * f, 0.5e-3 * f, z, z], -1)
 
 
+def _air_conditioning(t):
+    h = (t - t[0] if t.ndim else t) / 3600.0
+    w = np.sin(2 * np.pi * h / (33.0 / 60.0) + 1.1)
+    z = 0 * h
+    return np.stack([0.04e-3 * w, z, z, z, 0.08e-3 * w, 0.15e-3 * w], -1)
+
+
 def _probe(tool):
     return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
 
@@ -137,6 +147,11 @@ DRIFT_CASES: dict[str, dict] = {
                           "physics": dict(drifts=[Drift("instrument", "cov:time", _warm_up,
                                                         "the instrument turns 0.5 mrad and rises 0.06 mm, "
                                                         "settling in 15 min")])},
+    "instrument_cycle": {**_UR5E, "named": ["parameter_drivers"], "interleave": True,
+                         "covariates": {"time": ("time", {})},
+                         "physics": dict(drifts=[Drift("instrument", "cov:time", _air_conditioning,
+                                                       "the instrument turns 0.15 mrad about z and 0.08 mrad about y "
+                                                       "and moves 0.04 mm in a 33-minute cycle")])},
     "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
                     "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
                                                   "the probe's point is 12 mm, 4 mm off the gripper's")])},

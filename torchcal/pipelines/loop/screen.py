@@ -15,6 +15,12 @@ same way, one column each, and the best :data:`~torchcal.effects.anydriver.MAX_S
 so are the knees of the
 piecewise-linear shapes of the other drivers (hinges, and clips of a torque, on a fine grid).
 
+A time driver is also searched for a cycle (a frame that swings with the air conditioning), which
+no low-order shape sees: per pair, each frequency of a periodogram's grid explains what its sine and
+cosine together explain (χ² with 2 degrees of freedom on noise), and the best frequency, judged at
+the level shared by the grid (Bonferroni), is one more test of the screening. A kept pair is offered
+its best cycle, the frequency refined between the grid's neighbours.
+
 Screening only prunes: what is kept is still chosen by the cross-validated rule, at the Bonferroni
 threshold of the whole space (every shape of every pair), so a pair kept by chance is not accepted
 by chance.
@@ -27,7 +33,9 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
-from torchcal.effects.anydriver_space import breaks, expanded, space_size
+from torchcal.effects.anydriver_space import breaks, cycles, expanded, space_size
+from torchcal.effects.drivers import driver_values
+from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, period_tag
 from torchcal.measure.stats import chi2_sf
 
 __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
@@ -87,6 +95,72 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
     return out
 
 
+# the best cycle's frequency refined between its grid neighbours: this many steps each side, twice
+REFINE = 16
+
+
+def _cycle_shapes(freqs: list[float], x0: float, x: Tensor) -> Tensor:
+    """``(len(x), 2F)`` the sine and cosine of each frequency's cycle at driver values ``x``, pairwise."""
+    a = (2 * torch.pi) * (x - x0)[:, None] * torch.tensor(freqs, dtype=x.dtype, device=x.device)[None]
+    return torch.stack([torch.sin(a), torch.cos(a)], -1).flatten(1)
+
+
+def _cycle_power(g: Tensor, shapes: Tensor, Q: Tensor, rp: Tensor) -> Tensor:
+    """``(F,)`` the residual power each frequency's cycle (its sine and cosine together) explains
+    beyond ``Q``, for a parameter whose own column is ``g (3 n_obs,)`` (a term's column is that
+    column times its shape, observation by observation; ``shapes``: ``(3 n_obs, 2F)``)."""
+    C = g[:, None] * shapes
+    C = C - Q @ (Q.T @ C)
+    S, K = C[:, 0::2], C[:, 1::2]
+    ss, cc, sc = (S * S).sum(0), (K * K).sum(0), (S * K).sum(0)
+    bs, bc = S.T @ rp, K.T @ rp
+    det = ss * cc - sc * sc
+    ok = det > 1e-12 * (ss * cc).clamp(min=1e-300)
+    e = (cc * bs * bs - 2 * sc * bs * bc + ss * bc * bc) / det.clamp(min=1e-300)
+    return torch.where(ok, e, torch.zeros_like(e))
+
+
+class _Cycles:
+    """The cycle search of a screening: each time driver's frequencies and its values per
+    observation, and each pair's own column (its unit shape), computed once."""
+
+    def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
+        self.eff, self.data, self.rows = eff, data, rows
+        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if cycles(eff, pr[1], data)[0]]
+        self.pairs = {pr: i for i, pr in enumerate(pairs)}
+        self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
+        self.grid = {d: cycles(eff, d, data) for d in dict.fromkeys(d for _, d in pairs)}
+
+    def power(self, pair: tuple[str, str], freqs: list[float], Q: Tensor, rp: Tensor) -> Tensor:
+        x = driver_values(self.eff.robot, pair[1], self.data.q, self.data.covariates)[self.rows]
+        shapes = _cycle_shapes(freqs, self.grid[pair[1]][1], x).repeat_interleave(3, dim=0)
+        return _cycle_power(self.G[:, self.pairs[pair]], shapes, Q, rp)
+
+    def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
+        """(p-value, pair) of the best cycle of every pair with a time driver, the p-value of 2 degrees
+        of freedom multiplied by the frequencies searched (their Bonferroni)."""
+        out = []
+        for pr in self.pairs:
+            freqs = self.grid[pr[1]][0]
+            e = float(self.power(pr, freqs, Q, rp).max())
+            out.append((min(1.0, len(freqs) * chi2_sf(e / sigma ** 2, 2)), pr))
+        return out
+
+    def best(self, pair: tuple[str, str], Q: Tensor, rp: Tensor) -> list[str]:
+        """Both phases of the cycle that explains the most for ``pair`` (none for a driver other than
+        time): the grid's best frequency, refined twice on a grid :data:`REFINE` times finer about it."""
+        if pair not in self.pairs:
+            return []
+        freqs, x0 = self.grid[pair[1]]
+        f = freqs[int(self.power(pair, freqs, Q, rp).argmax())]
+        df = freqs[1] - freqs[0] if len(freqs) > 1 else f / PERIOD_OVERSAMPLE
+        for _ in range(2):
+            df /= REFINE
+            fine = [f + k * df for k in range(-REFINE, REFINE + 1) if f + k * df > 0]
+            f = fine[int(self.power(pair, fine, Q, rp).argmax())]
+        return [period_tag(ph, 1.0 / f, x0) for ph in ("sin", "cos")]
+
+
 def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
                 w3: Tensor) -> list[float]:
     """The :data:`MAX_STEPS` steps, settlings or knees of ``pair``'s driver that explain the most, one column each."""
@@ -106,7 +180,7 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
 
 
 def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor, sigma: float,
-                  c: float | None = None, say=None):
+                  c: float | None = None, say=None, rows: Tensor | None = None):
     """``eff`` (a bound :class:`~torchcal.effects.anydriver.ParameterDrivers`, terms = its
     screening shapes) expanded into every shape of the pairs that pass the screening (module
     docstring), with :attr:`n_searched` the size of the whole space; None when no pair passes.
@@ -116,6 +190,7 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
         r: ``(n_obs, 3)`` current residuals (m); ``Jb``: ``(3 n_obs, kb)`` the current model's
             Jacobian; ``w``: ``(n_obs,)`` IRLS weights; ``sigma``: per-axis noise (m); ``c``: the
             Huber threshold (m), to which each observation's residual is shortened (None: none).
+        rows: ``(n_obs,)`` each observation's data row (default: one observation per row).
     """
     w3 = w.repeat_interleave(3)
     Q = _projector(Jb, w3)
@@ -124,13 +199,14 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
         r = r * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
     rw = r.reshape(-1) * w3
     rp = rw - Q @ (Q.T @ rw)
-    stats = _pair_stats(eff, columns, Q, rp, w3, sigma)
+    cyc = _Cycles(eff, data, torch.arange(len(data), device=r.device) if rows is None else rows, columns, w3)
+    stats = _pair_stats(eff, columns, Q, rp, w3, sigma) + cyc.stats(Q, rp, sigma)
     if not stats:
         return None
     level = ALPHA / len(stats)
-    kept = [pr for pv, pr in sorted(stats, key=lambda t: t[0]) if pv < level][:MAX_PAIRS]
+    kept = list(dict.fromkeys(pr for pv, pr in sorted(stats, key=lambda t: t[0]) if pv < level))[:MAX_PAIRS]
     if say is not None:
-        say(f"{eff.name}: {len(kept)} of {len(stats)} (parameter, driver) pairs pass the screening"
+        say(f"{eff.name}: {len(kept)} of {len({pr for _, pr in stats})} (parameter, driver) pairs pass the screening"
             + (f": {', '.join(f'{p} ~ {d}' for p, d in kept)}" if kept else ""))
     if not kept:
         return None
@@ -138,7 +214,7 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     # zero before the yaw of its origin that turns the same way)
     offs = set(eff._offset_params())
     kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
-    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) for pr in kept}
+    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) + cyc.best(pr, Q, rp) for pr in kept}
     out = expanded(eff, kept, data, steps)
-    out.n_searched = space_size(eff, [pr for _, pr in stats], data)
+    out.n_searched = space_size(eff, list(dict.fromkeys(pr for _, pr in stats)), data)
     return out
