@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from torchcal.effects.base import TIME_COVARIATES, Effect, LinearBasis, Prepared
-from torchcal.effects.compliance import JointCompliance
+from torchcal.effects.compliance import JointCompliance, LoadCompliance
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
 from torchcal.effects.registry import EFFECTS, effect_class, effect_type, register_effect
@@ -18,10 +18,11 @@ from torchcal.effects.thermal import ThermalDrift, thermal_covariate
 from torchcal.params import ParamSet
 
 for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation, JointTerms,
-             ParameterDrivers):
+             LoadCompliance, ParameterDrivers):
     register_effect(_cls)
 
-__all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "GravityDeformation", "Backlash",
+__all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "LoadCompliance", "GravityDeformation",
+           "Backlash",
            "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "thermal_covariate", "effect_params",
            "build_effect",
            "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]

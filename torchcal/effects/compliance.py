@@ -1,15 +1,17 @@
 """Joint compliance: each joint twists in proportion to the gravity torque about its axis, the
-joint-axis special case of :class:`~torchcal.effects.deformation.GravityDeformation` (c in rad/(N m))."""
+joint-axis special case of :class:`~torchcal.effects.deformation.GravityDeformation` (c in rad/(N m));
+and the same under a load logged row by row (:class:`LoadCompliance`)."""
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-from torchcal.effects.base import Effect, Prepared
+from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_features
+from torchcal.effects.terms import driver_columns
 
-__all__ = ["JointCompliance"]
+__all__ = ["JointCompliance", "LoadCompliance", "load_columns"]
 
 
 class JointCompliance(GravityDeformation):
@@ -28,9 +30,9 @@ class JointCompliance(GravityDeformation):
     supersedes = ()
 
     def __init__(self, robot, joints=None, geometry=None, modes: list[str] | None = None,
-                 tool_link: str | None = None, gravity=GRAVITY, lumped: bool | None = None):
+                 tool_link: str | None = None, gravity=GRAVITY, lumped: bool | None = None, loads=()):
         self.lumped = (not body_inertials(robot)) if lumped is None else bool(lumped)
-        super().__init__(robot, joints, geometry, modes, tool_link, gravity)
+        super().__init__(robot, joints, geometry, modes, tool_link, gravity, loads)
 
     def default_joints(self) -> list[str]:
         return [n for n, u in zip(self.robot.joint_names, self.robot.joint_units) if u == "rad"]
@@ -131,3 +133,37 @@ class JointCompliance(GravityDeformation):
         prep = self.prepare(q, covariates or {})
         th = self.theta if theta is None else theta
         return torch.einsum("ntgb,gb->nt", prep.features["Wt"], self._load(th[None])[0])
+
+
+def load_columns(covariates: dict) -> list[str]:
+    """Numeric columns that may log a load on the tool (a payload's mass, a part held or not): every
+    driver column (:func:`~torchcal.effects.terms.driver_columns`) but the times."""
+    return [c for c in driver_columns(covariates) if c not in TIME_COVARIATES]
+
+
+class LoadCompliance(JointCompliance):
+    """Joint compliance under a load that changes row by row and is logged: the payload's mass moments
+    are ``μ + Σ_c L_c ν_c`` for the numeric columns ``L_c`` of the data, each ``ν_c`` (mass and first
+    moments per unit of the column) unknown and shared by every joint, so ``Δq_j = c_j τ_j(q, L)``.
+
+    A robot measured with several payloads (to see its stiffness, or because the cell works so)
+    deflects by what each row carries; with one constant unknown payload the deflection of the
+    other loads is left over, and a temperature-like drift or a driver family takes it in pieces.
+    Offered only where the URDF has inertials and the data a numeric column."""
+
+    name = "load_compliance"
+    description = "joint deflection proportional to the gravity torque, with a load logged row by row"
+    supersedes = ("joint_compliance",)
+
+    def applicable(self, data) -> tuple[bool, str]:
+        if self.lumped:
+            return False, "the URDF has no link inertials: no gravity torque to add a logged load to"
+        if not (self.loads or load_columns(data.covariates)):
+            return False, "the data has no numeric column that could log a load"
+        return True, ""
+
+    def bind(self, data, min_lever_m: float = 5e-3) -> "LoadCompliance":
+        """A copy loaded by every numeric column of ``data`` (unless ``loads`` were given), acting on
+        the joints that move the markers."""
+        eff = self if self.loads else self._copy(loads=load_columns(data.covariates))
+        return JointCompliance.bind(eff, data, min_lever_m)

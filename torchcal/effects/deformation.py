@@ -11,8 +11,10 @@ one direction of that frame, driven by one component of the gravity wrench there
 * translation along ``d``: ``c · dᵀF`` (m, ``c`` in m/N).
 
 The payload (mass ``m`` kg and first moment ``m s`` kg·m in the tool link's frame) is shared by
-every mode. The model is bilinear in (compliances, payload); :meth:`GravityDeformation.linear_basis`
-gives each mode five coordinates (``c`` and ``c·μ``) in which it is linear, so selection and
+every mode. A load logged row by row (``loads``: covariate columns, a payload in kg, a part held
+or not) adds ``L ν`` to it, ``ν`` its mass moments per unit of the column, shared too. The model is
+bilinear in (compliances, payload); :meth:`GravityDeformation.linear_basis` gives each mode five
+coordinates (``c`` and ``c·μ``; four more per load, ``c·ν``) in which it is linear, so selection and
 identifiability are judged where no column vanishes, and :meth:`from_linear` factors them back.
 Rotations other than the joint twist are applied to first order: at a few mrad the error is
 below a micrometre per metre of lever.
@@ -23,11 +25,11 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.base import Effect, LinearBasis, Prepared
+from torchcal.effects.deformation_modes import catalog
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
 
 __all__ = ["GravityDeformation"]
 
-_AXES = "xyz"
 
 
 def _axis_rotation(a: Tensor, angle: Tensor) -> Tensor:
@@ -47,6 +49,8 @@ class GravityDeformation(Effect):
             ``bend_<axis>`` and three ``shift_<axis>``); the loop selects among them.
         tool_link: where the unknown payload hangs (default: the first marker's link).
         gravity: gravity in the robot base frame (m/s²).
+        loads: covariate columns whose value per row adds to the payload (each its own unknown mass
+            moments per unit of the column), e.g. a logged payload mass; none by default.
     """
 
     name = "elastic_deformation"
@@ -55,8 +59,9 @@ class GravityDeformation(Effect):
     supersedes = ("joint_compliance",)
 
     def __init__(self, robot, joints=None, geometry=None, modes: list[str] | None = None,
-                 tool_link: str | None = None, gravity=GRAVITY):
+                 tool_link: str | None = None, gravity=GRAVITY, loads: list[str] | tuple = ()):
         self.gravity = tuple(float(v) for v in gravity)
+        self.loads = [str(c) for c in loads]
         self.tool_link = tool_link or robot.markers[0].link
         self._inertials = body_inertials(robot)
         self._joints_for_catalog = joints
@@ -80,61 +85,8 @@ class GravityDeformation(Effect):
 
     # -- the catalogue of modes ----------------------------------------------------------------
     def _catalog(self) -> list[dict]:
-        """Every mode this robot offers: label, frame index (0 = base, j+1 = robot.joints[j]),
-        'rot'/'shift', the projector ``P`` (frame axes) that picks the driving wrench component(s),
-        the actuated column a twist acts on, a sign-bearing direction for single-axis modes, words.
-
-        Plane modes (``base.tilt``, ``<joint>.bend``) have one compliance for both directions of a
-        plane: a floor or a round bearing is as soft one way as the other, and one parameter then
-        says what two per-axis ones would."""
-        dt = dict(dtype=self.robot.dtype, device=self.robot.device)
-        eye = torch.eye(3, **dt)
-        outer = lambda d: d[:, None] * d[None, :]  # noqa: E731
-        # gravity is along base z: no twist about z, and the base force does not vary
-        cat = [dict(label="base.tilt", frame=0, kind="rot", P=eye - outer(eye[2]), dir=None, dof=None,
-                    words="the base tilts on its floor or mount (alike about x and y)")]
-        cat += [dict(label=f"base.tilt_{a}", frame=0, kind="rot", P=outer(eye[i]), dir=eye[i], dof=None,
-                     words=f"the base tilts about {a}") for i, a in enumerate("xy")]
-        by_joint = {jt.name: (j, jt) for j, jt in enumerate(self.robot.joints)}
-        for name in self.joints:
-            j, jt = by_joint[name]
-            a = torch.as_tensor(jt.axis, **dt)
-            order = sorted(range(3), key=lambda i: abs(float(a[i])))  # frame axes least along the axis first
-            u = eye[order[0]] - (eye[order[0]] @ a) * a
-            u = u / u.norm()
-            v = eye[order[1]] - (eye[order[1]] @ a) * a - (eye[order[1]] @ u) * u
-            v = v / v.norm()
-            if jt.type in ("revolute", "continuous"):
-                cat.append(dict(label=f"{name}.twist", frame=j + 1, kind="rot", P=outer(a), dir=a,
-                                dof=self.robot.joint_names.index(name),
-                                words=f"{name} twists about its axis (joint compliance)"))
-            else:
-                cat.append(dict(label=f"{name}.roll", frame=j + 1, kind="rot", P=outer(a), dir=a, dof=None,
-                                words=f"{name} rolls about its sliding axis"))
-            cat.append(dict(label=f"{name}.bend", frame=j + 1, kind="rot", P=eye - outer(a), dir=None, dof=None,
-                            words=f"{name} bends sideways (alike about both axes across it)"))
-            for i, d in ((order[0], u), (order[1], v)):
-                cat.append(dict(label=f"{name}.bend_{_AXES[i]}", frame=j + 1, kind="rot", P=outer(d), dir=d,
-                                dof=None, words=f"{name} bends about its {_AXES[i]} axis"))
-            if jt.type in ("revolute", "continuous"):
-                # the same across the axis, in the frame before the joint turns: a bearing seat in
-                # the parent link, whose soft direction does not turn with the joint
-                for i, d in ((order[0], u), (order[1], v)):
-                    cat.append(dict(label=f"{name}.seat_{_AXES[i]}", frame=j + 1, kind="rot", P=outer(d), dir=d,
-                                    dof=None, seat=self.robot.joint_names.index(name), axis=a,
-                                    words=f"the seat of {name} bends about its {_AXES[i]} axis (joint frame "
-                                          "before the joint turns)"))
-            for i in range(3):
-                cat.append(dict(label=f"{name}.shift_{_AXES[i]}", frame=j + 1, kind="shift", P=outer(eye[i]),
-                                dir=eye[i], dof=None,
-                                words=f"{name} gives way along its {_AXES[i]} axis under the gravity force"))
-        # kinds from the commonest to the rarest, each from the base outwards: where the data
-        # cannot tell two modes apart (co-located shoulder frames: one joint's twist is another's
-        # bend), the selection takes the earlier, and gear compliance beats bearing bending
-        rank = lambda c: (0 if c["frame"] == 0 else 1 if c["dof"] is not None else  # noqa: E731
-                          2 if c["dir"] is None else 3 if c["kind"] == "rot" and "seat" not in c else
-                          4 if c["kind"] == "rot" else 5)
-        return sorted(cat, key=rank)
+        """Every mode this robot offers (:func:`~torchcal.effects.deformation_modes.catalog`)."""
+        return catalog(self.robot, self.joints)
 
     # -- parameters ------------------------------------------------------------------------
     @property
@@ -148,7 +100,18 @@ class GravityDeformation(Effect):
         if self.has_payload:
             out += [("payload.m", "kg"), ("payload.mx", "kg*m"), ("payload.my", "kg*m"), ("payload.mz", "kg*m"),
                     ("gravity.tilt_x", "rad"), ("gravity.tilt_y", "rad")]
+            out += [(f"load~{c}.{k}", u) for c in self.loads
+                    for k, u in (("m", "kg"), ("mx", "kg*m"), ("my", "kg*m"), ("mz", "kg*m"))]
         return out
+
+    @property
+    def n_load(self) -> int:
+        """Payload coordinates per mode beyond the compliance: the mass moments, four per load."""
+        return 4 + 4 * len(self.loads) if self.has_payload else 0
+
+    @property
+    def covariates(self) -> list[str]:
+        return list(self.loads) if self.has_payload else []
 
     def modes(self) -> list[tuple[str, list[int]]]:
         return [(m["label"], [i]) for i, m in enumerate(self._modes)]
@@ -158,7 +121,7 @@ class GravityDeformation(Effect):
         quite level, kinematics cannot see it (the instrument registration absorbs it), and it
         turns every gravity torque a little."""
         K = len(self._modes)
-        return list(range(K, K + 6)) if self.has_payload else []
+        return list(range(K, K + 6 + 4 * len(self.loads))) if self.has_payload else []
 
     def mode_labels(self) -> list[str]:
         return list(self._mode_labels)
@@ -185,7 +148,8 @@ class GravityDeformation(Effect):
         return True, ""
 
     def config(self) -> dict:
-        return {"modes": list(self._mode_labels), "tool_link": self.tool_link, "gravity": list(self.gravity)}
+        out = {"modes": list(self._mode_labels), "tool_link": self.tool_link, "gravity": list(self.gravity)}
+        return {**out, "loads": list(self.loads)} if self.loads else out
 
     def _copy(self, **changes) -> "GravityDeformation":
         kw = self.config()
@@ -215,9 +179,14 @@ class GravityDeformation(Effect):
                                inertials=self._inertials) for g in self._gravities()]
         W = Ws[0]
         N, M = q.shape[0], W.markers.shape[1]
-        # the driving wrench of every frame, URDF part then per unit payload moment, for gravity as
-        # set and for the two tilts: (N, F, 6, 3, 5)
-        drive = torch.stack([torch.cat([w.urdf[..., None], w.payload], -1) for w in Ws], -2)
+        missing = [c for c in self.covariates if c not in covariates]
+        if missing:
+            raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
+        L = [covariates[c].to(q)[:, None, None, None] for c in self.covariates]
+        # the driving wrench of every frame, URDF part then per unit payload moment (and per unit of
+        # each load's moments), for gravity as set and for the two tilts: (N, F, 6, 3, 5 + 4 loads)
+        drive = torch.stack([torch.cat([w.urdf[..., None], w.payload, *(w.payload * x for x in L)], -1)
+                             for w in Ws], -2)
         twist, Wt, pos, V, arm, rot, ax = [], [], [], [], [], [], []
         for k, m in enumerate(self._modes):
             f = m["frame"]
@@ -252,15 +221,17 @@ class GravityDeformation(Effect):
         return self.robot.param_names.index(jt.offset_name or f"{jt.name}.offset")
 
     def _load(self, theta: Tensor) -> Tensor:
-        """``(P, 3, 5)``: the weights of the drive's (gravity, unit payload) slices: gravity as set,
-        and its tilts ``t_x``, ``t_y`` (rows), times 1 and the payload mass moments (columns)."""
+        """``(P, 3, 5 + 4 loads)``: the weights of the drive's (gravity, unit payload) slices: gravity
+        as set, and its tilts ``t_x``, ``t_y`` (rows), times 1, the payload mass moments and each load's
+        (columns)."""
         P = theta.shape[0]
         one = torch.ones(P, 1, dtype=theta.dtype, device=theta.device)
         K = len(self._modes)
         if not self.has_payload:
             mu, t = theta.new_zeros(P, 4), theta.new_zeros(P, 2)
         else:
-            mu, t = theta[:, K:K + 4], theta[:, K + 4:K + 6]
+            mu = torch.cat([theta[:, K:K + 4], theta[:, K + 6:K + 6 + 4 * len(self.loads)]], 1)
+            t = theta[:, K + 4:K + 6]
         pv = torch.cat([one, mu], 1)  # (P, 5)
         return torch.cat([one, t], 1)[:, :, None] * pv[:, None, :]
 
@@ -294,7 +265,7 @@ class GravityDeformation(Effect):
     # -- linear form: (c, c·μ) per mode ------------------------------------------------------------
     def linear_basis(self, prep) -> LinearBasis:
         K = len(self._modes)
-        w = 5 if self.has_payload else 1
+        w = 1 + self.n_load
         f = prep.features
         N = f["Wt"].shape[0]
         M = f["arm"].shape[1]
@@ -313,23 +284,24 @@ class GravityDeformation(Effect):
         K = len(self._modes)
         if not self.has_payload:
             return coef.clone()
-        B = coef.reshape(K, 5)
+        B = coef.reshape(K, 1 + self.n_load)
         a, b = B[:, 0], B[:, 1:]
         # b_k = c_k μ: the payload is the a²-weighted ratio (best-determined compliances count most)
         den = float((a * a).sum())
-        mu = (a[:, None] * b).sum(0) / den if den > 0 else torch.zeros(4, dtype=coef.dtype, device=coef.device)
+        mu = (a[:, None] * b).sum(0) / den if den > 0 else coef.new_zeros(self.n_load)
         return self.from_bilinear(a, mu)
 
     def from_bilinear(self, own: Tensor, shared: Tensor) -> Tensor:
         if not self.has_payload:
             return own.clone()
-        return torch.cat([own, shared, own.new_zeros(2)])  # gravity starts as set
+        # the payload, gravity as set to start with, then the loads
+        return torch.cat([own, shared[:4], own.new_zeros(2), shared[4:]])
 
     def signature(self, prep, label, theta):
         k = self._mode_labels.index(label)
         m = self._modes[k]
         f = prep.features
-        load = self._load(theta[None])[0]  # (3, 5)
+        load = self._load(theta[None])[0]  # (3, 5 + 4 loads)
         if m["dof"] is not None:
             x = torch.einsum("ngb,gb->n", f["Wt"][:, [kk for kk, _ in f["twist"]].index(k)], load)  # torque
             return {"x": x, "xlabel": "gravity torque about the axis [N·m]", "fitted": theta[k] * x,
@@ -375,6 +347,13 @@ class GravityDeformation(Effect):
                 tx, ty = float(th[K + 4]), float(th[K + 5])
                 out.append(f"gravity leans {1e3 * tx:.3g} mrad (about y) and {1e3 * ty:.3g} mrad (about x) off the "
                            "base's vertical: the base is not quite level")
+            for i, c in enumerate(self.loads):
+                j = K + 6 + 4 * i
+                if seen(j):
+                    m = float(th[j])
+                    s = (th[j + 1:j + 4] / m * 1e3).tolist() if abs(m) > 1e-9 else [float("nan")] * 3
+                    out.append(f"the load on {self.tool_link} grows by {m:.3g} kg per unit of {c}, its centre of mass "
+                               f"at ({s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f}) mm in that link's frame")
         return out
 
 

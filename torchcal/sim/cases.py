@@ -58,6 +58,11 @@ CASES: dict[str, dict] = {
     # an undeclared tool, position unknown, on an arm whose joints 2-4 give under gravity
     "payload_12kg": {**_UR5E, "named": ["joint_compliance"],
                      "physics": dict(payload_kg=12.0, payload_com_m=(0.04, -0.03, 0.12), torsion=TORSION)},
+    # the cell measured with four payloads, swapped every 25 poses and logged (kg): the joints twist by
+    # what each row carries (issue 32's load-dependent stiffness, seen through a logged load)
+    "logged_loads": {**_UR5E, "named": ["load_compliance"],
+                     "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 3.0, 6.0, 10.0)})},
+                     "physics": dict(payload_column="payload_kg", payload_com_m=(0.03, 0.0, 0.12), torsion=TORSION)},
     "payload_0kg": {**_UR5E, "named": ["joint_compliance"], "physics": dict(payload_kg=0.0, torsion=TORSION)},
     "payload_20kg": {**_UR5E, "named": ["joint_compliance"],
                      "physics": dict(payload_kg=20.0, payload_com_m=(-0.05, 0.02, 0.2), torsion=TORSION)},

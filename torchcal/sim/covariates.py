@@ -1,6 +1,6 @@
 """Covariate series a measurement cell logs beside the poses, for the independent simulator: room
-and motor temperatures (degC) and campaign time (s), each ``(n,)`` in visiting order and drawn
-from its own seed.  Whether a series drives an effect is the robot's business
+and motor temperatures (degC), campaign time (s) and the payload carried (kg), each ``(n,)`` in
+visiting order and drawn from its own seed.  Whether a series drives an effect is the robot's business
 (:class:`~torchcal.sim.physsim.PhysicalRobot`'s ``thermal`` columns and joint terms); the
 others are recorded as plausible, unrelated logs."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 __all__ = ["SERIES", "ambient_temperature", "campaign_time", "covariate_columns", "motor_temperature",
-           "skin_temperature", "warmup_temperature"]
+           "payload_runs", "skin_temperature", "warmup_temperature"]
 
 Seed = int | Sequence[int]
 
@@ -70,9 +70,17 @@ def campaign_time(n: int, seed: Seed = 0, *, step_s: float = 8.0, jitter_s: floa
     return np.cumsum(steps)
 
 
+def payload_runs(n: int, seed: Seed = 0, *, masses: Sequence[float] = (0.0, 4.0, 8.0), run: int = 25) -> np.ndarray:
+    """``(n,)`` kg: the payload the robot carries, changed every ``run`` poses to one of ``masses``
+    at random (a cell measured with several loads, each swapped in by hand for a block of poses)."""
+    rng = np.random.default_rng(seed)
+    blocks = rng.choice(np.asarray(masses, dtype=float), -(-n // run))
+    return np.repeat(blocks, run)[:n]
+
+
 SERIES: dict[str, Callable[..., np.ndarray]] = {
     "ambient": ambient_temperature, "motor": motor_temperature, "skin": skin_temperature, "time": campaign_time,
-    "warmup": warmup_temperature}
+    "warmup": warmup_temperature, "payloads": payload_runs}
 
 
 def covariate_columns(spec: dict, n: int, seed: int) -> dict[str, np.ndarray]:

@@ -111,6 +111,7 @@ class PhysicalRobot:
         self._first_row = 0  # the measuring order of the rows reach() is asked for
         self.noise_m, self.gravity = float(noise_m), np.asarray(gravity, dtype=float)
         self.payload_kg, self.payload_com_m = float(payload_kg), np.asarray(payload_com_m, dtype=float)
+        self.payload_column = o.payload_column  # the payload's mass per row, logged in this covariate (kg)
         self.payload_link = payload_link or self.markers[0][1]
         if self.payload_link not in self._below:
             raise ValueError(f"payload_link {self.payload_link!r} is not a link of the URDF")
@@ -206,18 +207,22 @@ class PhysicalRobot:
             T[j.child] = A
         return T
 
-    def _wrenches(self, T: dict) -> dict:
-        """Gravity wrenches, see :meth:`gravity_wrenches`."""
+    def _wrenches(self, T: dict, cov: dict) -> dict:
+        """Gravity wrenches, see :meth:`gravity_wrenches`; ``cov``: the covariate columns (a payload
+        logged per row)."""
         bodies = dict(self._bodies)
-        if self.payload_kg:
-            bodies[self.payload_link] = bodies.get(self.payload_link, []) + [(self.payload_kg, self.payload_com_m)]
+        mass = cov[self.payload_column] if self.payload_column else self.payload_kg
+        if self.payload_column or self.payload_kg:
+            bodies[self.payload_link] = bodies.get(self.payload_link, []) + [(mass, self.payload_com_m)]
         return subtree_wrenches(T, self._order, self._below, self.root, bodies, self.gravity)
 
     def _columns_read(self) -> dict[str, float]:
         """Covariate columns the effects read -> the value meaning "no effect" (``t_ref_c`` for
-        thermal growth, ``ref`` for a joint term), used where a column is not given."""
+        thermal growth, ``ref`` for a joint term, no payload), used where a column is not given."""
         cols = {t.source: t.ref for ts in self.joint_terms.values() for t in ts if t.source not in self.joint_names}
         cols.update({c: self.t_ref_c for c in self.thermal_column.values()})
+        if self.payload_column:
+            cols[self.payload_column] = 0.0
         return cols
 
     def _columns(self, N: int, temperature, covariates) -> dict[str, np.ndarray]:
@@ -238,7 +243,8 @@ class PhysicalRobot:
         ``{"joints": {name: {"F_N": (N, 3), "M_Nm": (N, 3) about the joint's child frame origin,
         "tau_Nm": (N,) M . axis (revolute joints)}}, "base": {"F_N", "M_Nm" about the base origin}}``,
         each on everything downstream (the base: every body, payload included)."""
-        return self._wrenches(self._state(q, temperature, directions, covariates)[2])
+        _, cov, T = self._state(q, temperature, directions, covariates)
+        return self._wrenches(T, cov)
 
     def reach(self, q, *, temperature=None, directions=None, covariates=None) -> np.ndarray:
         """Noise-free marker positions ``(N, M, 3)`` m in the instrument frame for commanded
@@ -257,7 +263,7 @@ class PhysicalRobot:
             th = {n: v + dr["offset"].get(n, 0.0) for n, v in th.items()}
             T = self._fk(th, cov, len(q), carriage=dr["carriage"])
         if self.torsion or self.lateral or self.base_tilt is not None:
-            W = self._wrenches(T)
+            W = self._wrenches(T, cov)
 
             def frame(n):  # the joint frame after its motion (child), or before it (parent)
                 R = T[self._j[n].child][:, :3, :3]
@@ -292,7 +298,7 @@ class PhysicalRobot:
         rows = self._first_row + np.arange(len(q))
         torque = None
         if any(d.driver.startswith("torque:") for d in self.drifts):
-            W = self._wrenches(T)
+            W = self._wrenches(T, cov)
             torque = {n: W["joints"][n]["tau_Nm"] for n in self.joint_names if n in W["joints"]}
         cmd = {n: q[:, k] for k, n in enumerate(self.joint_names)}
         return evaluate_drifts(self.drifts, cmd, cov, rows, torque, len(q))

@@ -2,9 +2,11 @@
 model and the best that passes the rule is added, until none passes.
 
 A round tightens the Huber threshold to what the current model leaves, tries the catalogued
-effects, and only when none of them passes the general families (``fallback``). Candidates gaining
-within 2 % of the winner's gain are ties, taken by the fewest parameters, then the registry's
-order. After each acceptance every earlier mode is judged again (:mod:`~torchcal.pipelines.loop.prune`).
+effects, and only when none of them passes the general families (``fallback``). An effect that
+holds another that passes too (it supersedes it: joint compliance under a logged load holds plain
+joint compliance) wins only where it beats that one by the rule: what it adds must be seen, not
+only what they share. Candidates gaining within 2 % of the winner's gain are ties, taken by the
+fewest parameters, then the registry's order. After each acceptance every earlier mode is judged again (:mod:`~torchcal.pipelines.loop.prune`).
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from torchcal.pipelines.crossval.models import Context, Model, noise_sigma
 from torchcal.pipelines.loop.prune import prune
 from torchcal.pipelines.loop.records import Candidate, Trial
 from torchcal.pipelines.crossval.scores import HUBER_K, penalised
-from torchcal.pipelines.loop.steps import progress_bar, refit, refresh, test_gain, try_candidate
+from torchcal.pipelines.loop.steps import compare_at, progress_bar, refit, refresh, test_gain, try_candidate
 
 __all__ = ["Step", "Diagnosis", "diagnose", "MAX_ROUNDS"]
 
@@ -60,7 +62,7 @@ def diagnose(ctx: Context, start: Model, names: list[str], test: Measurements | 
             break
         _follow_threshold(d, once=True)
         trials = _try_round(d, pool, rnd, tabu, say, bar)
-        winner = _winner(d.current, trials, names, d.ctx.n_obs)
+        winner = _winner(d.ctx, d.current, trials, names)
         for tr in trials:
             tr.line.accepted = tr is winner
             if tr.model is not None:
@@ -131,10 +133,15 @@ def _try_round(d: Diagnosis, pool: list[str], rnd: int, tabu: dict, say, bar) ->
     return trials
 
 
-def _winner(current: Model, trials: list[Trial], names: list[str], n_obs: float) -> Trial | None:
+def _winner(ctx: Context, current: Model, trials: list[Trial], names: list[str]) -> Trial | None:
     """The passing trial with the lowest penalised score; trials gaining within 2 % of its gain
-    are ties: the fewest parameters, then the registry's order (the plainer effect) take it."""
+    are ties: the fewest parameters, then the registry's order (the plainer effect) take it. A trial
+    whose effect supersedes another passing one stays in only where it beats that one by the rule."""
+    n_obs = ctx.n_obs
     passing = [t for t in trials if t.ok]
+    held = {t.name: t for t in passing}
+    passing = [t for t in passing if all(compare_at(ctx, held[s].model, t.model, n_obs)[2]
+                                         for s in EFFECTS[t.name].supersedes if s in held)]
     if not passing:
         return None
     best = min(passing, key=lambda t: penalised(t.model.scores, t.model.k, n_obs))
