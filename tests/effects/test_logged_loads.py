@@ -11,6 +11,7 @@ import torch
 
 from torchcal import Robot
 from torchcal.effects import GravityDeformation, JointCompliance, LoadCompliance
+from torchcal.effects.compliance import load_columns
 from torchcal.kinematics.robots import urdf_path
 from torchcal.pipelines.crossval.scores import compare
 from torchcal.pipelines.loop import diagnosis
@@ -37,6 +38,29 @@ def test_a_logged_load_twists_the_joints_as_the_simulator_does():
     dq = eff.joint_delta(theta[None], eff.prepare(torch.tensor(q), {"load_kg": torch.tensor(load)}))[0]
     p = robot.positions(torch.tensor(q) + dq).numpy()
     np.testing.assert_allclose(p, soft.reach(q, covariates={"load_kg": load}), atol=1e-12)
+
+
+def test_loads_logged_by_name_twist_the_joints_as_the_simulator_does():
+    """Each row's load named in a text column (0.5 kg empty, 4 kg box, 9 kg pallet): the first level's
+    load is the constant payload, each other level's its own mass moments beyond it."""
+    masses = {"box": 4.0, "empty": 0.5, "pallet": 9.0}
+    kw = dict(seed=3, geometric_errors=False, instrument_frame=np.eye(4), payload_column="level:load",
+              payload_levels=masses, payload_com_m=COM)
+    soft = PhysicalRobot(UR5E, ["tool@flange"], **kw, torsion={"elbow_joint": 2e-5, "shoulder_lift_joint": 1e-5})
+    q = soft.sample_q(30)
+    names = np.random.default_rng(1).choice(sorted(masses), 30)
+    cov = {f"load={lv}": torch.tensor((names == lv).astype(float)) for lv in masses}
+    assert load_columns(cov) == ["load=empty", "load=pallet"]  # the first level (sorted) is the baseline
+    robot = Robot.from_urdf(UR5E, markers=["tool@flange"])
+    eff = JointCompliance(robot, ["shoulder_lift_joint", "elbow_joint"], loads=load_columns(cov))
+    box = masses["box"]
+    theta = torch.cat([torch.tensor([1e-5, 2e-5], dtype=torch.float64), box * NU, torch.zeros(2, dtype=torch.float64),
+                       (masses["empty"] - box) * NU, (masses["pallet"] - box) * NU])
+    dq = eff.joint_delta(theta[None], eff.prepare(torch.tensor(q), cov))[0]
+    p = robot.positions(torch.tensor(q) + dq).numpy()
+    np.testing.assert_allclose(p, soft.reach(q, covariates={"level:load": names}), atol=1e-12)
+    said = eff.describe(theta)
+    assert any("is 5 kg more for load = pallet than for the first level" in x for x in said), said
 
 
 def test_the_linear_form_holds_the_loads_and_factors_back():

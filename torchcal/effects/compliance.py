@@ -10,6 +10,7 @@ from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_features
 from torchcal.effects.terms import driver_columns
+from torchcal.measure.levels import LEVEL_SEP, factor_levels
 
 __all__ = ["JointCompliance", "LoadCompliance", "load_columns"]
 
@@ -136,9 +137,11 @@ class JointCompliance(GravityDeformation):
 
 
 def load_columns(covariates: dict) -> list[str]:
-    """Numeric columns that may log a load on the tool (a payload's mass, a part held or not): every
-    driver column (:func:`~torchcal.effects.terms.driver_columns`) but the times."""
-    return [c for c in driver_columns(covariates) if c not in TIME_COVARIATES]
+    """Columns that may log a load on the tool: every numeric driver column but the times (a payload's
+    mass, a part held or not; :func:`~torchcal.effects.terms.driver_columns`), and each level of a text
+    column but its first (a load logged by name: each its own mass and centre of mass beyond the first's)."""
+    numeric = [c for c in driver_columns(covariates) if c not in TIME_COVARIATES]
+    return numeric + [f"{f}{LEVEL_SEP}{lv}" for f, lvs in factor_levels(covariates).items() for lv in lvs[1:]]
 
 
 class LoadCompliance(JointCompliance):

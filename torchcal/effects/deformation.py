@@ -27,6 +27,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.deformation_modes import catalog
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
+from torchcal.measure.levels import LEVEL_SEP
 
 __all__ = ["GravityDeformation"]
 
@@ -182,7 +183,9 @@ class GravityDeformation(Effect):
         missing = [c for c in self.covariates if c not in covariates]
         if missing:
             raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
-        L = [covariates[c].to(q)[:, None, None, None] for c in self.covariates]
+        # a level's 0/1 column reads NaN where the text was not recorded: the first level's load then
+        L = [(torch.nan_to_num(covariates[c].to(q), nan=0.0) if LEVEL_SEP in c else covariates[c].to(q))
+             [:, None, None, None] for c in self.covariates]
         # the driving wrench of every frame, URDF part then per unit payload moment (and per unit of
         # each load's moments), for gravity as set and for the two tilts: (N, F, 6, 3, 5 + 4 loads)
         drive = torch.stack([torch.cat([w.urdf[..., None], w.payload, *(w.payload * x for x in L)], -1)
@@ -352,8 +355,10 @@ class GravityDeformation(Effect):
                 if seen(j):
                     m = float(th[j])
                     s = (th[j + 1:j + 4] / m * 1e3).tolist() if abs(m) > 1e-9 else [float("nan")] * 3
-                    out.append(f"the load on {self.tool_link} grows by {m:.3g} kg per unit of {c}, its centre of mass "
-                               f"at ({s[0]:.0f}, {s[1]:.0f}, {s[2]:.0f}) mm in that link's frame")
+                    how = (f"is {m:.3g} kg more for {c.replace(LEVEL_SEP, ' = ', 1)} than for the first level"
+                           if LEVEL_SEP in c else f"grows by {m:.3g} kg per unit of {c}")
+                    out.append(f"the load on {self.tool_link} {how}, its centre of mass at ({s[0]:.0f}, {s[1]:.0f}, "
+                               f"{s[2]:.0f}) mm in that link's frame")
         return out
 
 

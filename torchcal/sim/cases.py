@@ -63,6 +63,13 @@ CASES: dict[str, dict] = {
     "logged_loads": {**_UR5E, "named": ["load_compliance"],
                      "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 3.0, 6.0, 10.0)})},
                      "physics": dict(payload_column="payload_kg", payload_com_m=(0.03, 0.0, 0.12), torsion=TORSION)},
+    # the same, each load logged by name in a text column (the empty gripper, a box, a pallet)
+    "named_loads": {**_UR5E, "named": ["load_compliance"], "levels": {"load": ["empty", "box", "pallet"]},
+                    "physics": dict(payload_column="level:load", payload_levels={"empty": 0.5, "box": 4.0, "pallet": 9.0},
+                                    payload_com_m=(0.0, 0.04, 0.08), torsion=TORSION)},
+    # clean, with logs that drive nothing: a payload column the robot never carries and an operator's name
+    "clean_logs": {**_UR5E, "named": [], "levels": {"operator": ["ann", "bob", "cem"]},
+                   "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 5.0)})}, "physics": {}},
     "payload_0kg": {**_UR5E, "named": ["joint_compliance"], "physics": dict(payload_kg=0.0, torsion=TORSION)},
     "payload_20kg": {**_UR5E, "named": ["joint_compliance"],
                      "physics": dict(payload_kg=20.0, payload_com_m=(-0.05, 0.02, 0.2), torsion=TORSION)},

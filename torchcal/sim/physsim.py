@@ -112,6 +112,7 @@ class PhysicalRobot:
         self.noise_m, self.gravity = float(noise_m), np.asarray(gravity, dtype=float)
         self.payload_kg, self.payload_com_m = float(payload_kg), np.asarray(payload_com_m, dtype=float)
         self.payload_column = o.payload_column  # the payload's mass per row, logged in this covariate (kg)
+        self.payload_levels = dict(o.payload_levels or {})  # or its level -> kg, for a text column
         self.payload_link = payload_link or self.markers[0][1]
         if self.payload_link not in self._below:
             raise ValueError(f"payload_link {self.payload_link!r} is not a link of the URDF")
@@ -211,7 +212,10 @@ class PhysicalRobot:
         """Gravity wrenches, see :meth:`gravity_wrenches`; ``cov``: the covariate columns (a payload
         logged per row)."""
         bodies = dict(self._bodies)
-        mass = cov[self.payload_column] if self.payload_column else self.payload_kg
+        mass = self.payload_kg
+        if self.payload_column:
+            col = cov[self.payload_column]
+            mass = np.array([self.payload_levels[x] for x in col]) if self.payload_column.startswith("level:") else col
         if self.payload_column or self.payload_kg:
             bodies[self.payload_link] = bodies.get(self.payload_link, []) + [(mass, self.payload_com_m)]
         return subtree_wrenches(T, self._order, self._below, self.root, bodies, self.gravity)
@@ -221,7 +225,7 @@ class PhysicalRobot:
         thermal growth, ``ref`` for a joint term, no payload), used where a column is not given."""
         cols = {t.source: t.ref for ts in self.joint_terms.values() for t in ts if t.source not in self.joint_names}
         cols.update({c: self.t_ref_c for c in self.thermal_column.values()})
-        if self.payload_column:
+        if self.payload_column and not self.payload_column.startswith("level:"):
             cols[self.payload_column] = 0.0
         return cols
 

@@ -18,7 +18,8 @@ Fields (units in the names: m, rad, kg, N, degC):
   the drawn one (``np.eye(4)``: measure in the base frame).
 * payload_kg, payload_com_m, payload_link: undeclared point mass (COM m in the link frame;
   default link: the first marker's); payload_column: its mass per row (kg) is that covariate's
-  value instead (the robot measured with several loads, logged).
+  value instead (the robot measured with several loads, logged), or for ``"level:<column>"`` a text
+  column's, each level's mass in payload_levels (level -> kg).
 * torsion: joint -> k rad/(N m); lateral: joint -> (cx, cy, cz) rad/(N m) about the child
   frame axes (``lateral_frame="parent"``: about the joint frame's axes before the joint
   turns, applied before the motion, as a bearing seat in the parent link); base_tilt:
@@ -60,6 +61,7 @@ class PhysicalOptions(Options):
     payload_com_m: tuple = (0.0, 0.0, 0.0)
     payload_link: str | None = None
     payload_column: str | None = None
+    payload_levels: dict | None = None
     torsion: dict | None = None
     lateral: dict | None = None
     lateral_frame: str = "child"
