@@ -146,13 +146,14 @@ def load_columns(covariates: dict) -> list[str]:
 
 class LoadCompliance(JointCompliance):
     """Joint compliance under a load that changes row by row and is logged: the payload's mass moments
-    are ``μ + Σ_c L_c ν_c`` for the numeric columns ``L_c`` of the data, each ``ν_c`` (mass and first
-    moments per unit of the column) unknown and shared by every joint, so ``Δq_j = c_j τ_j(q, L)``.
+    are ``μ + Σ_c L_c ν_c`` for the columns ``L_c`` that may log a load (:func:`load_columns`: numeric
+    columns, and a text column's levels but its first), each ``ν_c`` (mass and first moments per unit
+    of the column, or for its level) unknown and shared by every joint, so ``Δq_j = c_j τ_j(q, L)``.
 
     A robot measured with several payloads (to see its stiffness, or because the cell works so)
     deflects by what each row carries; with one constant unknown payload the deflection of the
     other loads is left over, and a temperature-like drift or a driver family takes it in pieces.
-    Offered only where the URDF has inertials and the data a numeric column."""
+    Offered only where the URDF has inertials and the data a column that may log a load."""
 
     name = "load_compliance"
     description = "joint deflection proportional to the gravity torque, with a load logged row by row"
@@ -162,11 +163,11 @@ class LoadCompliance(JointCompliance):
         if self.lumped:
             return False, "the URDF has no link inertials: no gravity torque to add a logged load to"
         if not (self.loads or load_columns(data.covariates)):
-            return False, "the data has no numeric column that could log a load"
+            return False, "the data has no numeric or text column that could log a load"
         return True, ""
 
     def bind(self, data, min_lever_m: float = 5e-3) -> "LoadCompliance":
-        """A copy loaded by every numeric column of ``data`` (unless ``loads`` were given), acting on
-        the joints that move the markers."""
+        """A copy loaded by every column of ``data`` that may log a load (unless ``loads`` were given),
+        acting on the joints that move the markers."""
         eff = self if self.loads else self._copy(loads=load_columns(data.covariates))
         return JointCompliance.bind(eff, data, min_lever_m)

@@ -32,7 +32,6 @@ from torchcal.measure.levels import LEVEL_SEP
 __all__ = ["GravityDeformation"]
 
 
-
 def _axis_rotation(a: Tensor, angle: Tensor) -> Tensor:
     """``(N, 3, 3)`` rotations by ``angle (N,)`` rad about the unit axis ``a (3,)`` (Rodrigues)."""
     K = torch.zeros(3, 3, dtype=a.dtype, device=a.device)

@@ -21,8 +21,8 @@ Tags (the strings a saved model carries):
 
 Knots of the smooth and piecewise shapes sit at quantiles of the training values; step breaks
 at the midpoints between consecutive distinct training values (every place a step can be seen);
-settling time constants on a geometric grid of the training span (:func:`settle_tags`); periods on
-a periodogram's grid of frequencies (:func:`period_tags`).
+settling time constants on a geometric grid of the training span (:func:`settle_tags`); cycles on
+a periodogram's grid of frequencies (:func:`period_frequencies`).
 """
 from __future__ import annotations
 
@@ -30,10 +30,9 @@ import torch
 from torch import Tensor
 
 __all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "settle_tags",
-           "grid_tags", "screen_tags", "settle_parts", "period_parts", "period_tag", "period_frequencies", "cycle_label",
-           "cycle_period", "UNIT",
-           "PERIODIC", "HARMONICS", "KNOT_QUANTILES", "HINGE_QUANTILES", "SETTLE_STEPS", "MAX_CYCLES",
-           "PERIOD_OVERSAMPLE"]
+           "grid_tags", "screen_tags", "settle_parts", "period_parts", "period_tag", "period_frequencies",
+           "cycle_columns", "cycle_label", "cycle_period", "UNIT", "PERIODIC", "HARMONICS", "KNOT_QUANTILES",
+           "HINGE_QUANTILES", "SETTLE_STEPS", "MAX_CYCLES", "PERIOD_OVERSAMPLE"]
 
 HARMONICS = 2                      # highest harmonic of an angle driver
 KNOT_QUANTILES = (1 / 3, 2 / 3)    # knots of the quadratic spline, as quantiles of the training values
@@ -74,8 +73,7 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return torch.ones_like(x)
     if tag.startswith(PERIODIC):
         phase, period, x0 = period_parts(tag)
-        a = (2 * torch.pi / period) * (x - x0)
-        return torch.sin(a) if phase == "sin" else torch.cos(a)
+        return cycle_columns(x, [1.0 / period], x0)[:, 0 if phase == "sin" else 1]
     for p in ("sin", "cos"):
         if tag.startswith(p):
             n = int(tag[3:])
@@ -156,6 +154,13 @@ def period_parts(tag: str) -> tuple[str, float, float]:
     """``psin<P>@<x₀>`` -> ``("sin", P, x₀)`` (``pcos``: ``"cos"``), in the driver's unit."""
     period, _, x0 = tag[4:].partition("@")
     return tag[1:4], float(period), float(x0)
+
+
+def cycle_columns(x: Tensor, freqs: list[float], x0: float) -> Tensor:
+    """``(len(x), 2F)``: the sine and cosine of ``2π f (x − x₀)`` for each frequency ``f`` of ``freqs``
+    (cycles per driver unit), pairwise (the shapes ``psin`` and ``pcos``)."""
+    a = (2 * torch.pi) * (x - x0)[:, None] * torch.tensor(freqs, dtype=x.dtype, device=x.device)[None]
+    return torch.stack([torch.sin(a), torch.cos(a)], -1).flatten(1)
 
 
 def cycle_label(tag: str) -> str:

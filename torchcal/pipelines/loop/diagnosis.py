@@ -6,7 +6,8 @@ effects, and only when none of them passes the general families (``fallback``). 
 holds another that passes too (it supersedes it: joint compliance under a logged load holds plain
 joint compliance) wins only where it beats that one by the rule: what it adds must be seen, not
 only what they share. Candidates gaining within 2 % of the winner's gain are ties, taken by the
-fewest parameters, then the registry's order. After each acceptance every earlier mode is judged again (:mod:`~torchcal.pipelines.loop.prune`).
+fewest parameters, then the registry's order. After each acceptance every earlier mode is judged
+again (:mod:`~torchcal.pipelines.loop.prune`).
 """
 from __future__ import annotations
 

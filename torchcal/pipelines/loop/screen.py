@@ -35,7 +35,7 @@ from torch import Tensor
 from torchcal.effects.anydriver import MAX_STEPS
 from torchcal.effects.anydriver_space import breaks, cycles, expanded, space_size
 from torchcal.effects.drivers import driver_values
-from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, period_tag
+from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, cycle_columns, period_tag
 from torchcal.measure.stats import chi2_sf
 
 __all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
@@ -99,12 +99,6 @@ def _pair_stats(eff, columns: Callable, Q: Tensor, rp: Tensor, w3: Tensor, sigma
 REFINE = 16
 
 
-def _cycle_shapes(freqs: list[float], x0: float, x: Tensor) -> Tensor:
-    """``(len(x), 2F)`` the sine and cosine of each frequency's cycle at driver values ``x``, pairwise."""
-    a = (2 * torch.pi) * (x - x0)[:, None] * torch.tensor(freqs, dtype=x.dtype, device=x.device)[None]
-    return torch.stack([torch.sin(a), torch.cos(a)], -1).flatten(1)
-
-
 def _cycle_power(g: Tensor, shapes: Tensor, Q: Tensor, rp: Tensor) -> Tensor:
     """``(F,)`` the residual power each frequency's cycle (its sine and cosine together) explains
     beyond ``Q``, for a parameter whose own column is ``g (3 n_obs,)`` (a term's column is that
@@ -133,7 +127,7 @@ class _Cycles:
 
     def power(self, pair: tuple[str, str], freqs: list[float], Q: Tensor, rp: Tensor) -> Tensor:
         x = driver_values(self.eff.robot, pair[1], self.data.q, self.data.covariates)[self.rows]
-        shapes = _cycle_shapes(freqs, self.grid[pair[1]][1], x).repeat_interleave(3, dim=0)
+        shapes = cycle_columns(x, freqs, self.grid[pair[1]][1]).repeat_interleave(3, dim=0)
         return _cycle_power(self.G[:, self.pairs[pair]], shapes, Q, rp)
 
     def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
