@@ -8,7 +8,9 @@ Targets CSV (header row, one target per row):
   without them the targets are positions only);
 * a column per joint (the model's joint names, rad / m): IK start for that target (optional;
   choose the branch, e.g. elbow up). Without them IK starts mid-range with random restarts;
-* a column per covariate the model needs (``model.required_covariates``, e.g. ``temperature``).
+* a column per covariate the model needs (``model.required_covariates``, e.g. ``temperature``); a
+  level of a text column (``tool=probe``) may come from the text column itself (``tool``, one level
+  per row, as the training file had it).
 
 Output CSV: the target columns, the corrected command per joint (``nan`` where the target failed), ``converged`` (1/0),
 ``reason`` (``ok``, ``unreachable``, ``joint_limits``, ``singular``, ``not_converged``,
@@ -31,6 +33,7 @@ from torch import Tensor
 from torchcal.cli.common import add_common, inputs_of, int_at_least, positive_float
 from torchcal.deploy.correct import Corrector
 from torchcal.measure.io import UnitsError, read_csv
+from torchcal.measure.levels import LEVEL_SEP
 from torchcal.outputs import atomic_write_text, check_out_file
 from torchcal.deploy.persist import load
 from torchcal.kinematics.transforms import matrix_to_quat, quat_to_matrix
@@ -73,6 +76,10 @@ def read_targets(path, robot, covariates: list[str] | None = None):
             vals.append(v)
         return torch.tensor(vals, dtype=robot.dtype, device=robot.device)
 
+    def level(name: str, value: str) -> Tensor:
+        return torch.tensor([float(r[col[name]].strip() == value) for r in rows], dtype=robot.dtype,
+                            device=robot.device)
+
     p = torch.stack([num(c) for c in _POS], -1)
     if float(p.abs().max()) > 50:
         raise UnitsError(f"{path}: target positions reach {float(p.abs().max()):.4g}, which looks like "
@@ -97,10 +104,15 @@ def read_targets(path, robot, covariates: list[str] | None = None):
     q0 = torch.stack([num(j) for j in robot.joint_names], -1) if js else None
     cov = None
     if covariates:
-        miss = [c for c in covariates if c not in col]
+        # a level of a text column the model reads (``tool=probe``) comes from the text column itself
+        # (``tool``), as the training file gave it, or from its own 0/1 column
+        text = {c: c.split(LEVEL_SEP, 1) for c in covariates if c not in col and LEVEL_SEP in c}
+        miss = [c for c in covariates if c not in col and (c not in text or text[c][0] not in col)]
         if miss:
-            raise ValueError(f"{path}: the model needs covariate column(s) {miss}")
-        cov = {c: num(c) for c in covariates}
+            raise ValueError(f"{path}: the model needs covariate column(s) {miss}"
+                             + ("; a level (<column>=<level>) may come from its text column <column>"
+                                if any(LEVEL_SEP in c for c in miss) else ""))
+        cov = {c: (level(*text[c]) if c in text else num(c)) for c in covariates}
     return targets, q0, cov, has_quat
 
 
