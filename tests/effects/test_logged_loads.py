@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from torchcal import Robot
-from torchcal.effects import GravityDeformation, JointCompliance, LoadCompliance
+from torchcal.effects import GravityDeformation, JointCompliance, LoadCompliance, ParameterDrivers
 from torchcal.effects.compliance import load_columns
 from torchcal.kinematics.robots import urdf_path
 from torchcal.pipelines.crossval.scores import compare
@@ -101,7 +101,36 @@ def test_load_compliance_takes_the_numeric_columns_but_time():
     said = bound.describe(torch.cat([bound.theta[:-4], NU * 1.5]))
     assert any("grows by 1.5 kg per unit of load_kg" in s and "(20, -30, 90) mm" in s for s in said), said
     bare = SimpleNamespace(**{**vars(data), "covariates": {"time": data.covariates["time"]}})
-    assert not LoadCompliance(robot).applicable(bare)[0]
+    waits = LoadCompliance(robot).bind(bare)
+    assert waits.loads == [] and waits.waiting() is not None  # nothing logs a load, no set-up change found yet
+    none = SimpleNamespace(**{**vars(data), "covariates": {}})
+    assert not LoadCompliance(robot).applicable(none)[0]
+
+
+def test_a_set_up_change_found_in_time_becomes_a_load_step():
+    """A step an accepted effect found in time (the frame moved at t = 5.5 s) is offered as a load
+    that steps there: a payload swapped with nothing logged changes the deflection too."""
+    robot = Robot.from_urdf(UR5E, markers=["tool@flange"])
+    n = 12
+    t = torch.arange(n, dtype=torch.float64)
+    data = SimpleNamespace(q=torch.tensor(PhysicalRobot(UR5E, ["tool@flange"], seed=5).sample_q(n)),
+                           marker_names=["tool"], covariates={"time": t})
+    found = ParameterDrivers(robot, terms=[("base.x", "time:time", "step5.5"), ("elbow_joint.offset", "time:time", "lin")])
+    eff = LoadCompliance(robot).bind(data).given([found], data)
+    assert eff.loads == ["time~step5.5"] and eff.covariates == ["time"] and eff.waiting() is None
+    K = len(eff.mode_labels())
+    theta = torch.zeros(eff.n_params, dtype=torch.float64)
+    theta[:K] = 1e-5
+    theta[K + 6:] = NU * 5.0  # 5 kg more from t = 5.5 s on
+    dq = eff.joint_delta(theta[None], eff.prepare(data.q, data.covariates))[0]
+    before = JointCompliance(robot, eff.joints)
+    ref0 = before.joint_delta(torch.cat([theta[:K + 6]])[None], before.prepare(data.q, {}))[0]
+    th1 = theta[:K + 6].clone()
+    th1[K:K + 4] = NU * 5.0
+    ref1 = before.joint_delta(th1[None], before.prepare(data.q, {}))[0]
+    late = t >= 5.5
+    assert torch.allclose(dq[~late], ref0[~late], rtol=1e-12, atol=1e-18)
+    assert torch.allclose(dq[late], ref1[late], rtol=1e-12, atol=1e-18)
 
 
 def test_an_effect_that_holds_another_must_beat_it():

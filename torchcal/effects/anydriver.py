@@ -203,6 +203,10 @@ class ParameterDrivers(Effect):
             return f"{whole}~{d}~{shape}" if m is not None and t.startswith(RIGID_BREAKS) else f"{p}~{d}~{shape}"
         return f"{p}~{d}~levels" if m is None else f"{whole}~{d}~levels"
 
+    def session_steps(self) -> list[str]:
+        return list(dict.fromkeys(f"{d if d == ROW else d.split(':', 1)[1]}~{t}" for _, d, t in self.terms
+                                  if driver_kind(d) in ("row", "time") and t.startswith("step")))
+
     def setup_parameters(self) -> dict[str, str]:
         names = self.param_names
         out = {}

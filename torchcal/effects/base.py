@@ -195,6 +195,22 @@ class Effect:
         covariates), with the reason in words when not."""
         return True, ""
 
+    def session_steps(self) -> list[str]:
+        """Where this effect found the session to change, as ``<column>~step<k>`` (a step of ``time``
+        or of the row order): a set-up changed there. Default: nowhere."""
+        return []
+
+    def waiting(self) -> str | None:
+        """Why this candidate has nothing to offer yet (it waits for what a later round may find), or
+        None. A waiting candidate is not tried in that round, and says nothing."""
+        return None
+
+    def given(self, found: list["Effect"], data) -> "Effect":
+        """This candidate as what the current model has found informs it (``found``: its accepted
+        effects; ``data``: the training rows): a set-up change found in the session may have changed
+        more than the parameters it was found in. Default: itself."""
+        return self
+
     def bind(self, data, min_lever_m: float = 5e-3) -> "Effect":
         """A copy for ``data``: acting only on joints whose motion moves the measured markers
         (median lever over the data at least ``min_lever_m``, m per rad; prismatic joints always

@@ -9,6 +9,7 @@ from torch import Tensor
 from torchcal.effects.base import TIME_COVARIATES, Effect, Prepared
 from torchcal.effects.deformation import GravityDeformation
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_features
+from torchcal.effects.drivers import ROW
 from torchcal.effects.terms import driver_columns
 from torchcal.measure.levels import LEVEL_SEP, factor_levels
 
@@ -162,9 +163,21 @@ class LoadCompliance(JointCompliance):
     def applicable(self, data) -> tuple[bool, str]:
         if self.lumped:
             return False, "the URDF has no link inertials: no gravity torque to add a logged load to"
-        if not (self.loads or load_columns(data.covariates)):
-            return False, "the data has no numeric or text column that could log a load"
+        if not (self.loads or load_columns(data.covariates) or ROW in data.covariates
+                or any(c in data.covariates for c in TIME_COVARIATES)):
+            return False, "the data has no column that could log a load, nor a row order a load could change along"
         return True, ""
+
+    def waiting(self) -> str | None:
+        return None if self.loads else "no column logs a load, and no set-up change has been found yet"
+
+    def given(self, found: list, data) -> "LoadCompliance":
+        """Also loaded by a step at every step in time or the row order an accepted effect found (a
+        set-up changed there: a payload swapped with nothing logged changes the deflection too)."""
+        new = [c for c in dict.fromkeys(s for e in found for s in e.session_steps()) if c not in self.loads]
+        if not new or self.lumped:
+            return self
+        return JointCompliance.bind(self._copy(loads=self.loads + new), data)
 
     def bind(self, data, min_lever_m: float = 5e-3) -> "LoadCompliance":
         """A copy loaded by every column of ``data`` that may log a load (unless ``loads`` were given),

@@ -27,6 +27,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.deformation_modes import catalog
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
+from torchcal.effects.shapes import shape_column
 from torchcal.measure.levels import LEVEL_SEP
 
 __all__ = ["GravityDeformation"]
@@ -111,7 +112,21 @@ class GravityDeformation(Effect):
 
     @property
     def covariates(self) -> list[str]:
-        return list(self.loads) if self.has_payload else []
+        return list(dict.fromkeys(c.split("~", 1)[0] for c in self.loads)) if self.has_payload else []
+
+    def _load_values(self, covariates: dict, q: Tensor) -> list[Tensor]:
+        """Each load's value per row ``(N,)``: its column, or ``<column>~<shape>`` that shape of it (a
+        step of the row order: a load changed where a set-up change was found)."""
+        missing = [c for c in self.covariates if c not in covariates]
+        if missing:
+            raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
+        out = []
+        for c in self.loads:
+            col, _, tag = c.partition("~")
+            x = covariates[col].to(q)
+            # a level's 0/1 column reads NaN where the text was not recorded: the first level's load then
+            out.append(shape_column(tag, x, 0.0, 1.0) if tag else torch.nan_to_num(x, nan=0.0) if LEVEL_SEP in c else x)
+        return out
 
     def modes(self) -> list[tuple[str, list[int]]]:
         return [(m["label"], [i]) for i, m in enumerate(self._modes)]
@@ -179,12 +194,7 @@ class GravityDeformation(Effect):
                                inertials=self._inertials) for g in self._gravities()]
         W = Ws[0]
         N, M = q.shape[0], W.markers.shape[1]
-        missing = [c for c in self.covariates if c not in covariates]
-        if missing:
-            raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
-        # a level's 0/1 column reads NaN where the text was not recorded: the first level's load then
-        L = [(torch.nan_to_num(covariates[c].to(q), nan=0.0) if LEVEL_SEP in c else covariates[c].to(q))
-             [:, None, None, None] for c in self.covariates]
+        L = [x[:, None, None, None] for x in self._load_values(covariates, q)]
         # the driving wrench of every frame, URDF part then per unit payload moment (and per unit of
         # each load's moments), for gravity as set and for the two tilts: (N, F, 6, 3, 5 + 4 loads)
         drive = torch.stack([torch.cat([w.urdf[..., None], w.payload, *(w.payload * x for x in L)], -1)

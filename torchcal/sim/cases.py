@@ -67,6 +67,12 @@ CASES: dict[str, dict] = {
     "named_loads": {**_UR5E, "named": ["load_compliance"], "levels": {"load": ["empty", "box", "pallet"]},
                     "physics": dict(payload_column="level:load", payload_levels={"empty": 0.5, "box": 4.0, "pallet": 9.0},
                                     payload_com_m=(0.0, 0.04, 0.08), torsion=TORSION)},
+    # the payload swapped once, 8 kg from row 225 on, and nothing logged: the simulator reads a column
+    # the loop never sees ("hidden")
+    "payload_swap": {**_UR5E, "named": ["joint_compliance", "load_compliance"],
+                     "covariates": {"carried_kg": ("payload_swap", {"before": 0.0, "after": 8.0, "at": 0.5})},
+                     "hidden": ["carried_kg"],
+                     "physics": dict(payload_column="carried_kg", payload_com_m=(0.0, 0.03, 0.1), torsion=TORSION)},
     # clean, with logs that drive nothing: a payload column the robot never carries and an operator's name
     "clean_logs": {**_UR5E, "named": [], "levels": {"operator": ["ann", "bob", "cem"]},
                    "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 5.0)})}, "physics": {}},
@@ -239,6 +245,9 @@ def make_case(name: str, seed: int = 0, outliers: float | None = None, urdf: str
     else:
         train = real.measure(q[:n], outlier_fraction=frac, **rows(slice(0, n)))
         test = real.measure(q[n:], first_row=n, **rows(slice(n, None)))
+    for k in c.get("hidden", ()):  # what the physics read but no log holds
+        train.covariates.pop(k)
+        test.covariates.pop(k)
     floor = float(np.linalg.norm(test.true_positions - test.positions, axis=-1).mean()) * 1e3
     rot_floor = None
     if test.quaternions is not None:

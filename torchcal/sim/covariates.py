@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 __all__ = ["SERIES", "ambient_temperature", "campaign_time", "covariate_columns", "motor_temperature",
-           "payload_runs", "skin_temperature", "warmup_temperature"]
+           "payload_runs", "payload_swap", "skin_temperature", "warmup_temperature"]
 
 Seed = int | Sequence[int]
 
@@ -78,9 +78,15 @@ def payload_runs(n: int, seed: Seed = 0, *, masses: Sequence[float] = (0.0, 4.0,
     return np.repeat(blocks, run)[:n]
 
 
+def payload_swap(n: int, seed: Seed = 0, *, before: float = 0.0, after: float = 8.0, at: float = 0.5) -> np.ndarray:
+    """``(n,)`` kg: ``before`` up to the fraction ``at`` of the rows, ``after`` from there on (a payload
+    swapped once in the session)."""
+    return np.where(np.arange(n) >= int(at * n), after, before).astype(float)
+
+
 SERIES: dict[str, Callable[..., np.ndarray]] = {
     "ambient": ambient_temperature, "motor": motor_temperature, "skin": skin_temperature, "time": campaign_time,
-    "warmup": warmup_temperature, "payloads": payload_runs}
+    "warmup": warmup_temperature, "payloads": payload_runs, "payload_swap": payload_swap}
 
 
 def covariate_columns(spec: dict, n: int, seed: int) -> dict[str, np.ndarray]:
