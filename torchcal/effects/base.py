@@ -202,7 +202,8 @@ class Effect:
 
     def waiting(self) -> str | None:
         """Why this candidate has nothing to offer yet (it waits for what a later round may find), or
-        None. A waiting candidate is not tried in that round, and says nothing."""
+        None. A waiting candidate is not tried in that round: its line in the record says why, the log
+        says nothing."""
         return None
 
     def given(self, found: list["Effect"], data) -> "Effect":

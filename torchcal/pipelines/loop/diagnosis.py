@@ -128,8 +128,6 @@ def _try_round(d: Diagnosis, pool: list[str], rnd: int, tabu: dict, say, bar) ->
                                tabu.get(n, set()))
             if bar is not None:
                 bar.update(1)
-            if tr is None:  # it waits for what a later round may find
-                continue
             if tr.covered:
                 pool.remove(n)
             trials.append(tr)

@@ -52,18 +52,20 @@ def progress_bar(progress: bool):
 
 
 def try_candidate(ctx: Context, current: Model, name: str, robot, train, n_obs: int, say, rnd: int,
-                  tabu=frozenset()) -> Trial | None:
+                  tabu=frozenset()) -> Trial:
     """One candidate effect against ``current``: its start (modes chosen), fit, CV and the rule;
-    under a geometric prior, the prior is re-chosen among its neighbours with the effect. None when
-    the candidate waits for what a later round may find (:meth:`~torchcal.effects.base.Effect.waiting`)."""
+    under a geometric prior, the prior is re-chosen among its neighbours with the effect. A candidate
+    that waits for what a later round may find (:meth:`~torchcal.effects.base.Effect.waiting`) is
+    recorded with its reason and not tried."""
     covering = [e.name for e in current.effects if name in getattr(e, "supersedes", ()) and e.name != name]
     if covering:
         why = f"its modes are part of the accepted {covering[0]}"
         return Trial(name, Candidate(name, "covered", reason=why, round=rnd), covered=True)
     eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params]).given(current.effects,
                                                                                                    train)
-    if eff.waiting() is not None:
-        return None
+    why = eff.waiting()
+    if why is not None:  # recorded, not said: it waits every round until a later finding gives it something
+        return Trial(name, Candidate(name, "not proposed", reason=why, round=rnd))
     # a family replaces what it extends: an effect it supersedes, or itself accepted with fewer modes
     superseded = [e for e in current.effects if e.name in eff.supersedes or (eff.selectable and e.name == name)]
     start = effect_start(ctx, current, eff, superseded, tabu)
