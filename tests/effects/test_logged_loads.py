@@ -124,7 +124,7 @@ def test_a_set_up_change_found_in_time_becomes_a_load_step():
     theta[K + 6:] = NU * 5.0  # 5 kg more from t = 5.5 s on
     dq = eff.joint_delta(theta[None], eff.prepare(data.q, data.covariates))[0]
     before = JointCompliance(robot, eff.joints)
-    ref0 = before.joint_delta(torch.cat([theta[:K + 6]])[None], before.prepare(data.q, {}))[0]
+    ref0 = before.joint_delta(theta[None, :K + 6], before.prepare(data.q, {}))[0]
     th1 = theta[:K + 6].clone()
     th1[K:K + 4] = NU * 5.0
     ref1 = before.joint_delta(th1[None], before.prepare(data.q, {}))[0]

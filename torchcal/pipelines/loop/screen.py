@@ -115,19 +115,28 @@ def _cycle_power(g: Tensor, shapes: Tensor, Q: Tensor, rp: Tensor) -> Tensor:
 
 
 class _Cycles:
-    """The cycle search of a screening: each time driver's frequencies and its values per
-    observation, and each pair's own column (its unit shape), computed once."""
+    """The cycle search of a screening: each time driver's frequencies, its values per observation
+    and its cycles' shapes, and each pair's own column (its unit shape), computed once."""
 
     def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
-        self.eff, self.data, self.rows = eff, data, rows
-        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if cycles(eff, pr[1], data)[0]]
+        self.grid = {}  # time driver -> (frequencies, first training value)
+        for d in dict.fromkeys(d for _, d, _ in eff.terms):
+            if (g := cycles(eff, d, data))[0]:
+                self.grid[d] = g
+        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if pr[1] in self.grid]
         self.pairs = {pr: i for i, pr in enumerate(pairs)}
         self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
-        self.grid = {d: cycles(eff, d, data) for d in dict.fromkeys(d for _, d in pairs)}
+        self.x = {d: driver_values(eff.robot, d, data.q, data.covariates)[rows] for d in self.grid}
+        # every pair of a driver is searched over the same grid: its shapes, taken once
+        self.shapes = {d: self._shapes(d, f) for d, (f, _) in self.grid.items()}
 
-    def power(self, pair: tuple[str, str], freqs: list[float], Q: Tensor, rp: Tensor) -> Tensor:
-        x = driver_values(self.eff.robot, pair[1], self.data.q, self.data.covariates)[self.rows]
-        shapes = cycle_columns(x, freqs, self.grid[pair[1]][1]).repeat_interleave(3, dim=0)
+    def _shapes(self, driver: str, freqs: list[float]) -> Tensor:
+        """``(3 n_obs, 2F)`` each frequency's sine and cosine per observation component."""
+        return cycle_columns(self.x[driver], freqs, self.grid[driver][1]).repeat_interleave(3, dim=0)
+
+    def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor, freqs: list[float] | None = None) -> Tensor:
+        """``(F,)`` what each cycle explains for ``pair`` (its driver's grid, or ``freqs``)."""
+        shapes = self.shapes[pair[1]] if freqs is None else self._shapes(pair[1], freqs)
         return _cycle_power(self.G[:, self.pairs[pair]], shapes, Q, rp)
 
     def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
@@ -135,9 +144,8 @@ class _Cycles:
         of freedom multiplied by the frequencies searched (their Bonferroni)."""
         out = []
         for pr in self.pairs:
-            freqs = self.grid[pr[1]][0]
-            e = float(self.power(pr, freqs, Q, rp).max())
-            out.append((min(1.0, len(freqs) * chi2_sf(e / sigma ** 2, 2)), pr))
+            e = float(self.power(pr, Q, rp).max())
+            out.append((min(1.0, len(self.grid[pr[1]][0]) * chi2_sf(e / sigma ** 2, 2)), pr))
         return out
 
     def best(self, pair: tuple[str, str], Q: Tensor, rp: Tensor) -> list[str]:
@@ -146,12 +154,12 @@ class _Cycles:
         if pair not in self.pairs:
             return []
         freqs, x0 = self.grid[pair[1]]
-        f = freqs[int(self.power(pair, freqs, Q, rp).argmax())]
+        f = freqs[int(self.power(pair, Q, rp).argmax())]
         df = freqs[1] - freqs[0] if len(freqs) > 1 else f / PERIOD_OVERSAMPLE
         for _ in range(2):
             df /= REFINE
             fine = [f + k * df for k in range(-REFINE, REFINE + 1) if f + k * df > 0]
-            f = fine[int(self.power(pair, fine, Q, rp).argmax())]
+            f = fine[int(self.power(pair, Q, rp, fine).argmax())]
         return [period_tag(ph, 1.0 / f, x0) for ph in ("sin", "cos")]
 
 
