@@ -153,6 +153,32 @@ def test_tools_centimetres_apart_are_found_and_the_geometry_judged_again(tmp_pat
 
 
 @pytest.mark.slow
+def test_tools_logged_by_number_are_found_as_levels():
+    """Four tools logged by number (``tool_id`` 1-4), their points up to 60 mm apart in no order of
+    the number: the column is read as levels too, the tools are found as one point per level, and
+    the saved model takes the numeric column where it reads a level."""
+    tips = {"1": (0.0, 0.0, 0.0), "2": (0.01, 0.0, 0.06), "3": (-0.008, 0.012, 0.015), "4": (0.004, -0.006, 0.045)}
+    tools = Drift("marker:tool", "level:tool", lambda t: np.array([tips[x] for x in t]))
+    rows = np.random.default_rng(13).choice(list(tips), 200)
+    robot, train, test = _samples([tools], 150, 50, seed=13, levels={"tool": rows})
+    for smp, ids in ((train, rows[:150]), (test, rows[150:])):
+        for lv in tips:
+            smp.covariates.pop(f"tool={lv}")
+        smp.covariates["tool_id"] = ids.astype(float)
+    res = run_loop(robot, train.to_measurements(), test.to_measurements(), seed=13, log=None,
+                   candidates=["parameter_drivers"], elm=False)
+    modes = [m for a in res.accepted for m in a["modes"]]
+    assert modes == ["tool.point~level:tool_id~levels"], modes
+    floor = float(np.linalg.norm(test.true_positions - test.positions, axis=-1).mean()) * 1e3
+    assert res.stages[-1]["test"]["mean_mm"] < 1.1 * floor, (res.stages[-1]["test"], floor)
+    model = res.model()
+    q = torch.as_tensor(test.q)
+    ids = torch.as_tensor(rows[150:].astype(float))
+    levels = {f"tool_id={lv}": (ids == float(lv)).double() for lv in "234"}
+    assert torch.equal(model.predict_pose(q, {"tool_id": ids}), model.predict_pose(q, levels))
+
+
+@pytest.mark.slow
 def test_tools_and_stations_in_two_text_columns_are_told_apart():
     """Three tools (60 mm and 36 mm apart) and two tracker stations (1.5 mm and 2.5 mrad apart) in two
     text columns: once the tools are in, the stations are screened around the model that holds them

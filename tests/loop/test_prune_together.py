@@ -15,6 +15,13 @@ from torchcal.pipelines.crossval.scores import T_EXIT, compare
 from .test_batched_folds import _case
 
 
+def _judge(monkeypatch, order):
+    """The guard alone: the judge of :func:`_judge_redundant`, and no idle mode (the model's first
+    joint, whose axis is vertical, has a twist mode gravity never loads: its own test is below)."""
+    monkeypatch.setattr(prune_mod, "weakest_mode", _judge_redundant(order))
+    monkeypatch.setattr(prune_mod, "idle_modes", lambda *a, **k: [])
+
+
 def _judge_redundant(order):
     """A stand-in for :func:`weakest_mode` that calls the first mode of ``order`` still in the model
     redundant (t = 0), and none once they are all gone."""
@@ -39,7 +46,7 @@ def _model():
 def test_a_removal_the_data_need_does_not_happen(monkeypatch):
     ctx, m = _model()
     said = []
-    monkeypatch.setattr(prune_mod, "weakest_mode", _judge_redundant(["joint_a2.twist"]))
+    _judge(monkeypatch, ["joint_a2.twist"])
     out, gone = prune_mod.prune(ctx, m, say=said.append)
     assert gone == [] and out is m
     assert "joint_a2.twist stays" in said[0]
@@ -51,7 +58,7 @@ def test_a_removal_the_data_need_does_not_happen(monkeypatch):
 
 def test_a_removal_the_data_do_not_need_happens(monkeypatch):
     ctx, m = _model()
-    monkeypatch.setattr(prune_mod, "weakest_mode", _judge_redundant(["joint_a6.twist"]))
+    _judge(monkeypatch, ["joint_a6.twist"])
     out, gone = prune_mod.prune(ctx, m)
     assert [g["mode"] for g in gone] == ["joint_a6.twist"]
     assert [lab for _, lab, _ in prune_mod._mode_columns(ctx, out)] == [
@@ -64,7 +71,7 @@ def test_removals_stop_where_together_they_cost_what_the_data_need(monkeypatch):
     ctx, m = _model()
     order = ["joint_a6.twist", "joint_a5.twist", "joint_a4.twist", "joint_a2.twist", "joint_a3.twist"]
     said = []
-    monkeypatch.setattr(prune_mod, "weakest_mode", _judge_redundant(order))
+    _judge(monkeypatch, order)
     out, gone = prune_mod.prune(ctx, m, say=said.append)
     assert [g["mode"] for g in gone] == order[:3]
     assert [lab for _, lab, _ in prune_mod._mode_columns(ctx, out)] == ["joint_a2.twist", "joint_a3.twist"]
@@ -77,3 +84,19 @@ def test_removals_stop_where_together_they_cost_what_the_data_need(monkeypatch):
     forced = prune_mod.without_mode(ctx, out, 0, "joint_a2.twist")
     t, pen_ok, _ = compare(forced.scores, m.scores, forced.k, m.k, ctx.n_obs)
     assert t > T_EXIT and pen_ok
+
+
+def test_a_mode_the_rank_judgement_dropped_leaves_first(monkeypatch):
+    """The first joint's twist, whose axis is vertical, is one mode of the fitted compliance that
+    gravity never loads: the rank judgement drops all its parameters (held at zero). It carries
+    nothing, and leaves before any judgement; the model's predictions stay what they were."""
+    ctx, m = _model()
+    assert prune_mod.idle_modes(ctx, m) == [(0, "joint_a1.twist")]
+    monkeypatch.setattr(prune_mod, "weakest_mode", _judge_redundant([]))
+    said = []
+    out, gone = prune_mod.prune(ctx, m, say=said.append)
+    assert gone == [{"effect": "joint_compliance", "mode": "joint_a1.twist", "t": None}]
+    assert "joint_a1.twist leaves" in said[0]
+    assert [lab for lab, _ in out.effects[0].modes()] == [lab for lab, _ in m.effects[0].modes()][1:]
+    # the same fit without the idle mode: the cross-validated scores agree
+    assert float((out.scores - m.scores).abs().max()) < 1e-9 * float(m.scores.abs().max())

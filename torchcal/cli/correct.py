@@ -10,7 +10,8 @@ Targets CSV (header row, one target per row):
   choose the branch, e.g. elbow up). Without them IK starts mid-range with random restarts;
 * a column per covariate the model needs (``model.required_covariates``, e.g. ``temperature``); a
   level of a text column (``tool=probe``) may come from the text column itself (``tool``, one level
-  per row, as the training file had it).
+  per row, as the training file had it), and a level of a column of codes (``tool_id=2``) from the
+  numeric column (``tool_id``).
 
 Output CSV: the target columns, the corrected command per joint (``nan`` where the target failed), ``converged`` (1/0),
 ``reason`` (``ok``, ``unreachable``, ``joint_limits``, ``singular``, ``not_converged``,
@@ -33,7 +34,7 @@ from torch import Tensor
 from torchcal.cli.common import add_common, inputs_of, int_at_least, positive_float
 from torchcal.deploy.correct import Corrector
 from torchcal.measure.io import UnitsError, read_csv
-from torchcal.measure.levels import LEVEL_SEP
+from torchcal.measure.levels import LEVEL_SEP, code_indicator
 from torchcal.outputs import atomic_write_text, check_out_file
 from torchcal.deploy.persist import load
 from torchcal.kinematics.transforms import matrix_to_quat, quat_to_matrix
@@ -77,8 +78,13 @@ def read_targets(path, robot, covariates: list[str] | None = None):
         return torch.tensor(vals, dtype=robot.dtype, device=robot.device)
 
     def level(name: str, value: str) -> Tensor:
-        return torch.tensor([float(r[col[name]].strip() == value) for r in rows], dtype=robot.dtype,
-                            device=robot.device)
+        """The level ``value`` of the text column ``name``, or of a numeric column of codes (``2`` or ``2.0``)."""
+        cells = [r[col[name]].strip() for r in rows]
+        try:
+            return code_indicator(torch.tensor([float(c) for c in cells], dtype=robot.dtype, device=robot.device),
+                                  value)
+        except ValueError:  # text
+            return torch.tensor([float(c == value) for c in cells], dtype=robot.dtype, device=robot.device)
 
     p = torch.stack([num(c) for c in _POS], -1)
     if float(p.abs().max()) > 50:

@@ -56,6 +56,7 @@ from torchcal.elm import ELM
 from torchcal.kinematics.transforms import homogeneous, so3_exp, so3_log
 from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.params import ParamSet
+from torchcal.measure.levels import LEVEL_SEP, code_indicator
 
 __all__ = ["CalibratedModel", "EffectHook", "pose_error", "apply_pose_error", "ERROR_NAMES"]
 
@@ -187,9 +188,15 @@ class CalibratedModel:
                 raise ValueError(f"covariates must be (N, {len(req)}) in the order {req}, or a dict; "
                                  f"got shape {tuple(c.shape)}")
             out = {k: c[:, i] for i, k in enumerate(req)}
+        for k in req:  # a level of a column of codes (tool_id=2) from the numeric column itself (tool_id)
+            col, _, lv = k.partition(LEVEL_SEP)
+            if k not in out and lv and col in out:
+                out[k] = code_indicator(out[col], lv)
         missing = [k for k in req if k not in out]
         if missing:
-            raise ValueError(f"missing covariate(s) {missing}; this model needs {req}")
+            raise ValueError(f"missing covariate(s) {missing}; this model needs {req}"
+                             + ("; a level <column>=<code> of a numeric column may come from the column <column>"
+                                if any(LEVEL_SEP in k for k in missing) else ""))
         for k, v in out.items():
             if v.shape[0] not in (1, n):
                 raise ValueError(f"covariate {k!r} has {v.shape[0]} values for {n} commands")

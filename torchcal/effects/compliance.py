@@ -140,9 +140,13 @@ class JointCompliance(GravityDeformation):
 def load_columns(covariates: dict) -> list[str]:
     """Columns that may log a load on the tool: every numeric driver column but the times (a payload's
     mass, a part held or not; :func:`~torchcal.effects.terms.driver_columns`), and each level of a text
-    column but its first (a load logged by name: each its own mass and centre of mass beyond the first's)."""
+    column but its first (a load logged by name: each its own mass and centre of mass beyond the first's;
+    not the levels the loop reads from a numeric column of codes, whose number is the load's log)."""
     numeric = [c for c in driver_columns(covariates) if c not in TIME_COVARIATES]
-    return numeric + [f"{f}{LEVEL_SEP}{lv}" for f, lvs in factor_levels(covariates).items() for lv in lvs[1:]]
+    # a column of codes read as levels too (tool_id=2) logs its load by its number already: a load in
+    # kg is a quantity, and its levels would only repeat it with four unknowns more per level
+    return numeric + [f"{f}{LEVEL_SEP}{lv}" for f, lvs in factor_levels(covariates).items() if f not in covariates
+                      for lv in lvs[1:]]
 
 
 class LoadCompliance(JointCompliance):

@@ -4,16 +4,27 @@ A text column of a measurement file is a factor: its categories are levels, as i
 with a factor. It is held as one 0/1 covariate per level, named ``<column>=<level>``, so that
 every row operation (subsets, folds, saving) carries it as it carries a number; writing a file
 joins those covariates back into the text column they came from.
+
+A numeric column may be a factor too: tools, stations or fixtures logged by number (``tool_id``
+1, 2, 3). A column of few whole numbers (:func:`code_levels`) is also read as levels
+(``tool_id=2``), beside its numeric reading: whether an error follows the number or the
+category is the data's to tell, by cross-validation.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import torch
+from torch import Tensor
 
-__all__ = ["LEVEL_SEP", "is_level_column", "factor_levels", "level_covariates", "join_levels", "is_text_column"]
+__all__ = ["LEVEL_SEP", "MAX_CODES", "is_level_column", "factor_levels", "level_covariates", "join_levels",
+           "is_text_column", "code_levels", "code_indicator"]
 
 LEVEL_SEP = "="
+#: A numeric column with at most this many distinct whole-number values, each on two rows or more,
+#: may hold codes (a tool, a station, a fixture by number). More values read as a quantity.
+MAX_CODES = 8
 
 
 def is_level_column(name: str) -> bool:
@@ -70,3 +81,23 @@ def join_levels(covariates: dict) -> tuple[dict, dict[str, list[str]]]:
         n = len(cols[0])
         text[f] = [next((lv for lv, c in zip(levels, cols) if c[i] == 1.0), "") for i in range(n)]
     return numeric, text
+
+
+def code_levels(values: Tensor) -> list[str] | None:
+    """The levels (``"1"``, ``"2"``, …) of a numeric column ``values (N,)`` that may hold codes: whole
+    numbers, 2 to :data:`MAX_CODES` distinct values, each on two rows or more (NaN: not recorded);
+    None when it does not."""
+    v = values[torch.isfinite(values)]
+    if v.numel() < 4 or bool((v != torch.round(v)).any()):
+        return None
+    u, n = torch.unique(v, return_counts=True)
+    if not 2 <= u.numel() <= MAX_CODES or int(n.min()) < 2:
+        return None
+    return [f"{int(x)}" for x in u.tolist()]
+
+
+def code_indicator(values: Tensor, level: str) -> Tensor:
+    """``(N,)`` 1 where the numeric column ``values`` holds the code ``level``, else 0 (NaN where it
+    holds NaN: the level was not recorded)."""
+    hit = (values == float(level)).to(values.dtype)
+    return torch.where(torch.isfinite(values), hit, torch.full_like(values, math.nan))

@@ -216,7 +216,9 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
     L += [""] + _effect_section(res, findings, ev_figs)
     if res.removed:
         L += ["Accepted once, then explained by later findings and removed: "
-              + ", ".join(f"{g['effect']} {g['mode']} (t = {g['t']:.1f})" for g in res.removed) + ".", ""]
+              + ", ".join(f"{g['effect']} {g['mode']} (" + ("its parameters dropped for identifiability"
+                                                              if g["t"] is None else f"t = {g['t']:.1f}") + ")"
+                          for g in res.removed) + ".", ""]
     left = res.leftover
     fig = leftover_figure(left.associations, out / "leftover.png") if left is not None else None
     L += leftover_section(left, "leftover.png" if fig is not None else None)

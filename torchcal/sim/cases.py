@@ -248,6 +248,12 @@ def make_case(name: str, seed: int = 0, outliers: float | None = None, urdf: str
     for k in c.get("hidden", ()):  # what the physics read but no log holds
         train.covariates.pop(k)
         test.covariates.pop(k)
+    for k, col in c.get("coded", {}).items():  # a text column logged by number: level i -> i + 1
+        for smp in (train, test):
+            code = np.zeros(len(smp.q))
+            for lv in [x for x in list(smp.covariates) if x.startswith(f"{k}=")]:
+                code += (c["levels"][k].index(lv.split("=", 1)[1]) + 1) * smp.covariates.pop(lv)
+            smp.covariates[col] = code
     floor = float(np.linalg.norm(test.true_positions - test.positions, axis=-1).mean()) * 1e3
     rot_floor = None
     if test.quaternions is not None:

@@ -19,6 +19,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``tool_set``: three tools logged in a text column ``tool``: a probe 75 mm longer than the
   gripper and a spindle 25 mm aside and 40 mm longer (centimetres: the geometric stage sees only
   the tools' scatter);
+* ``tool_codes``: four tools logged by number in a numeric column ``tool_id`` (1 to 4), not by
+  name: their points sit up to 60 mm apart with no order in the number (the number is a code, and
+  no line or curve in it fits the tools);
 * ``tool_and_station``: the three tools of ``tool_set`` and two tracker stations at once, in two text
   columns; station B's registration leaves the frame 1.5 mm, 1 mm and 0.5 mm off and turned 2, 1 and
   2.5 mrad (what the tools leave must still be told from the stations);
@@ -100,6 +103,12 @@ def _tool_set(tool):
     return np.array([tips[t] for t in tool])
 
 
+def _four_tools(tool):
+    tips = {"t1": (0.0, 0.0, 0.0), "t2": (0.010, 0.0, 0.060), "t3": (-0.008, 0.012, 0.015),
+            "t4": (0.004, -0.006, 0.045)}
+    return np.array([tips[t] for t in tool])
+
+
 def _station_b(station):
     moved = (station == "B").astype(float)[:, None]
     return moved * np.array([1.5e-3, -1e-3, 0.5e-3, 2e-3, -1e-3, 2.5e-3])
@@ -158,6 +167,10 @@ DRIFT_CASES: dict[str, dict] = {
     "tool_set": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe", "spindle"]},
                  "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set,
                                                "a probe 75 mm longer, a spindle 25 mm aside and 40 mm longer")])},
+    "tool_codes": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["t1", "t2", "t3", "t4"]},
+                   "coded": {"tool": "tool_id"},
+                   "physics": dict(drifts=[Drift("marker:tool", "level:tool", _four_tools,
+                                                 "four tools by number, up to 60 mm apart")])},
     "tool_and_station": {**_UR5E, "named": ["parameter_drivers"],
                          "levels": {"tool": ["gripper", "probe", "spindle"], "station": ["A", "B"]},
                          "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set, "three tools"),

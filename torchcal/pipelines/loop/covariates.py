@@ -1,14 +1,16 @@
-"""The loop's covariates: directions of approach derived from the time order of the rows, and the
-covariates whose held-out values leave their training range (the effects reading them would
-extrapolate there)."""
+"""The loop's covariates: directions of approach derived from the time order of the rows, the row
+order, a numeric column of codes read as levels too, and the covariates whose held-out values leave
+their training range (the effects reading them would extrapolate there)."""
 from __future__ import annotations
 
 import torch
 
 from torchcal.effects.base import TIME_COVARIATES
+from torchcal.effects.terms import driver_columns
 from torchcal.measure.data import Measurements
+from torchcal.measure.levels import LEVEL_SEP, code_indicator, code_levels, factor_levels
 
-__all__ = ["derive_directions", "derive_row_order", "extrapolation", "fold_groups"]
+__all__ = ["derive_directions", "derive_row_order", "derive_code_levels", "extrapolation", "fold_groups"]
 
 
 def derive_directions(data: Measurements) -> str | None:
@@ -45,6 +47,25 @@ def derive_row_order(train: Measurements, test: Measurements | None) -> bool:
     if test is not None and ROW not in test.covariates:
         test.covariates[ROW] = len(train) + torch.arange(len(test), dtype=test.q.dtype, device=test.q.device)
     return True
+
+
+def derive_code_levels(train: Measurements, test: Measurements | None) -> list[str]:
+    """Add ``<column>=<code>`` levels (0/1) for each numeric column of the training rows that may hold
+    codes (:func:`~torchcal.measure.levels.code_levels`: a tool, a station, a fixture logged by number),
+    to the training and the held-out rows; the numeric column stays. A held-out code the training
+    rows never show reads 0 in every level, as an unseen text level does. Returns the columns."""
+    texts = set(factor_levels(train.covariates))
+    out = []
+    for c in driver_columns(train.covariates):
+        levels = None if c in TIME_COVARIATES or c in texts else code_levels(train.covariates[c])
+        if levels is None:
+            continue
+        for d in (train, test):
+            if d is not None and c in d.covariates:
+                for lv in levels:
+                    d.covariates[f"{c}{LEVEL_SEP}{lv}"] = code_indicator(d.covariates[c], lv)
+        out.append(c)
+    return out
 
 
 def fold_groups(data: Measurements, duplicates: torch.Tensor) -> torch.Tensor:

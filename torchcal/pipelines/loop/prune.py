@@ -10,6 +10,10 @@ to that model. A mode that no longer passes the rule at the exit threshold (``t 
 lower penalised error) is removed, the weakest first, and the model refitted without it; it is
 not tried again in that run.
 
+A mode whose every parameter the rank judgement dropped (held at zero: the later findings span
+all it held, a thermal growth driven by a tool's number once the tool per number is in) carries
+nothing; it leaves first, without a judgement.
+
 Each removal is judged with the others in, so modes that stand in for one another can each look
 redundant while together they carry what the data need: removed one after another, the model
 falls back to where it was rounds ago, and the next rounds find the same modes again. So the
@@ -27,7 +31,7 @@ from torchcal.pipelines.loop.parts import split_params
 from torchcal.pipelines.loop.linear_cv import LinearCV
 from torchcal.pipelines.crossval.scores import T_EXIT, compare
 
-__all__ = ["prune", "weakest_mode", "without_mode"]
+__all__ = ["prune", "weakest_mode", "without_mode", "idle_modes"]
 
 
 def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
@@ -41,6 +45,20 @@ def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
                 cols = [col[o + i] for i in idx if (o + i) in col and i not in set(e.shared())]
                 if cols:
                     out.append((k, label, cols))
+        o += e.n_params
+    return out
+
+
+def idle_modes(ctx: Context, m: Model, protect=frozenset()) -> list[tuple[int, str]]:
+    """``(effect index, label)`` of the accepted modes of selectable effects with no free parameter
+    left and every value zero: the rank judgement dropped them, and they add nothing to the model."""
+    free, vals = m.params.free.tolist(), m.params.values.tolist()
+    out, o = [], ctx.n_geo
+    for k, e in enumerate(m.effects):
+        if e.selectable and e.ridge is None:
+            own = [(label, [o + i for i in idx if i not in set(e.shared())]) for label, idx in e.modes()]
+            out += [(k, label) for label, idx in own if idx and (e.name, label) not in protect
+                    and not any(free[i] for i in idx) and not any(vals[i] for i in idx)]
         o += e.n_params
     return out
 
@@ -94,9 +112,16 @@ def without_mode(ctx: Context, m: Model, k: int, label: str) -> Model:
 
 def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model, list[dict]]:
     """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
-    and what left, with its t when it left. The modes just accepted (``protect``: ``(effect name,
+    and what left, with its t when it left (None: an idle mode, :func:`idle_modes`). The modes just accepted (``protect``: ``(effect name,
     label)``) passed the rule against everything before them and are not judged again here."""
     gone, before = [], m
+    while idle := idle_modes(ctx, m, protect):
+        k, label = idle[0]
+        gone.append({"effect": m.effects[k].name, "mode": label, "t": None})  # no judgement: nothing to judge
+        if say is not None:
+            say(f"{m.effects[k].name}: mode {label} leaves (the later findings hold all it held: its parameters "
+                "were dropped for identifiability)")
+        m = before = without_mode(ctx, m, k, label)
     for _ in range(sum(len(e.modes()) for e in m.effects)):
         weak = weakest_mode(ctx, m, protect)
         if weak is None:

@@ -37,7 +37,7 @@ from torchcal.measure.stats import noise_floor
 from torchcal.measure.trust import stage_problems
 from torchcal.options import Options
 from torchcal.pipelines.precision import check_plausible
-from torchcal.pipelines.loop.covariates import derive_directions, derive_row_order, fold_groups
+from torchcal.pipelines.loop.covariates import derive_code_levels, derive_directions, derive_row_order, fold_groups
 from torchcal.pipelines.loop.diagnosis import Diagnosis, diagnose
 from torchcal.pipelines.loop.elm_stage import elm_stage
 from torchcal.pipelines.loop.findings import state_findings
@@ -132,7 +132,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     t0 = time.perf_counter()
     say = say_fn(opt.log)
     train, test = _placeholders(train, test, say)
-    train, test = _directions(train, test, say)
+    train, test = _derived_columns(train, test, say)
     as_measured = test
     session, test, held = _session(train, test)
     timings: dict[str, float] = {}
@@ -218,7 +218,9 @@ def _own(data: Measurements | None) -> Measurements | None:
                                                 dict(data.covariates), data.planes, dict(data.distances))
 
 
-def _directions(train: Measurements, test: Measurements | None, say) -> tuple[Measurements, Measurements | None]:
+def _derived_columns(train: Measurements, test: Measurements | None, say) -> tuple[Measurements, Measurements | None]:
+    """The run's copies of the rows with the columns the loop derives: directions of approach, the
+    row order, the levels of a column of codes."""
     train, test = _own(train), _own(test)
     derived = derive_directions(train)
     if derived is not None:
@@ -227,6 +229,9 @@ def _directions(train: Measurements, test: Measurements | None, say) -> tuple[Me
         say(f"no direction columns: derived dir.<joint> from the time order of '{derived}' (for backlash)")
     if derive_row_order(train, test):
         say("no time column: the row order is a driver ('row'), for what changed during the session")
+    codes = derive_code_levels(train, test)
+    if codes:
+        say(f"few whole numbers in {', '.join(codes)}: read as levels too (codes: a tool, a station by number)")
     return train, test
 
 
