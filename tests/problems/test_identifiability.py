@@ -180,32 +180,3 @@ def test_summary_and_dict(rep):
         assert rep.reasons[n] in text
     d = json.loads(json.dumps(rep.to_dict()))
     assert d["rank"] == 19 and d["dropped"] == rep.dropped and d["O1"] == pytest.approx(rep.O1)
-
-
-def test_pivoted_qr_matches_lapack_and_its_own_definition():
-    """The rank decision's pivoted QR against LAPACK's (``scipy.linalg.qr(pivoting=True)``) on
-    random matrices with exact and near ties, and against its definition: ``B[:, piv] = Q R`` with
-    ``Q`` orthonormal and ``|diag R|`` non-increasing."""
-    import scipy.linalg
-
-    from torchcal.problems.column_selection import pivoted_qr
-
-    rng = np.random.default_rng(5)
-    for _ in range(60):
-        n, p = (int(v) for v in rng.integers(3, 40, size=2))
-        B = rng.standard_normal((n, p)) * rng.uniform(0.01, 10.0, size=p)
-        if p > 4:
-            B[:, 1] = 2.0 * B[:, 0]                      # an exact dependence
-            B[:, 2] = 1.001 * B[:, 3]                    # and one of two columns nearly tied in norm
-        Q, d, piv = pivoted_qr(B)
-        _, R_ref, piv_ref = scipy.linalg.qr(B, mode="economic", pivoting=True)
-        d_ref = np.abs(np.diag(R_ref))
-        k = int(np.sum(d_ref > 1e-9 * d_ref[0]))         # the columns a rank decision keeps
-        assert np.array_equal(piv[:k], piv_ref[:k])
-        np.testing.assert_allclose(d[:k], d_ref[:k], rtol=1e-9, atol=1e-12 * d_ref[0])
-        np.testing.assert_allclose(Q[:, :k].T @ Q[:, :k], np.eye(k), atol=1e-12)
-        R = Q[:, :k].T @ B[:, piv]  # what is left beyond the k kept directions is below the rank tolerance
-        np.testing.assert_allclose(Q[:, :k] @ R, B[:, piv], atol=1e-8 * d[0])
-        np.testing.assert_allclose(np.abs(np.diag(R[:, :k])), d[:k], rtol=1e-9)
-        assert np.allclose(np.tril(R[:, :k], -1), 0.0, atol=1e-12 * d[0])
-        assert np.all(np.diff(d[:k]) <= 1e-12 * d[0])

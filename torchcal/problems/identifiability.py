@@ -12,7 +12,7 @@ column divided by its 2-norm. This makes the decision independent of units (mm v
 and of how far a parameter's lever arm reaches. A column whose norm is below ``rtol`` times the
 largest column norm is zero: that parameter does not move any marker and is unidentifiable outright.
 
-Selection. A column-pivoted QR (:mod:`torchcal.problems.column_selection`) on ``Ĵ`` chooses a base
+Selection. A column-pivoted QR (``scipy.linalg.qr(..., pivoting=True)``) on ``Ĵ`` chooses a base
 set greedily; the numerical rank is the number of R-diagonal entries above ``rtol`` times the
 first one, and it is cross-checked against the SVD of the same matrix. Interchangeable
 parameters (``joint_1.dz`` and ``base.z``) tie exactly after normalisation, so the QR is run in
@@ -49,7 +49,6 @@ import torch
 from torch import Tensor
 
 from torchcal.params import ParamSet
-from torchcal.problems.column_selection import TIE_BOOST, tiered_selection
 from torchcal.problems.identifiability_report import (IdentifiabilityReport, dependency_reason,
                                                       zero_column_reason)
 
@@ -71,6 +70,9 @@ DEFAULT_PREFER: list[list[str]] = [
     ["*.da", "*.dd", "*.dalpha", "*.dtheta", "*.offset"],
 ]
 
+# Relative boost per position that breaks exact ties in favour of earlier columns (see _tiered_qr).
+# (public: the fleet's batched selection breaks ties the same way)
+TIE_BOOST = 1e-10
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -182,6 +184,41 @@ def preference_tiers(marker_names: Sequence[str], names: list[str], prefer) -> l
     return tiers
 
 
+def _tiered_qr(An: np.ndarray, tiers: list[list[int]], rtol: float) -> tuple[list[int], list[float]]:
+    """Greedy base-column selection: pivoted QR tier by tier, each tier against the span of the
+    columns already kept. Returns kept column positions in pivot order and their R diagonals
+    (residual norms when chosen; 1 for the first, since columns have unit norm)."""
+
+    n = An.shape[0]
+    Q = np.zeros((n, 0))
+    kept: list[int] = []
+    diag: list[float] = []
+    tol = None
+    for tier in tiers:
+        if Q.shape[1] >= n:
+            break
+        B = An[:, tier]
+        # project out the kept span twice: one Gram-Schmidt pass loses orthogonality when
+        # columns are nearly dependent, which is exactly the case being decided here
+        for _ in range(2):
+            B = B - Q @ (Q.T @ B)
+        # Exact duplicates (joint_2.dd / joint_3.dd) tie, and rounding would pick one at random;
+        # a tiny boost, largest for the earliest column, makes the earlier one win every time.
+        # Scaling a column changes neither the span nor (at 1e-10) any rank decision.
+        boost = 1.0 + TIE_BOOST * np.arange(len(tier), 0, -1, dtype=float)
+        import scipy.linalg  # scipy costs start-up time; only a rank decision needs it
+
+        Qt, Rt, piv = scipy.linalg.qr(B * boost, mode="economic", pivoting=True)
+        d = np.abs(np.diag(Rt)) / boost[piv[: min(Rt.shape)]]
+        if tol is None:  # relative to the first R-diagonal entry overall
+            tol = rtol * (d[0] if d.size and d[0] > 0 else 1.0)
+        nk = int(np.argmax(d <= tol)) if np.any(d <= tol) else d.size
+        kept += [tier[int(p)] for p in piv[:nk]]
+        diag += [float(x) for x in d[:nk]]
+        Q = np.hstack([Q, Qt[:, :nk]])
+    return kept, diag
+
+
 def observability_indices(s: np.ndarray, n_rows: int) -> dict[str, float]:
     """O1..O4 and the condition number from singular values ``s`` of the unit-RMS Jacobian."""
     k = s.size
@@ -254,7 +291,7 @@ def analyse_jacobian(A, names: list[str], units: list[str], *, markers: Sequence
     # base subset: tiered pivoted QR over the non-zero columns
     tiers = [[i for i in t if not zero[i]] for t in preference_tiers(markers, names, prefer)]
     tiers = [t for t in tiers if t]
-    kept_pivot, _ = tiered_selection(An, tiers, rtol) if tiers else ([], [])
+    kept_pivot, _ = _tiered_qr(An, tiers, rtol) if tiers else ([], [])
     kept = sorted(kept_pivot)
     rank = len(kept)
 

@@ -18,8 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcal.problems.column_selection import TIE_BOOST
-from torchcal.problems.identifiability import preference_tiers
+from torchcal.problems.identifiability import TIE_BOOST, preference_tiers
 from torchcal.problems.identifiability_report import dependency_reason, zero_column_reason
 
 __all__ = ["FleetDecision", "decide", "explain", "check_rank"]
