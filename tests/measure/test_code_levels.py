@@ -17,13 +17,14 @@ T = lambda *v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
 
 
 @pytest.mark.parametrize("values, levels", [
-    ((1, 2, 3, 1, 2, 3), ["1", "2", "3"]),
-    ((0, 5, 0, 5, math.nan), ["0", "5"]),                # a cell not recorded does not count
-    ((1.0, 2.5, 1.0, 2.5), None),                         # not whole numbers: a quantity
-    ((1, 2, 3, 3, 3, 3), None),                           # a code on one row only
-    ((4, 4, 4, 4), None),                                 # one value: nothing to tell apart
-    (tuple(range(MAX_CODES + 1)) * 2, None),              # too many values for codes
-    (tuple(range(MAX_CODES)) * 2, [str(i) for i in range(MAX_CODES)]),
+    ((1, 2, 3, 1, 2, 3, 1, 2, 3, 1, 2, 3), ["1", "2", "3"]),
+    ((0, 5, 0, 5, 0, 5, 0, 5, math.nan), ["0", "5"]),    # a cell not recorded does not count
+    ((1.0, 2.5) * 4, None),                               # not whole numbers: a quantity
+    ((1, 2) * 4 + (3,), None),                            # a code on one row only
+    ((4,) * 8, None),                                     # one value: nothing to tell apart
+    ((1, 2, 3) * 3, None),                                # three values on nine rows: too few rows each
+    (tuple(range(MAX_CODES + 1)) * 4, None),              # too many values for codes
+    (tuple(range(MAX_CODES)) * 4, [str(i) for i in range(MAX_CODES)]),
 ])
 def test_which_columns_hold_codes(values, levels):
     assert code_levels(T(*values)) == levels

@@ -22,9 +22,10 @@ __all__ = ["LEVEL_SEP", "MAX_CODES", "is_level_column", "factor_levels", "level_
            "is_text_column", "code_levels", "code_indicator"]
 
 LEVEL_SEP = "="
-#: A numeric column with at most this many distinct whole-number values, each on two rows or more,
-#: may hold codes (a tool, a station, a fixture by number). More values read as a quantity.
-MAX_CODES = 8
+#: A numeric column with at most this many distinct whole-number values (and at most a quarter as
+#: many as it has rows), each on two rows or more, may hold codes (a tool, a station, a fixture by
+#: number; a rack of ten or twenty tools is common). More values read as a quantity only.
+MAX_CODES = 24
 
 
 def is_level_column(name: str) -> bool:
@@ -85,13 +86,13 @@ def join_levels(covariates: dict) -> tuple[dict, dict[str, list[str]]]:
 
 def code_levels(values: Tensor) -> list[str] | None:
     """The levels (``"1"``, ``"2"``, …) of a numeric column ``values (N,)`` that may hold codes: whole
-    numbers, 2 to :data:`MAX_CODES` distinct values, each on two rows or more (NaN: not recorded);
-    None when it does not."""
+    numbers, 2 to :data:`MAX_CODES` distinct values and at most a quarter of the rows, each value on
+    two rows or more (NaN: not recorded); None when it does not."""
     v = values[torch.isfinite(values)]
-    if v.numel() < 4 or bool((v != torch.round(v)).any()):
+    if v.numel() < 8 or bool((v != torch.round(v)).any()):
         return None
     u, n = torch.unique(v, return_counts=True)
-    if not 2 <= u.numel() <= MAX_CODES or int(n.min()) < 2:
+    if not 2 <= u.numel() <= min(MAX_CODES, v.numel() // 4) or int(n.min()) < 2:
         return None
     return [f"{int(x)}" for x in u.tolist()]
 

@@ -12,7 +12,9 @@ not tried again in that run.
 
 A mode whose every parameter the rank judgement dropped (held at zero: the later findings span
 all it held, a thermal growth driven by a tool's number once the tool per number is in) carries
-nothing; it leaves first, without a judgement.
+nothing; it leaves first, without a judgement. A family kept softly (every mode under one Gaussian
+prior) is judged whole: refitted without it, the model must be worse by the exit rule, or the
+family leaves.
 
 Each removal is judged with the others in, so modes that stand in for one another can each look
 redundant while together they carry what the data need: removed one after another, the model
@@ -91,11 +93,11 @@ def weakest_mode(ctx: Context, m: Model, protect=frozenset()) -> tuple[int, str,
     return worst
 
 
-def without_mode(ctx: Context, m: Model, k: int, label: str) -> Model:
-    """``m`` refitted without the mode ``label`` of its ``k``-th effect (the effect gone when it was
-    its last mode); every other value starts where ``m`` has it."""
+def without_mode(ctx: Context, m: Model, k: int, label: str | None) -> Model:
+    """``m`` refitted without the mode ``label`` of its ``k``-th effect (``None``: every mode; the
+    effect gone when it was its last mode); every other value starts where ``m`` has it."""
     eff = m.effects[k]
-    keep = [lab for lab, _ in eff.modes() if lab != label]
+    keep = [lab for lab, _ in eff.modes() if label is not None and lab != label]
     geo, parts = split_params(m.params, ctx.robot, m.effects)
     effects, kept_parts = list(m.effects), list(parts)
     if keep:
@@ -112,8 +114,9 @@ def without_mode(ctx: Context, m: Model, k: int, label: str) -> Model:
 
 def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model, list[dict]]:
     """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
-    and what left, with its t when it left (None: an idle mode, :func:`idle_modes`). The modes just accepted (``protect``: ``(effect name,
-    label)``) passed the rule against everything before them and are not judged again here."""
+    and what left, with its t when it left (None: an idle mode, :func:`idle_modes`). The modes just
+    accepted (``protect``: ``(effect name, label)``) passed the rule against everything before them
+    and are not judged again here."""
     gone, before = [], m
     while idle := idle_modes(ctx, m, protect):
         k, label = idle[0]
@@ -122,6 +125,21 @@ def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model,
             say(f"{m.effects[k].name}: mode {label} leaves (the later findings hold all it held: its parameters "
                 "were dropped for identifiability)")
         m = before = without_mode(ctx, m, k, label)
+    k = 0
+    while k < len(m.effects):  # families kept softly, each judged whole
+        e = m.effects[k]
+        if not (e.selectable and e.ridge is not None) or any((e.name, lab) in protect for lab, _ in e.modes()):
+            k += 1
+            continue
+        pruned = without_mode(ctx, m, k, None)
+        t, pen_ok, _ = compare(pruned.scores, m.scores, pruned.k, m.k, ctx.n_obs)
+        if t > T_EXIT and pen_ok:
+            k += 1
+            continue
+        gone.append({"effect": e.name, "mode": "all modes (kept softly)", "t": t})
+        if say is not None:
+            say(f"{e.name}: its modes, kept softly, leave (t = {t:.1f} once the later findings are in)")
+        m = before = pruned  # effect k is gone: the next one takes its place
     for _ in range(sum(len(e.modes()) for e in m.effects)):
         weak = weakest_mode(ctx, m, protect)
         if weak is None:
