@@ -16,7 +16,8 @@ following the gravity torque piecewise. This family holds them all::
 * **drivers** (:mod:`torchcal.effects.drivers`): each joint's position (prismatic ones in m), the
   gravity torque at each joint, time or the row order, each numeric covariate, each text column;
 * **shapes** (:mod:`torchcal.effects.shapes`): linear, smooth (quadratic spline), periodic
-  (harmonics of an angle), a step at an unknown time or row, a settling from the session's start,
+  (harmonics of an angle), a step at an unknown time or row, a window (a change and its return:
+  a tool swapped for a while), a settling from the session's start, a cycle in time,
   piecewise-linear, one value per level.
 
 A zero offset acts as ``Δq`` on its joint, exactly; a marker point's coordinate moves the point on
@@ -42,7 +43,7 @@ from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
 from torchcal.effects.gravity import body_inertials
 from torchcal.effects.anydriver_space import RIGID_BREAKS, rigid
-from torchcal.effects.shapes import PERIODIC, cycle_label, screen_tags, shape_column
+from torchcal.effects.shapes import PERIODIC, WINDOW, cycle_label, screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
 from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.effects import anydriver_evidence as evidence
@@ -205,7 +206,7 @@ class ParameterDrivers(Effect):
 
     def session_steps(self) -> list[str]:
         return list(dict.fromkeys(f"{d if d == ROW else d.split(':', 1)[1]}~{t}" for _, d, t in self.terms
-                                  if driver_kind(d) in ("row", "time") and t.startswith("step")))
+                                  if driver_kind(d) in ("row", "time") and t.startswith(("step", WINDOW))))
 
     def setup_parameters(self) -> dict[str, str]:
         names = self.param_names

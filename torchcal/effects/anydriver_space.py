@@ -12,14 +12,16 @@ import torch
 from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_values
-from torchcal.effects.shapes import PERIODIC, grid_tags, harmonic_tags, period_frequencies, smooth_tags
+from torchcal.effects.shapes import (PERIODIC, WINDOW, grid_tags, harmonic_tags, period_frequencies, smooth_tags,
+                                     window_grid)
 from torchcal.kinematics.slots import BASE_NAMES
 from torchcal.measure.levels import factor_levels
 
 # shapes a rigid thing takes as a whole, all its coordinates one mode, when one coordinate shows them
-RIGID_BREAKS = ("step", "exp", *PERIODIC)
+RIGID_BREAKS = ("step", WINDOW, "exp", *PERIODIC)
 
-__all__ = ["RIGID_BREAKS", "rigid", "coordinates", "shapes_for", "breaks", "cycles", "expanded", "space_size"]
+__all__ = ["RIGID_BREAKS", "rigid", "coordinates", "shapes_for", "breaks", "cycles", "expanded", "space_size",
+           "len_windows"]
 
 
 def rigid(p: str, markers) -> str | None:
@@ -98,9 +100,18 @@ def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None)
     return eff._copy(terms=list(dict.fromkeys(terms)))
 
 
+def len_windows(driver: str, x: Tensor) -> int:
+    """How many windows (a change and its return) a time or row driver with training values ``x`` is
+    scanned for (:func:`~torchcal.effects.shapes.window_grid`); none for any other driver."""
+    if driver_kind(driver) not in ("time", "row"):
+        return 0
+    return int(window_grid(x)[1].sum())
+
+
 def space_size(eff, pairs: list[tuple[str, str]], data) -> int:
     """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every break of
-    its driver's grid, both phases of every cycle searched, every level."""
+    its driver's grid, every window between two of a time or row driver's breaks, both phases of every
+    cycle searched, every level."""
     tq = eff.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
     levels = factor_levels(data.covariates)
     per: dict[str, int] = {}
@@ -110,5 +121,5 @@ def space_size(eff, pairs: list[tuple[str, str]], data) -> int:
             continue
         x = driver_values(eff.robot, d, data.q, data.covariates, tq)
         per[d] = (len(shapes_for(eff, d, x[torch.isfinite(x)])) + len(breaks(eff, d, data, tq))
-                  + 2 * len(cycles(eff, d, data)[0]))
+                  + 2 * len(cycles(eff, d, data)[0]) + len_windows(d, x[torch.isfinite(x)]))
     return sum(per[d] for _, d in pairs)

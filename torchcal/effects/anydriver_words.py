@@ -6,7 +6,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from torchcal.effects.drivers import driver_kind, driver_unit, driver_words
-from torchcal.effects.shapes import PERIODIC, cycle_period, period_parts, settle_parts
+from torchcal.effects.shapes import PERIODIC, WINDOW, cycle_period, period_parts, settle_parts, window_parts
 from torchcal.params import display_unit
 
 __all__ = ["coef_unit", "axis_label", "parameter_words", "mode_words", "describe"]
@@ -79,13 +79,18 @@ def mode_words(eff, label: str) -> str:
             return f"{what} as it settles along {driver_words(d)}, with a time constant of {_span(settle_parts(tag)[0], eff.robot, d)}"
         if tag.startswith("cyc"):
             return f"{what} in a cycle along {driver_words(d)}, with a period of {_span(cycle_period(tag), eff.robot, d)}"
-        at = float(tag[4:])
-        return f"{what} at {f'row {int(at + 0.5)}' if driver_kind(d) == 'row' else f'{driver_words(d)} = {at:.6g}'}, and stays"
+        if tag.startswith(WINDOW):
+            a, b = window_parts(tag)
+            return f"{what} from {_at(a, d)} to {_at(b, d)}, and back"
+        return f"{what} at {_at(float(tag[4:]), d)}, and stays"
     what = parameter_words(eff, p)
     if tag == "levels":
         return f"{what} takes one value per level of {d.split(':', 1)[1]}"
     if tag.startswith("step"):
         return f"{what} steps at {driver_words(d)} = {float(tag[4:]):.6g}"
+    if tag.startswith(WINDOW):
+        a, b = window_parts(tag)
+        return f"{what} differs from {_at(a, d)} to {_at(b, d)}, and comes back"
     if tag.startswith("exp"):
         tau = _span(settle_parts(tag)[0], eff.robot, d)
         return f"{what} settles along {driver_words(d)}, with a time constant of {tau}"
@@ -98,15 +103,21 @@ def mode_words(eff, label: str) -> str:
     return f"{what} varies {shape} with {driver_words(d)}"
 
 
+def _at(x: float, d: str) -> str:
+    """Where along the driver ``d`` a break ``x`` sits, in words."""
+    return f"row {int(x + 0.5)}" if driver_kind(d) == "row" else f"{driver_words(d)} = {x:.6g}"
+
+
 def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
     what = parameter_words(eff, p)
     mean, half = eff.ranges.get(d, (0.0, 1.0))
     if tag.startswith("lvl="):
         return f"{what} differs by {_value(v, unit)} for {d.split(':', 1)[1]} = {tag[4:]}"
     if tag.startswith("step"):
-        at = float(tag[4:])
-        where = f"row {int(at + 0.5)}" if driver_kind(d) == "row" else f"{driver_words(d)} = {at:.6g}"
-        return f"{what} shifts by {_value(v, unit)} at {where}, and stays"
+        return f"{what} shifts by {_value(v, unit)} at {_at(float(tag[4:]), d)}, and stays"
+    if tag.startswith(WINDOW):
+        a, b = window_parts(tag)
+        return f"{what} shifts by {_value(v, unit)} from {_at(a, d)} to {_at(b, d)}, and back"
     if tag.startswith("exp"):
         # the column is 1 at the start and 0 once settled: the parameter moves by -v as it settles
         return (f"{what} moves by {_value(-v, unit)} as it settles along {driver_words(d)}, with a time constant "

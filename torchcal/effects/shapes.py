@@ -9,6 +9,8 @@ Tags (the strings a saved model carries):
 * ``spl<k>``: ``((x − k) / h)²₊`` a quadratic spline piece from the knot ``k`` on (smooth);
 * ``sin<n>`` / ``cos<n>``: harmonic ``n`` of an angle (periodic);
 * ``step<k>``: ``1`` from ``x ≥ k`` on (a set-up changed at ``k`` and stayed);
+* ``win<a>@<b>``: ``1`` for ``a ≤ x < b`` (a time or row driver: a set-up changed at ``a`` and
+  changed back at ``b``, a tool swapped for a while);
 * ``exp<τ>@<x₀>``: ``exp(−(x − x₀)₊ / τ)`` (a first-order settling from the session's start ``x₀``
   with time constant ``τ``: a tracker or a frame warming up, a creep dying away);
 * ``psin<P>@<x₀>`` / ``pcos<P>@<x₀>``: ``sin`` / ``cos`` of ``2π (x − x₀) / P`` (a time driver: a
@@ -30,6 +32,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "settle_tags",
+           "window_tag", "window_parts", "window_grid", "WINDOW",
            "grid_tags", "screen_tags", "settle_parts", "period_parts", "period_tag", "period_frequencies",
            "cycle_columns", "cycle_label", "cycle_period", "UNIT", "PERIODIC", "HARMONICS", "KNOT_QUANTILES",
            "HINGE_QUANTILES", "SETTLE_STEPS", "MAX_CYCLES", "PERIOD_OVERSAMPLE"]
@@ -47,6 +50,7 @@ SETTLE_STEPS = 24
 MAX_CYCLES = 16
 PERIOD_OVERSAMPLE = 8
 PERIODIC = ("psin", "pcos")
+WINDOW = "win"
 # a parameter's own column, 1 on every row: never a term of a model (a constant is the parameter
 # itself), but what every shape multiplies, row by row, so that a search over many shapes of one
 # parameter takes its column once
@@ -82,6 +86,9 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return (torch.clamp(x - _num(tag, "spl"), min=0) / h) ** 2
     if tag.startswith("step"):
         return (x >= _num(tag, "step")).to(x.dtype)
+    if tag.startswith(WINDOW):
+        a, b = window_parts(tag)
+        return ((x >= a) & (x < b)).to(x.dtype)
     if tag.startswith("exp"):
         tau, x0 = settle_parts(tag)
         return torch.exp(-torch.clamp(x - x0, min=0) / tau)
@@ -90,7 +97,8 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
     if tag.startswith("sat"):
         k = _num(tag, "sat")
         return torch.clamp(x, min=-k, max=k)
-    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, spl<k>, sin<n>, cos<n>, step<k>, exp<tau>@<x0>, "
+    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, spl<k>, sin<n>, cos<n>, step<k>, win<a>@<b>, "
+                     "exp<tau>@<x0>, "
                      "psin<P>@<x0>, pcos<P>@<x0>, hinge<k>, sat<k>, lvl=<level>")
 
 
@@ -133,6 +141,29 @@ def step_breaks(x: Tensor, min_side: int = 3) -> list[float]:
     counts = torch.tensor([int((x.double() < m).sum()) for m in mids.tolist()])
     ok = (counts >= min_side) & (counts <= x.numel() - min_side)
     return [float(f"{float(m):.10g}") for m in mids[ok]]
+
+
+def window_tag(a: float, b: float) -> str:
+    """The tag of the window from the break ``a`` to the break ``b``."""
+    return f"{WINDOW}{a:.10g}@{b:.10g}"
+
+
+def window_parts(tag: str) -> tuple[float, float]:
+    """``win<a>@<b>`` -> ``(a, b)`` in the driver's unit."""
+    a, _, b = tag[len(WINDOW):].partition("@")
+    return float(a), float(b)
+
+
+def window_grid(x: Tensor, min_inside: int = 3) -> tuple[list[float], Tensor]:
+    """The breaks of :func:`step_breaks` on training values ``x`` and a ``(B, B)`` mask of the windows
+    ``[a, b)`` between two of them (``a`` before ``b``) that hold at least ``min_inside`` values (a
+    change seen by fewer rows is an outlier)."""
+    b = step_breaks(x)
+    if not b:
+        return b, torch.zeros(0, 0, dtype=torch.bool)
+    at = torch.tensor(b, dtype=torch.float64, device=x.device)
+    below = (x.double()[:, None] < at[None]).sum(0)  # values before each break
+    return b, (below[None] - below[:, None]) >= min_inside
 
 
 def settle_parts(tag: str) -> tuple[float, float]:

@@ -22,6 +22,8 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``tool_codes``: four tools logged by number in a numeric column ``tool_id`` (1 to 4), not by
   name: their points sit up to 60 mm apart with no order in the number (the number is a code, and
   no line or curve in it fits the tools);
+* ``tool_for_a_while``: a tool 40 mm longer and 10 mm aside used for rows 100 to 199, then the
+  first one back, nothing logged (the held-out rows come after, with the first tool);
 * ``tool_and_station``: the three tools of ``tool_set`` and two tracker stations at once, in two text
   columns; station B's registration leaves the frame 1.5 mm, 1 mm and 0.5 mm off and turned 2, 1 and
   2.5 mrad (what the tools leave must still be told from the stations);
@@ -109,6 +111,10 @@ def _four_tools(tool):
     return np.array([tips[t] for t in tool])
 
 
+def _tool_for_a_while(rows):
+    return ((rows >= 100) & (rows < 200)).astype(float)[:, None] * np.array([0.0, 0.010, 0.040])
+
+
 def _station_b(station):
     moved = (station == "B").astype(float)[:, None]
     return moved * np.array([1.5e-3, -1e-3, 0.5e-3, 2e-3, -1e-3, 2.5e-3])
@@ -171,6 +177,9 @@ DRIFT_CASES: dict[str, dict] = {
                    "coded": {"tool": "tool_id"},
                    "physics": dict(drifts=[Drift("marker:tool", "level:tool", _four_tools,
                                                  "four tools by number, up to 60 mm apart")])},
+    "tool_for_a_while": {**_UR5E, "named": ["parameter_drivers"],
+                         "physics": dict(drifts=[Drift("marker:tool", "row", _tool_for_a_while,
+                                                       "a 40 mm longer tool for rows 100-199")])},
     "tool_and_station": {**_UR5E, "named": ["parameter_drivers"],
                          "levels": {"tool": ["gripper", "probe", "spindle"], "station": ["A", "B"]},
                          "physics": dict(drifts=[Drift("marker:tool", "level:tool", _tool_set, "three tools"),

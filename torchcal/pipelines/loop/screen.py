@@ -15,6 +15,14 @@ same way, one column each, and the best :data:`~torchcal.effects.anydriver.MAX_S
 so are the knees of the
 piecewise-linear shapes of the other drivers (hinges, and clips of a torque, on a fine grid).
 
+A time or row driver is also scanned for a set-up that changed during the session: a step at every
+break, and a window between every two (a change and its return: a tool swapped for a while), which
+the low-order shapes see only in part (a window's middle is half a bow, and once a bow is taken
+nothing low-order is left of it). Per pair each column explains what it explains (χ² with 1 degree
+of freedom on noise), all of them from the step columns' products (a window is the difference of two
+steps); the best, judged at the level shared by the steps and windows (Bonferroni), is one more test.
+A kept pair is offered its best windows (:data:`MAX_WINDOWS`) beside its best steps.
+
 A time driver is also searched for a cycle (a frame that swings with the air conditioning), which
 no low-order shape sees: per pair, each frequency of a periodogram's grid explains what its sine and
 cosine together explain (χ² with 2 degrees of freedom on noise), and the best frequency, judged at
@@ -34,15 +42,16 @@ from torch import Tensor
 
 from torchcal.effects.anydriver import MAX_STEPS
 from torchcal.effects.anydriver_space import breaks, cycles, expanded, space_size
-from torchcal.effects.drivers import driver_values
-from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, cycle_columns, period_tag
+from torchcal.effects.drivers import driver_kind, driver_values
+from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, cycle_columns, period_tag, window_grid, window_tag
 from torchcal.measure.stats import chi2_sf
 
-__all__ = ["screen_family", "fitted_payload", "ALPHA", "MAX_PAIRS", "CHUNK"]
+__all__ = ["screen_family", "fitted_payload", "step_window_power", "ALPHA", "MAX_PAIRS", "MAX_WINDOWS", "CHUNK"]
 
 ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair this rarely)
 MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
 CHUNK = 1024     # columns projected at once (memory: 3 n_obs × CHUNK values)
+MAX_WINDOWS = 4  # windows (a change and its return) offered per kept pair with a time or row driver
 
 
 def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
@@ -163,6 +172,83 @@ class _Cycles:
         return [period_tag(ph, 1.0 / f, x0) for ph in ("sin", "cos")]
 
 
+def step_window_power(g: Tensor, x: Tensor, at: Tensor, ok: Tensor, Q: Tensor, rp: Tensor) -> tuple[Tensor, Tensor]:
+    """What each step ``(B,)`` and each window ``(B, B)`` (from the break of its row to that of its
+    column; 0 where ``ok`` is false) explains beyond ``Q (3 n_obs, r)`` (orthonormal) of the residual
+    ``rp (3 n_obs,)`` (orthogonal to ``Q``), for a parameter whose own column is ``g (3 n_obs,)``, the
+    driver's value ``x (3 n_obs,)`` at each residual component and the breaks ``at (B,)`` (increasing):
+    a step's column is ``g`` where ``x ≥`` its break.
+
+    A window is the difference of two steps, so every window's projected column products come from the
+    steps': with ``X`` the step columns and ``M = QᵀX``, they are ``XᵀX − MᵀM``. ``XᵀX``, ``M`` and ``Xᵀr``
+    are sums from a break on: cumulative sums over the components in the driver's order. The cost is
+    ``B² r`` for ``MᵀM``, not that of the ``B²/2`` windows' columns."""
+    order = torch.argsort(torch.nan_to_num(x, nan=-torch.inf))  # a missing value is in no step
+    pos = torch.searchsorted(torch.nan_to_num(x[order], nan=-torch.inf).contiguous(), at.contiguous())
+
+    def from_break(v: Tensor) -> Tensor:  # Σ of v over the components at or beyond each break
+        c = torch.cat([v.new_zeros((1,) + v.shape[1:]), torch.cumsum(v[order], 0)])
+        return c[-1] - c[pos]
+
+    M = from_break(g[:, None] * Q).T  # (r, B)
+    tail = from_break(g * g)
+    u = from_break(g * rp)
+    later = torch.arange(at.numel(), device=g.device)
+    G = tail[torch.maximum(later[:, None], later[None])] - M.T @ M
+    d = G.diagonal()
+    step = torch.where(d > 0, u * u / d.clamp(min=1e-300), torch.zeros_like(d))
+    den = d[:, None] + d[None] - 2 * G
+    win = torch.where(ok & (den > 1e-12 * d.max().clamp(min=1e-300)),
+                      (u[:, None] - u[None]) ** 2 / den.clamp(min=1e-300), torch.zeros_like(den))
+    return step, win
+
+
+class _Windows:
+    """The session-change scan of a screening: each time or row driver's breaks, its value at each
+    residual component and which windows between two breaks hold enough rows, and each pair's own
+    column (its unit shape), computed once."""
+
+    def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
+        self.grid = {}  # driver -> (breaks, value per residual component, windows searched (B, B) bool)
+        for d in dict.fromkeys(d for _, d, _ in eff.terms):
+            if driver_kind(d) not in ("time", "row"):
+                continue
+            x = driver_values(eff.robot, d, data.q, data.covariates)
+            b, ok = window_grid(x[torch.isfinite(x)])
+            if b:
+                self.grid[d] = (b, x[rows].repeat_interleave(3), ok.to(x.device))
+        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if pr[1] in self.grid]
+        self.pairs = {pr: i for i, pr in enumerate(pairs)}
+        self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
+
+    def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor) -> tuple[Tensor, Tensor]:
+        """What each step and each window explains for ``pair`` (:func:`step_window_power`)."""
+        b, x, ok = self.grid[pair[1]]
+        return step_window_power(self.G[:, self.pairs[pair]], x, torch.tensor(b, dtype=x.dtype, device=x.device),
+                                 ok, Q, rp)
+
+    def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
+        """(p-value, pair) of the best step or window of every pair with a time or row driver, the
+        p-value of 1 degree of freedom multiplied by the steps and windows searched (their Bonferroni)."""
+        out = []
+        for pr in self.pairs:
+            step, win = self.power(pr, Q, rp)
+            n = step.numel() + int(self.grid[pr[1]][2].sum())
+            out.append((min(1.0, n * chi2_sf(float(torch.maximum(step.max(), win.max())) / sigma ** 2, 1)), pr))
+        return out
+
+    def best(self, pair: tuple[str, str], Q: Tensor, rp: Tensor) -> list[str]:
+        """The :data:`MAX_WINDOWS` windows that explain the most for ``pair`` (none for a driver other
+        than time or the row order)."""
+        if pair not in self.pairs:
+            return []
+        b = self.grid[pair[1]][0]
+        _, win = self.power(pair, Q, rp)
+        top = win.flatten().argsort(descending=True)[:MAX_WINDOWS]
+        B = len(b)
+        return [window_tag(b[int(i) // B], b[int(i) % B]) for i in top if float(win.flatten()[i]) > 0]
+
+
 def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
                 w3: Tensor) -> list[float]:
     """The :data:`MAX_STEPS` steps, settlings or knees of ``pair``'s driver that explain the most, one column each."""
@@ -201,8 +287,10 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
         r = r * torch.where(n > c, c / n.clamp(min=1e-300), torch.ones_like(n))
     rw = r.reshape(-1) * w3
     rp = rw - Q @ (Q.T @ rw)
-    cyc = _Cycles(eff, data, torch.arange(len(data), device=r.device) if rows is None else rows, columns, w3)
-    stats = _pair_stats(eff, columns, Q, rp, w3, sigma) + cyc.stats(Q, rp, sigma)
+    rows = torch.arange(len(data), device=r.device) if rows is None else rows
+    cyc = _Cycles(eff, data, rows, columns, w3)
+    win = _Windows(eff, data, rows, columns, w3)
+    stats = _pair_stats(eff, columns, Q, rp, w3, sigma) + cyc.stats(Q, rp, sigma) + win.stats(Q, rp, sigma)
     if not stats:
         return None
     level = ALPHA / len(stats)
@@ -216,7 +304,8 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     # zero before the yaw of its origin that turns the same way)
     offs = set(eff._offset_params())
     kept.sort(key=lambda pr: (pr[0] not in offs, pr[0].startswith("base."), pr[0]))
-    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) + cyc.best(pr, Q, rp) for pr in kept}
+    steps = {pr: _best_steps(eff, pr, data, columns, Q, rp, w3) + cyc.best(pr, Q, rp) + win.best(pr, Q, rp)
+             for pr in kept}
     out = expanded(eff, kept, data, steps)
     out.n_searched = space_size(eff, list(dict.fromkeys(pr for _, pr in stats)), data)
     return out
