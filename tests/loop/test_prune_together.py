@@ -98,5 +98,7 @@ def test_a_mode_the_rank_judgement_dropped_leaves_first(monkeypatch):
     assert gone == [{"effect": "joint_compliance", "mode": "joint_a1.twist", "t": None}]
     assert "joint_a1.twist leaves" in said[0]
     assert [lab for lab, _ in out.effects[0].modes()] == [lab for lab, _ in m.effects[0].modes()][1:]
-    # the same fit without the idle mode: the cross-validated scores agree
-    assert float((out.scores - m.scores).abs().max()) < 1e-9 * float(m.scores.abs().max())
+    # the same fit without the idle mode: the cross-validated scores agree to the fits' tolerance (each
+    # refit stops within xtol of the same minimum; removing a mode that carries anything moves them by
+    # far more than this)
+    assert float((out.scores - m.scores).abs().max()) < 1e-6 * float(m.scores.abs().max())
