@@ -21,7 +21,8 @@ the low-order shapes see only in part (a window's middle is half a bow, and once
 nothing low-order is left of it). Per pair each column explains what it explains (χ² with 1 degree
 of freedom on noise), all of them from the step columns' products (a window is the difference of two
 steps); the best, judged at the level shared by the steps and windows (Bonferroni), is one more test.
-A kept pair is offered its best windows (:data:`MAX_WINDOWS`) beside its best steps.
+A kept pair is offered its best windows (:data:`MAX_WINDOWS`) beside its best steps. A long session's
+breaks are thinned for the scan (:data:`SCAN_BREAKS`), the best windows' ends refined on every break.
 
 A time driver is also searched for a cycle (a frame that swings with the air conditioning), which
 no low-order shape sees: per pair, each frequency of a periodogram's grid explains what its sine and
@@ -52,6 +53,9 @@ ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair t
 MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
 CHUNK = 1024     # columns projected at once (memory: 3 n_obs × CHUNK values)
 MAX_WINDOWS = 4  # windows (a change and its return) offered per kept pair with a time or row driver
+# the window scan's breaks at most: beyond, every k-th (a window's cost grows with the square of its
+# breaks), and the best windows' ends refined on every break between their neighbours
+SCAN_BREAKS = 256
 
 
 def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
@@ -209,23 +213,49 @@ class _Windows:
     column (its unit shape), computed once."""
 
     def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
-        self.grid = {}  # driver -> (breaks, value per residual component, windows searched (B, B) bool)
+        self.grid = {}  # driver -> (breaks scanned, value per residual component, windows scanned (B, B) bool)
+        self.fine = {}  # driver -> (every break, every window that holds enough rows), where the scan thins them
         for d in dict.fromkeys(d for _, d, _ in eff.terms):
             if driver_kind(d) not in ("time", "row"):
                 continue
             x = driver_values(eff.robot, d, data.q, data.covariates)
             b, ok = window_grid(x[torch.isfinite(x)])
-            if b:
-                self.grid[d] = (b, x[rows].repeat_interleave(3), ok.to(x.device))
+            if not b:
+                continue
+            if len(b) > SCAN_BREAKS:
+                self.fine[d] = (b, ok)
+                keep = torch.linspace(0, len(b) - 1, SCAN_BREAKS).round().long()
+                b, ok = [b[int(i)] for i in keep], ok[keep][:, keep]
+            self.grid[d] = (b, x[rows].repeat_interleave(3), ok)
         pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if pr[1] in self.grid]
         self.pairs = {pr: i for i, pr in enumerate(pairs)}
         self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
 
-    def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor) -> tuple[Tensor, Tensor]:
-        """What each step and each window explains for ``pair`` (:func:`step_window_power`)."""
-        b, x, ok = self.grid[pair[1]]
+    def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor, b: list[float] | None = None,
+              ok: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """What each step and each window explains for ``pair`` (:func:`step_window_power`), on the
+        scanned breaks (or ``b`` with the windows ``ok``)."""
+        bs, x, oks = self.grid[pair[1]]
+        b, ok = (bs, oks) if b is None else (b, ok)
         return step_window_power(self.G[:, self.pairs[pair]], x, torch.tensor(b, dtype=x.dtype, device=x.device),
                                  ok, Q, rp)
+
+    def _refined(self, pair: tuple[str, str], a: float, b: float, Q: Tensor, rp: Tensor) -> tuple[float, float]:
+        """The window ``[a, b)`` of a thinned scan with its ends moved to the best of every break between
+        their scanned neighbours."""
+        if pair[1] not in self.fine:
+            return a, b
+        fine, ok = self.fine[pair[1]]
+        scanned = self.grid[pair[1]][0]
+
+        def near(v: float) -> list[int]:  # every break between the scanned neighbours of v
+            k = scanned.index(v)
+            lo, hi = scanned[max(k - 1, 0)], scanned[min(k + 1, len(scanned) - 1)]
+            return [i for i, f in enumerate(fine) if lo <= f <= hi]
+        idx = sorted(set(near(a)) | set(near(b)))
+        _, win = self.power(pair, Q, rp, [fine[i] for i in idx], ok[idx][:, idx])
+        i, j = divmod(int(win.argmax()), len(idx))
+        return (fine[idx[i]], fine[idx[j]]) if float(win.max()) > 0 else (a, b)
 
     def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
         """(p-value, pair) of the best step or window of every pair with a time or row driver, the
@@ -246,7 +276,8 @@ class _Windows:
         _, win = self.power(pair, Q, rp)
         top = win.flatten().argsort(descending=True)[:MAX_WINDOWS]
         B = len(b)
-        return [window_tag(b[int(i) // B], b[int(i) % B]) for i in top if float(win.flatten()[i]) > 0]
+        ends = [self._refined(pair, b[int(i) // B], b[int(i) % B], Q, rp) for i in top if float(win.flatten()[i]) > 0]
+        return list(dict.fromkeys(window_tag(a, c) for a, c in ends))
 
 
 def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, rp: Tensor,
