@@ -158,8 +158,8 @@ def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> li
     d.current, gone = prune(d.ctx, d.current, {(winner.name, lab) for lab in new_modes}, say)
     if gone:
         winner.pruned = gone
-        for g in gone:
-            tabu.setdefault(g["effect"], set()).add(g["mode"])
+        for g in gone:  # what left is not tried again in this run
+            tabu.setdefault(g["effect"], set()).update(g.get("modes", [g["mode"]]))
         pool = list(dict.fromkeys(pool + [g["effect"] for g in gone]))  # its other modes may still come
     d.ctx, d.current, again = geometry_again(d.ctx, d.current, say)
     if again is not None:

@@ -114,7 +114,8 @@ def without_mode(ctx: Context, m: Model, k: int, label: str | None) -> Model:
 
 def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model, list[dict]]:
     """``m`` without the accepted modes that later ones made redundant (module docstring), refitted;
-    and what left, with its t when it left (None: an idle mode, :func:`idle_modes`). The modes just
+    and what left, with its t when it left (None: an idle mode, :func:`idle_modes`; a family kept softly
+    leaves whole, its modes listed under ``"modes"``). The modes just
     accepted (``protect``: ``(effect name, label)``) passed the rule against everything before them
     and are not judged again here."""
     gone, before = [], m
@@ -136,7 +137,7 @@ def prune(ctx: Context, m: Model, protect=frozenset(), say=None) -> tuple[Model,
         if t > T_EXIT and pen_ok:
             k += 1
             continue
-        gone.append({"effect": e.name, "mode": "all modes (kept softly)", "t": t})
+        gone.append({"effect": e.name, "mode": "all modes (kept softly)", "t": t, "modes": [lab for lab, _ in e.modes()]})
         if say is not None:
             say(f"{e.name}: its modes, kept softly, leave (t = {t:.1f} once the later findings are in)")
         m = before = pruned  # effect k is gone: the next one takes its place
