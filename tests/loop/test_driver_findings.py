@@ -30,6 +30,15 @@ def _samples(drifts, n: int, m: int, seed: int, levels: dict | None = None):
     return Robot.from_urdf(UR5E, markers=["tool@flange"]), train, test
 
 
+def _by_number(train, test, rows, n: int) -> None:
+    """The text column ``tool`` logged by number instead: its levels replaced by a numeric ``tool_id``
+    (``rows``: each row's tool, a number as text; the first ``n`` are the training rows)."""
+    for smp, ids in ((train, rows[:n]), (test, rows[n:])):
+        for c in [c for c in smp.covariates if c.startswith("tool=")]:
+            smp.covariates.pop(c)
+        smp.covariates["tool_id"] = ids.astype(float)
+
+
 def _sets(drifts, n: int, m: int, seed: int):
     robot, train, test = _samples(drifts, n, m, seed)
     return robot, train.to_measurements(), test.to_measurements()
@@ -161,10 +170,7 @@ def test_tools_logged_by_number_are_found_as_levels():
     tools = Drift("marker:tool", "level:tool", lambda t: np.array([tips[x] for x in t]))
     rows = np.random.default_rng(13).choice(list(tips), 200)
     robot, train, test = _samples([tools], 150, 50, seed=13, levels={"tool": rows})
-    for smp, ids in ((train, rows[:150]), (test, rows[150:])):
-        for lv in tips:
-            smp.covariates.pop(f"tool={lv}")
-        smp.covariates["tool_id"] = ids.astype(float)
+    _by_number(train, test, rows, 150)
     res = run_loop(robot, train.to_measurements(), test.to_measurements(), seed=13, log=None,
                    candidates=["parameter_drivers"], elm=False)
     modes = [m for a in res.accepted for m in a["modes"]]
@@ -191,10 +197,7 @@ def test_ten_tools_by_number_leave_no_growth_with_the_number():
     tools = Drift("marker:tool", "level:tool", lambda t: np.array([tips[x] for x in t]))
     rows = g.choice(list(tips), 260)
     robot, train, test = _samples([tools], 200, 60, seed=2, levels={"tool": rows})
-    for smp, ids in ((train, rows[:200]), (test, rows[200:])):
-        for lv in tips:
-            smp.covariates.pop(f"tool={lv}", None)
-        smp.covariates["tool_id"] = ids.astype(float)
+    _by_number(train, test, rows, 200)
     res = run_loop(robot, train.to_measurements(), test.to_measurements(), seed=2, log=None,
                    candidates=["thermal_drift", "parameter_drivers"], elm=False)
     modes = [m for a in res.accepted for m in a["modes"]]
