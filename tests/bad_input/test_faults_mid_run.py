@@ -67,3 +67,26 @@ def test_a_file_system_error_names_its_true_cause(capsys):
                                                   "8000000000 bytes"), False)
     err = capsys.readouterr().err
     assert rc == 2 and "ran out of memory" in err and "fewer rows" in err and "(a bug)" not in err
+
+
+def test_a_library_cut_short_by_sigterm_is_the_termination(tmp_path, ur5e_csv, monkeypatch, capsys):
+    """SIGTERM that arrives while a compiled library initialises comes out of the import as an
+    ``ImportError``: the command still reports the termination (exit 143), not an internal error."""
+    import torchcal.cli.app as app
+    from torchcal.cli import runtime
+
+    def cut_short(a, argv):
+        try:
+            runtime._on_sigterm(signal.SIGTERM, None)  # what the handler does when the signal arrives
+        except runtime.Terminated:
+            pass  # swallowed by the library's initialisation, which fails instead
+        raise ImportError("initialization failed")
+
+    monkeypatch.setattr(app, "_calibrate", cut_short)
+    rc = app.main(_args(ur5e_csv, tmp_path / "o")[3:])
+    err = capsys.readouterr().err
+    assert rc == 143 and "terminated (SIGTERM); nothing was written" in err, err
+    assert "internal error" not in err and not (tmp_path / "o").exists()
+    assert runtime.terminated()
+    with runtime.command_runtime():  # the flag is the command's: the next command starts clear
+        assert not runtime.terminated()

@@ -28,7 +28,7 @@ from torchcal.cli.common import (add_common, expand_config, fraction, inputs_of,
 from torchcal.cli.conventions import (DefaultsFormatter, add_progress, method_choice, method_help, progress_on,
                                       renamed)
 from torchcal.cli.correct import add_correct_parser
-from torchcal.cli.runtime import StdoutLost, Terminated, command_runtime, stdout_lost_message
+from torchcal.cli.runtime import StdoutLost, Terminated, command_runtime, stdout_lost_message, terminated
 from torchcal.cli.strict import check_command_line, strict_parsers
 from torchcal.cli.fleet import add_fleet_parser
 from torchcal.cli.formats import add_format_options
@@ -313,6 +313,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"torchcal {a.cmd}: {how}; nothing was written", file=sys.stderr)
         return 143 if isinstance(e, Terminated) else 130
     except Exception as e:  # a refusal (exit 2) or a bug (exit 70): cli/common.py says which is which
+        if terminated():  # the interrupt, come out as another error (a library cut short in its import)
+            print(f"torchcal {a.cmd}: terminated (SIGTERM); nothing was written", file=sys.stderr)
+            return 143
         return report_failure(a.cmd, e, getattr(a, "verbose", False), getattr(a, "out", None))
     finally:
         set_threads(choice)

@@ -3,6 +3,8 @@ an environment that turns warnings into errors.
 
 * SIGTERM (``kill``, a container stopping, a job scheduler) is handled as Ctrl-C: the run stops,
   its temporary files and its lock are removed, and it says so (exit 143, as a shell reports it).
+  Whatever fails once it arrived fails because of it (:func:`terminated`): the interrupt raised
+  while a compiled library initialises comes out as that library's ``ImportError``.
 * Standard output is not an output of the run: when it fails (a closed pipe, ``> file`` on a full
   device), the files the run wrote are complete, and the message says that, not "nothing was
   written".
@@ -21,7 +23,7 @@ import warnings
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["Terminated", "StdoutLost", "command_runtime", "stdout_lost_message"]
+__all__ = ["Terminated", "StdoutLost", "command_runtime", "stdout_lost_message", "terminated"]
 
 
 class Terminated(KeyboardInterrupt):
@@ -54,7 +56,16 @@ class _GuardedStdout:
         return getattr(self._stream, name)
 
 
+_got = threading.Event()  # SIGTERM arrived during the command that runs
+
+
+def terminated() -> bool:
+    """Whether SIGTERM arrived while the current command ran (:func:`command_runtime`)."""
+    return _got.is_set()
+
+
 def _on_sigterm(signum, frame):
+    _got.set()
     raise Terminated()
 
 
@@ -63,6 +74,7 @@ def command_runtime() -> Iterator[None]:
     """Run a command's work with SIGTERM as an interrupt, a guarded standard output and warnings
     shown (never raised); everything is as before when it ends."""
     main = threading.current_thread() is threading.main_thread()
+    _got.clear()
     before = signal.signal(signal.SIGTERM, _on_sigterm) if main else None
     stdout = sys.stdout
     sys.stdout = _GuardedStdout(stdout)
