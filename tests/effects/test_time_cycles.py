@@ -73,7 +73,7 @@ def test_the_screening_finds_a_cycle_and_its_period():
     """A cycle no low-order shape sees passes the screening for its own parameter only, and the
     refined frequency is within 0.3 % of the one put in, both phases offered."""
     eff, data, columns, Q, r, w3 = _screening_inputs(signal=True)
-    cyc = screen._Cycles(eff, data, torch.arange(len(data.covariates["time"])), columns, w3)
+    cyc = screen._Cycles(eff, data, torch.arange(len(data.covariates["time"])), screen._Units(eff, columns, w3))
     stats = dict((pr, pv) for pv, pr in cyc.stats(Q, r, 1.0))
     assert stats[("a.offset", "time:time")] < 1e-12 and stats[("b.offset", "time:time")] > 1e-3, stats
     tags = cyc.best(("a.offset", "time:time"), Q, r)
@@ -86,7 +86,7 @@ def test_noise_alone_passes_no_cycle():
     (20 draws: every p-value above the screening's level for one pair)."""
     for seed in range(20):
         eff, data, columns, Q, r, w3 = _screening_inputs(signal=False, seed=seed)
-        cyc = screen._Cycles(eff, data, torch.arange(len(data.covariates["time"])), columns, w3)
+        cyc = screen._Cycles(eff, data, torch.arange(len(data.covariates["time"])), screen._Units(eff, columns, w3))
         pv = min(p for p, _ in cyc.stats(Q, r, 1.0))
         assert pv > screen.ALPHA / 2, (seed, pv)
 

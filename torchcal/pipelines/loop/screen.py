@@ -127,18 +127,32 @@ def _cycle_power(g: Tensor, shapes: Tensor, Q: Tensor, rp: Tensor) -> Tensor:
     return torch.where(ok, e, torch.zeros_like(e))
 
 
+class _Units:
+    """Each (parameter, driver) pair's own column (its unit shape, weighted by the IRLS factors): what
+    every shape of the pair multiplies, observation by observation. Taken once for every pair with a
+    time or row driver, which the cycle search and the session-change scan both read."""
+
+    def __init__(self, eff, columns: Callable, w3: Tensor):
+        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if driver_kind(pr[1]) in ("time", "row")]
+        self.index = {pr: i for i, pr in enumerate(pairs)}
+        self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
+
+    def __call__(self, pair: tuple[str, str]) -> Tensor:
+        """``(3 n_obs,)`` the pair's own column."""
+        return self.G[:, self.index[pair]]
+
+
 class _Cycles:
     """The cycle search of a screening: each time driver's frequencies, its values per observation
-    and its cycles' shapes, and each pair's own column (its unit shape), computed once."""
+    and its cycles' shapes, computed once (each pair's own column: :class:`_Units`)."""
 
-    def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
+    def __init__(self, eff, data, rows: Tensor, units: _Units):
         self.grid = {}  # time driver -> (frequencies, first training value)
         for d in dict.fromkeys(d for _, d, _ in eff.terms):
             if (g := cycles(eff, d, data))[0]:
                 self.grid[d] = g
-        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if pr[1] in self.grid]
-        self.pairs = {pr: i for i, pr in enumerate(pairs)}
-        self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
+        self.pairs = [pr for pr in units.index if pr[1] in self.grid]
+        self.units = units
         self.x = {d: driver_values(eff.robot, d, data.q, data.covariates)[rows] for d in self.grid}
         # every pair of a driver is searched over the same grid: its shapes, taken once
         self.shapes = {d: self._shapes(d, f) for d, (f, _) in self.grid.items()}
@@ -150,7 +164,7 @@ class _Cycles:
     def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor, freqs: list[float] | None = None) -> Tensor:
         """``(F,)`` what each cycle explains for ``pair`` (its driver's grid, or ``freqs``)."""
         shapes = self.shapes[pair[1]] if freqs is None else self._shapes(pair[1], freqs)
-        return _cycle_power(self.G[:, self.pairs[pair]], shapes, Q, rp)
+        return _cycle_power(self.units(pair), shapes, Q, rp)
 
     def stats(self, Q: Tensor, rp: Tensor, sigma: float) -> list[tuple]:
         """(p-value, pair) of the best cycle of every pair with a time driver, the p-value of 2 degrees
@@ -209,10 +223,10 @@ def step_window_power(g: Tensor, x: Tensor, at: Tensor, ok: Tensor, Q: Tensor, r
 
 class _Windows:
     """The session-change scan of a screening: each time or row driver's breaks, its value at each
-    residual component and which windows between two breaks hold enough rows, and each pair's own
-    column (its unit shape), computed once."""
+    residual component and which windows between two breaks hold enough rows, computed once (each
+    pair's own column: :class:`_Units`)."""
 
-    def __init__(self, eff, data, rows: Tensor, columns: Callable, w3: Tensor):
+    def __init__(self, eff, data, rows: Tensor, units: _Units):
         self.grid = {}  # driver -> (breaks scanned, value per residual component, windows scanned (B, B) bool)
         self.fine = {}  # driver -> (every break, every window that holds enough rows), where the scan thins them
         for d in dict.fromkeys(d for _, d, _ in eff.terms):
@@ -227,9 +241,8 @@ class _Windows:
                 keep = torch.linspace(0, len(b) - 1, SCAN_BREAKS).round().long()
                 b, ok = [b[int(i)] for i in keep], ok[keep][:, keep]
             self.grid[d] = (b, x[rows].repeat_interleave(3), ok)
-        pairs = [pr for pr in dict.fromkeys((p, d) for p, d, _ in eff.terms) if pr[1] in self.grid]
-        self.pairs = {pr: i for i, pr in enumerate(pairs)}
-        self.G = (columns(eff._copy(terms=[(p, d, UNIT) for p, d in pairs])) * w3[:, None]) if pairs else None
+        self.pairs = [pr for pr in units.index if pr[1] in self.grid]
+        self.units = units
 
     def power(self, pair: tuple[str, str], Q: Tensor, rp: Tensor, b: list[float] | None = None,
               ok: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -237,7 +250,7 @@ class _Windows:
         scanned breaks (or ``b`` with the windows ``ok``)."""
         bs, x, oks = self.grid[pair[1]]
         b, ok = (bs, oks) if b is None else (b, ok)
-        return step_window_power(self.G[:, self.pairs[pair]], x, torch.tensor(b, dtype=x.dtype, device=x.device),
+        return step_window_power(self.units(pair), x, torch.tensor(b, dtype=x.dtype, device=x.device),
                                  ok, Q, rp)
 
     def _refined(self, pair: tuple[str, str], a: float, b: float, Q: Tensor, rp: Tensor) -> tuple[float, float]:
@@ -319,8 +332,9 @@ def screen_family(eff, data, columns: Callable, r: Tensor, Jb: Tensor, w: Tensor
     rw = r.reshape(-1) * w3
     rp = rw - Q @ (Q.T @ rw)
     rows = torch.arange(len(data), device=r.device) if rows is None else rows
-    cyc = _Cycles(eff, data, rows, columns, w3)
-    win = _Windows(eff, data, rows, columns, w3)
+    units = _Units(eff, columns, w3)
+    cyc = _Cycles(eff, data, rows, units)
+    win = _Windows(eff, data, rows, units)
     stats = _pair_stats(eff, columns, Q, rp, w3, sigma) + cyc.stats(Q, rp, sigma) + win.stats(Q, rp, sigma)
     if not stats:
         return None
