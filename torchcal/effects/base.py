@@ -88,6 +88,7 @@ class Effect:
     selectable = True             # the loop chooses its modes (joints, links, directions) one by one
     supersedes: tuple[str, ...] = ()  # accepted effects whose modes this one takes over
     fallback = False              # a general family, tried in a round only when no physical effect passes
+    reads_load_changes = False    # given() wants where the residual shows the load to have changed
     # what the effect reads beyond the commanded joint values, by kind: "direction" (the approach
     # direction of a joint, ``dir.<joint>`` = ±1, which a pose plan chooses) and "measured" (a
     # temperature, a time or another column only the running robot gives, which no plan chooses)
@@ -206,10 +207,12 @@ class Effect:
         says nothing."""
         return None
 
-    def given(self, found: list["Effect"], data) -> "Effect":
+    def given(self, found: list["Effect"], data, changes: list[str] = ()) -> "Effect":
         """This candidate as what the current model has found informs it (``found``: its accepted
-        effects; ``data``: the training rows): a set-up change found in the session may have changed
-        more than the parameters it was found in. Default: itself."""
+        effects; ``data``: the training rows; ``changes``: where the residual shows the load to have
+        changed, ``<column>~step<b>`` or ``~win<a>@<b>``, asked for only by an effect that
+        :attr:`reads_load_changes`): a set-up change found in the session may have changed more than
+        the parameters it was found in. Default: itself."""
         return self
 
     def bind(self, data, min_lever_m: float = 5e-3) -> "Effect":

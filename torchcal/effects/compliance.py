@@ -163,6 +163,7 @@ class LoadCompliance(JointCompliance):
     name = "load_compliance"
     description = "joint deflection proportional to the gravity torque, with a load logged row by row"
     supersedes = ("joint_compliance",)
+    reads_load_changes = True
 
     def applicable(self, data) -> tuple[bool, str]:
         if self.lumped:
@@ -175,10 +176,14 @@ class LoadCompliance(JointCompliance):
     def waiting(self) -> str | None:
         return None if self.loads else "no column logs a load, and no set-up change has been found yet"
 
-    def given(self, found: list, data) -> "LoadCompliance":
+    def given(self, found: list, data, changes: list[str] = ()) -> "LoadCompliance":
         """Also loaded by a step at every step in time or the row order an accepted effect found (a
-        set-up changed there: a payload swapped with nothing logged changes the deflection too)."""
-        new = [c for c in dict.fromkeys(s for e in found for s in e.session_steps()) if c not in self.loads]
+        set-up changed there: a payload swapped with nothing logged changes the deflection too), and
+        at every change of the load the residual shows (``changes``: a payload swapped beside another
+        set-up change, whose step the loop found first)."""
+        kept = [c for e in found if e.name == self.name for c in e.loads]  # what it carried when accepted
+        steps = [s for e in found for s in e.session_steps()]
+        new = [c for c in dict.fromkeys([*kept, *steps, *changes]) if c not in self.loads]
         if not new or self.lumped:
             return self
         return JointCompliance.bind(self._copy(loads=self.loads + new), data)

@@ -33,10 +33,15 @@ from torchcal.sim.drift_cases import DRIFT_CASES, level_series, track_urdf
 from torchcal.sim.effect_size import EFFECT_KEYS, displacement_um
 from torchcal.sim.humanoid import arm9_urdf, humanoid_urdf
 from torchcal.sim.physsim import PhysicalRobot, warmup_temperature
+from torchcal.sim.physsim_drifts import Drift
 from torchcal.sim.sample import Sample
 from torchcal.sim.ur10 import ur10_urdf
 
 __all__ = ["CASES", "GEOMETRY_CASES", "Case", "effect_sizes", "make_case", "TORSION"]
+
+def _knocked_at_240(rows):
+    return (rows >= 240).astype(float)[:, None] * np.array([0.15e-3, 0.0, -0.1e-3, 0.0, 0.25e-3, 0.0])
+
 
 TORSION = {"shoulder_lift_joint": 6e-6, "elbow_joint": 9e-6, "wrist_1_joint": 20e-6}  # rad/(N·m), joints 2-4
 
@@ -73,6 +78,14 @@ CASES: dict[str, dict] = {
                      "covariates": {"carried_kg": ("payload_swap", {"before": 0.0, "after": 8.0, "at": 0.5})},
                      "hidden": ["carried_kg"],
                      "physics": dict(payload_column="carried_kg", payload_com_m=(0.0, 0.03, 0.1), torsion=TORSION)},
+    # the payload swapped (6 kg from row 150 on) and the tracker knocked at row 240, nothing logged: two
+    # set-up changes in one session, the knock's step the easier to see
+    "swap_and_knock": {**_UR5E, "named": ["joint_compliance", "load_compliance", "parameter_drivers"],
+                       "covariates": {"carried_kg": ("payload_swap", {"before": 0.0, "after": 6.0, "at": 1 / 3})},
+                       "hidden": ["carried_kg"],
+                       "physics": dict(payload_column="carried_kg", payload_com_m=(0.02, 0.0, 0.09), torsion=TORSION,
+                                       drifts=[Drift("instrument", "row", _knocked_at_240,
+                                                     "the tracker knocked at row 240: 0.15 mm, 0.1 mm, 0.25 mrad")])},
     # clean, with logs that drive nothing: a payload column the robot never carries and an operator's name
     "clean_logs": {**_UR5E, "named": [], "levels": {"operator": ["ann", "bob", "cem"]},
                    "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 5.0)})}, "physics": {}},

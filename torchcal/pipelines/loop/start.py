@@ -85,6 +85,16 @@ def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard:
     return dict(opt, sigma_mm=1e3 * m * ctx.sigma, t=t, pen_hard=pen_hard, pen_soft=opt["pen"])
 
 
+def _new_shared(eff, superseded: list) -> bool:
+    """Whether ``eff`` holds shared parameters that none of the effects it supersedes had (a load of
+    its own): the modes it takes over are then a new model even where the selection adds no mode,
+    and the cross-validated rule, not the selection, judges it (the selection's baseline already
+    holds the new parameters in its linear columns)."""
+    info = eff.param_info()
+    had = {n for s_ in superseded for n, _ in s_.param_info()}
+    return any(info[i][0] not in had for i in eff.shared())
+
+
 def _step_words(h: dict, labels: list[str]) -> dict:
     """One selection step for the report: what was tried (each mode's t) and added, or which mode
     left or was exchanged for which, and the threshold."""
@@ -213,7 +223,7 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
         if soft is not None:
             chosen = soft["chosen"]
             out.soft = {k: soft[k] for k in ("sigma_mm", "t", "k", "pen_hard", "pen_soft")}
-        elif not best["new"]:
+        elif not best["new"] and not (forced and _new_shared(eff, superseded)):
             out.reason = "no mode passed the selection"
             return out
         if soft is None:

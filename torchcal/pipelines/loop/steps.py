@@ -13,6 +13,7 @@ from torchcal.effects import build_effect
 from torchcal.measure.setup import Setup
 from torchcal.pipelines.crossval.models import Context, Model, noise_sigma, observation_model
 from torchcal.pipelines.crossval.evaluate import evaluate, evaluate_prior, rescore
+from torchcal.pipelines.loop.loadscan import load_changes
 from torchcal.pipelines.loop.records import Candidate, Trial
 from torchcal.pipelines.crossval.scores import HUBER_K, compare, penalised, row_scores
 from torchcal.pipelines.fitting import setup_first
@@ -61,8 +62,12 @@ def try_candidate(ctx: Context, current: Model, name: str, robot, train, n_obs: 
     if covering:
         why = f"its modes are part of the accepted {covering[0]}"
         return Trial(name, Candidate(name, "covered", reason=why, round=rnd), covered=True)
-    eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params]).given(current.effects,
-                                                                                                   train)
+    eff = build_effect(name, robot, train, geometry=current.params.values[: robot.n_params])
+    changes = []
+    if eff.reads_load_changes:
+        known = [s for e in current.effects for s in [*e.session_steps(), *getattr(e, "loads", ())]]
+        changes = load_changes(ctx, current, known)
+    eff = eff.given(current.effects, train, changes)
     why = eff.waiting()
     if why is not None:  # recorded, not said: it waits every round until a later finding gives it something
         return Trial(name, Candidate(name, "not proposed", reason=why, round=rnd))
