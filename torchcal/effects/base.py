@@ -210,7 +210,7 @@ class Effect:
     def given(self, found: list["Effect"], data, changes: list[str] = ()) -> "Effect":
         """This candidate as what the current model has found informs it (``found``: its accepted
         effects; ``data``: the training rows; ``changes``: where the residual shows the load to have
-        changed, ``<column>~step<b>`` or ``~win<a>@<b>``, asked for only by an effect that
+        changed, as ``<column>~step<b>`` loads, asked for only by an effect that
         :attr:`reads_load_changes`): a set-up change found in the session may have changed more than
         the parameters it was found in. Default: itself."""
         return self
