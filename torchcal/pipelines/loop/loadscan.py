@@ -31,7 +31,7 @@ from torchcal.effects.drivers import ROW
 from torchcal.effects.shapes import shape_column, step_breaks
 from torchcal.measure.stats import chi2_sf
 from torchcal.pipelines.crossval.models import Context, Model, effect_problem, fit_noise
-from torchcal.pipelines.loop.screen import ALPHA, _projector
+from torchcal.pipelines.loop.screen import ALPHA, _projector, break_sums
 from torchcal.pipelines.loop.start import _basis_columns
 
 __all__ = ["load_changes", "step_power"]
@@ -57,13 +57,7 @@ def step_power(G: Tensor, x: Tensor, at: Tensor, Q: Tensor, rp: Tensor) -> tuple
     all ``P`` columns at once, and their rank per break: ``(B,)`` each. ``x (3 n_obs,)`` is the
     driver's value at each residual component; a step's columns are ``G`` where ``x ≥`` its break.
     The products come from cumulative sums in the driver's order, so every break costs ``P² + P r``."""
-    order = torch.argsort(torch.nan_to_num(x, nan=-torch.inf))  # a missing value is in no step
-    pos = torch.searchsorted(torch.nan_to_num(x[order], nan=-torch.inf).contiguous(), at.contiguous())
-
-    def from_break(v: Tensor) -> Tensor:  # Σ of v over the components at or beyond each break
-        c = torch.cat([v.new_zeros((1,) + v.shape[1:]), torch.cumsum(v[order], 0)])
-        return c[-1] - c[pos]
-
+    from_break = break_sums(x, at)
     M = from_break(G[:, :, None] * Q[:, None, :])  # (B, P, r)
     A = from_break(G[:, :, None] * G[:, None, :]) - M @ M.mT  # (B, P, P): the projected columns' products
     u = from_break(G * rp[:, None])  # (B, P)

@@ -47,7 +47,7 @@ from torchcal.effects.drivers import driver_kind, driver_values
 from torchcal.effects.shapes import PERIOD_OVERSAMPLE, UNIT, cycle_columns, period_tag, window_grid, window_tag
 from torchcal.measure.stats import chi2_sf
 
-__all__ = ["screen_family", "fitted_payload", "step_window_power", "ALPHA", "MAX_PAIRS", "MAX_WINDOWS", "CHUNK"]
+__all__ = ["screen_family", "fitted_payload", "step_window_power", "break_sums", "ALPHA", "MAX_PAIRS", "MAX_WINDOWS", "CHUNK"]
 
 ALPHA = 1e-3     # family-wise level of the screening (pure noise keeps a pair this rarely)
 MAX_PAIRS = 6    # pairs expanded into every shape, strongest first
@@ -190,6 +190,19 @@ class _Cycles:
         return [period_tag(ph, 1.0 / f, x0) for ph in ("sin", "cos")]
 
 
+def break_sums(x: Tensor, at: Tensor) -> Callable[[Tensor], Tensor]:
+    """``v (n, …) -> (B, …)``: the sums of ``v`` over the components whose driver value ``x (n,)`` is
+    at or beyond each break ``at (B,)`` (increasing), by one cumulative sum in the driver's order; a
+    missing value is in no step."""
+    order = torch.argsort(torch.nan_to_num(x, nan=-torch.inf))
+    pos = torch.searchsorted(torch.nan_to_num(x[order], nan=-torch.inf).contiguous(), at.contiguous())
+
+    def from_break(v: Tensor) -> Tensor:
+        c = torch.cat([v.new_zeros((1,) + v.shape[1:]), torch.cumsum(v[order], 0)])
+        return c[-1] - c[pos]
+    return from_break
+
+
 def step_window_power(g: Tensor, x: Tensor, at: Tensor, ok: Tensor, Q: Tensor, rp: Tensor) -> tuple[Tensor, Tensor]:
     """What each step ``(B,)`` and each window ``(B, B)`` (from the break of its row to that of its
     column; 0 where ``ok`` is false) explains beyond ``Q (3 n_obs, r)`` (orthonormal) of the residual
@@ -201,13 +214,7 @@ def step_window_power(g: Tensor, x: Tensor, at: Tensor, ok: Tensor, Q: Tensor, r
     steps': with ``X`` the step columns and ``M = QᵀX``, they are ``XᵀX − MᵀM``. ``XᵀX``, ``M`` and ``Xᵀr``
     are sums from a break on: cumulative sums over the components in the driver's order. The cost is
     ``B² r`` for ``MᵀM``, not that of the ``B²/2`` windows' columns."""
-    order = torch.argsort(torch.nan_to_num(x, nan=-torch.inf))  # a missing value is in no step
-    pos = torch.searchsorted(torch.nan_to_num(x[order], nan=-torch.inf).contiguous(), at.contiguous())
-
-    def from_break(v: Tensor) -> Tensor:  # Σ of v over the components at or beyond each break
-        c = torch.cat([v.new_zeros((1,) + v.shape[1:]), torch.cumsum(v[order], 0)])
-        return c[-1] - c[pos]
-
+    from_break = break_sums(x, at)
     M = from_break(g[:, None] * Q).T  # (r, B)
     tail = from_break(g * g)
     u = from_break(g * rp)
