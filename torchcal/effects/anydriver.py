@@ -208,6 +208,13 @@ class ParameterDrivers(Effect):
         return list(dict.fromkeys(f"{d if d == ROW else d.split(':', 1)[1]}~{t}" for _, d, t in self.terms
                                   if driver_kind(d) in ("row", "time") and t.startswith(("step", WINDOW))))
 
+    def with_break(self, old: str, new: str) -> "ParameterDrivers":
+        col, _, tag = old.partition("~")
+        moved = new.partition("~")[2]
+        terms = [(p, d, moved if t == tag and driver_kind(d) in ("row", "time")
+                  and (d if d == ROW else d.split(":", 1)[1]) == col else t) for p, d, t in self.terms]
+        return self._carried(self._copy(terms=terms)) if terms != self.terms else self
+
     def setup_parameters(self) -> dict[str, str]:
         names = self.param_names
         out = {}

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcal.effects.session import SessionFindings
 from torchcal.params import display_unit
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "TIME_COVARIATES", "PLANNED_COVARIATES"]
@@ -73,7 +74,7 @@ class LinearBasis:
     shared: int = 0
 
 
-class Effect:
+class Effect(SessionFindings):
     """Base class. Subclasses set ``name`` and implement :meth:`param_info`, :meth:`prepare`, and
     :meth:`joint_delta` and/or :meth:`position_delta`.
 
@@ -88,7 +89,6 @@ class Effect:
     selectable = True             # the loop chooses its modes (joints, links, directions) one by one
     supersedes: tuple[str, ...] = ()  # accepted effects whose modes this one takes over
     fallback = False              # a general family, tried in a round only when no physical effect passes
-    reads_load_changes = False    # given() wants where the residual shows the load to have changed
     # what the effect reads beyond the commanded joint values, by kind: "direction" (the approach
     # direction of a joint, ``dir.<joint>`` = ±1, which a pose plan chooses) and "measured" (a
     # temperature, a time or another column only the running robot gives, which no plan chooses)
@@ -195,25 +195,6 @@ class Effect:
         """Whether this effect can be fitted on ``data`` (e.g. backlash needs direction
         covariates), with the reason in words when not."""
         return True, ""
-
-    def session_steps(self) -> list[str]:
-        """Where this effect found the session to change, as ``<column>~step<k>`` (a step of ``time``
-        or of the row order): a set-up changed there. Default: nowhere."""
-        return []
-
-    def waiting(self) -> str | None:
-        """Why this candidate has nothing to offer yet (it waits for what a later round may find), or
-        None. A waiting candidate is not tried in that round: its line in the record says why, the log
-        says nothing."""
-        return None
-
-    def given(self, found: list["Effect"], data, changes: list[str] = ()) -> "Effect":
-        """This candidate as what the current model has found informs it (``found``: its accepted
-        effects; ``data``: the training rows; ``changes``: where the residual shows the load to have
-        changed, as ``<column>~step<b>`` loads, asked for only by an effect that
-        :attr:`reads_load_changes`): a set-up change found in the session may have changed more than
-        the parameters it was found in. Default: itself."""
-        return self
 
     def bind(self, data, min_lever_m: float = 5e-3) -> "Effect":
         """A copy for ``data``: acting only on joints whose motion moves the measured markers

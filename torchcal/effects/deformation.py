@@ -27,7 +27,7 @@ from torch import Tensor
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.deformation_modes import catalog
 from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
-from torchcal.effects.shapes import shape_column
+from torchcal.effects.shapes import WINDOW, shape_column
 from torchcal.measure.levels import LEVEL_SEP
 
 __all__ = ["GravityDeformation"]
@@ -130,6 +130,14 @@ class GravityDeformation(Effect):
 
     def modes(self) -> list[tuple[str, list[int]]]:
         return [(m["label"], [i]) for i, m in enumerate(self._modes)]
+
+    def breaks(self) -> list[str]:
+        """The loads that are a step or a window of time or the row order (a payload changed there)."""
+        return [c for c in self.loads if "~" in c and c.partition("~")[2].startswith(("step", WINDOW))]
+
+    def with_break(self, old: str, new: str) -> "GravityDeformation":
+        return self._carried(self._copy(loads=[new if c == old else c for c in self.loads])) if old in self.loads \
+            else self
 
     def shared(self) -> list[int]:
         """The payload's mass moments and the tilt of gravity in the base frame: a robot is never

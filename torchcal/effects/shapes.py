@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 __all__ = ["shape_column", "smooth_tags", "hinge_tags", "knee_tags", "harmonic_tags", "step_breaks", "settle_tags",
-           "window_tag", "window_parts", "window_grid", "WINDOW",
+           "window_tag", "window_parts", "window_grid", "break_words", "WINDOW",
            "grid_tags", "screen_tags", "settle_parts", "period_parts", "period_tag", "period_frequencies",
            "cycle_columns", "cycle_label", "cycle_period", "UNIT", "PERIODIC", "HARMONICS", "KNOT_QUANTILES",
            "HINGE_QUANTILES", "SETTLE_STEPS", "MAX_CYCLES", "PERIOD_OVERSAMPLE"]
@@ -152,6 +152,15 @@ def window_parts(tag: str) -> tuple[float, float]:
     """``win<a>@<b>`` -> ``(a, b)`` in the driver's unit."""
     a, _, b = tag[len(WINDOW):].partition("@")
     return float(a), float(b)
+
+
+def break_words(key: str) -> str:
+    """A break in words: ``row~step149.5`` -> ``row 149.5``, ``time~win20@60`` -> ``time 20 to 60``."""
+    col, _, tag = key.partition("~")
+    if tag.startswith(WINDOW):
+        a, b = window_parts(tag)
+        return f"{col} {a:.10g} to {b:.10g}"
+    return f"{col} {tag[4:]}" if tag.startswith("step") else f"{col} {tag}"
 
 
 def window_grid(x: Tensor, min_inside: int = 3) -> tuple[list[float], Tensor]:

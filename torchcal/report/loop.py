@@ -8,6 +8,7 @@ import math
 import re
 from pathlib import Path
 
+from torchcal.effects.shapes import break_words
 from torchcal.report.calibration import write_json
 from torchcal.report.drivers import driver_figure
 from torchcal.report.figures import error_figure, evidence_figure, joint_rank, leftover_figure
@@ -49,7 +50,25 @@ def loop_json(res) -> dict:
             "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
             "residual_elm": res.elm is not None, "timings_s": res.timings,
             "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed,
+            "breaks_placed": getattr(res, "breaks_placed", []),
             "heldout_check": None if getattr(res, "heldout", None) is None else res.heldout.to_json()}
+
+
+def _revisions(res) -> list[str]:
+    """What later rounds changed in what earlier ones found: modes removed, breaks placed again."""
+    L = []
+    if res.removed:
+        L += ["Accepted once, then explained by later findings and removed: "
+              + ", ".join(f"{g['effect']} {g['mode']} (" + ("its parameters dropped for identifiability"
+                                                              if g["t"] is None else f"t = {g['t']:.1f}") + ")"
+                          for g in res.removed) + ".", ""]
+    moved = [b for b in getattr(res, "breaks_placed", []) if b["kept"]]
+    if moved:
+        L += ["Placed again once the model around them was fitted (the same parameters, the change at a neighbouring "
+              "place that fits the training rows better): " + ", ".join(
+                  f"the change at {break_words(b['break'])} moved to {break_words(b['to'])} (CV "
+                  f"{b['cv_rmse_mm_before']:.4f} → {b['cv_rmse_mm_after']:.4f} mm)" for b in moved) + ".", ""]
+    return L
 
 
 def loop_findings(res) -> list[dict]:
@@ -214,11 +233,7 @@ def write_loop_report(res, out_dir, command: str | None = None) -> Path:
                   "tried ones by the penalised CV error. The parameter count is the effective one, "
                   "tr((JᵀJ + W²)⁻¹ JᵀJ)."]
     L += [""] + _effect_section(res, findings, ev_figs)
-    if res.removed:
-        L += ["Accepted once, then explained by later findings and removed: "
-              + ", ".join(f"{g['effect']} {g['mode']} (" + ("its parameters dropped for identifiability"
-                                                              if g["t"] is None else f"t = {g['t']:.1f}") + ")"
-                          for g in res.removed) + ".", ""]
+    L += _revisions(res)
     left = res.leftover
     fig = leftover_figure(left.associations, out / "leftover.png") if left is not None else None
     L += leftover_section(left, "leftover.png" if fig is not None else None)

@@ -26,9 +26,13 @@ __all__ = ["fit_params", "fit_folds", "rescore", "evaluate", "cv_mean_mm", "eval
 FOLD_MAX_ITER = 100
 
 
-def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool) -> ParamSet:
+def fit_params(ctx: Context, params: ParamSet, effects: list, data: Measurements, prior, reduce: bool,
+               max_iter: int | None = None) -> ParamSet:
+    """``params``' free entries fitted on ``data`` under the context's loss (``reduce``: the
+    identifiable subset, judged at the start and again at each solution; ``max_iter``: trial steps
+    at most, 200 when reduced and 100 otherwise by default)."""
     make = lambda p: effect_problem(ctx, p, effects, data, prior)  # noqa: E731
-    opts = {"max_iter": 200 if reduce else 100}
+    opts = {"max_iter": max_iter or (200 if reduce else 100)}
     # under a prior nothing is dropped for imprecision: the prior holds what the data barely see;
     # otherwise the noise the candidate itself reaches says how well a parameter is seen
     noise = fit_noise if prior is None else None

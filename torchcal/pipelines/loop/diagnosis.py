@@ -7,13 +7,16 @@ holds another that passes too (it supersedes it: joint compliance under a logged
 joint compliance) wins only where it beats that one by the rule: what it adds must be seen, not
 only what they share. Candidates gaining within 2 % of the winner's gain are ties, taken by the
 fewest parameters, then the registry's order. After each acceptance every earlier mode is judged
-again (:mod:`~torchcal.pipelines.loop.prune`).
+again (:mod:`~torchcal.pipelines.loop.prune`). A break in time or the row order is placed again
+(:mod:`~torchcal.pipelines.loop.breaks`) in the round that found it, and once more after the last
+round, with every later finding in.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 from torchcal.effects import EFFECTS, build_effect
+from torchcal.pipelines.loop.breaks import model_breaks, place_breaks, renamed
 from torchcal.measure.data import Measurements
 from torchcal.pipelines.loop.covariates import extrapolation
 from torchcal.pipelines.loop.geometry import geometry_again
@@ -30,10 +33,12 @@ MAX_ROUNDS = 20  # diagnosis rounds at most: each accepts one effect (or modes o
 
 @dataclass
 class Step:
-    """One accepted effect: its name, the model after it and the trial that won its round."""
+    """One accepted effect: its name, the model after it, the trial that won its round and how many
+    breaks had been placed again when it was accepted (those placed later rename its modes)."""
     name: str
     model: Model
     trial: Trial
+    moves_at: int = 0
 
 
 @dataclass
@@ -47,6 +52,9 @@ class Diagnosis:
     candidates: list[Candidate] = field(default_factory=list)
     flags: list[dict] = field(default_factory=list)
     geometry_again: list[dict] = field(default_factory=list)  # the geometry judged again (geometry_again)
+    breaks: list[dict] = field(default_factory=list)  # breaks placed again (place_breaks), kept or not
+    moves: list[tuple[str, str]] = field(default_factory=list)  # (old, new) of the breaks kept at a new place
+    placed: set[str] = field(default_factory=set)  # the breaks placed since the last finding came in
 
 
 def diagnose(ctx: Context, start: Model, names: list[str], test: Measurements | None, say,
@@ -75,6 +83,7 @@ def diagnose(ctx: Context, start: Model, names: list[str], test: Measurements | 
         pool = _accept(d, winner, pool, tabu, say)
     if bar is not None:
         bar.close()
+    _place_again(d, say)
     # the final model, refitted until the Huber threshold has followed its own residual: rows it
     # now explains to the noise shrink the threshold, and outliers pull less
     _follow_threshold(d, once=False)
@@ -151,11 +160,37 @@ def _winner(ctx: Context, current: Model, trials: list[Trial], names: list[str])
     return min(ties, key=lambda t: (t.model.k, names.index(t.name)))
 
 
+def _place_again(d: Diagnosis, say) -> None:
+    """The breaks placed in earlier rounds, placed again with every finding in (those placed after
+    the last one came in are where that model puts them)."""
+    old = [b for b in model_breaks(d.current) if b not in d.placed]
+    if not old or not d.steps:
+        return
+    d.current, placed = place_breaks(d.ctx, d.current, say, only=old)
+    d.breaks += [dict(b, after="the last round") for b in placed]
+    d.moves += [(b["break"], b["to"]) for b in placed if b["kept"]]
+    d.steps[-1].model = d.current
+
+
 def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> list[str]:
-    """Add the winner, judge every earlier mode again, and return the next round's pool."""
+    """Add the winner, place the breaks it found again, judge every earlier mode again, and return the
+    next round's pool."""
+    before = set(model_breaks(d.current))
     d.current = refresh(d.ctx, winner.model, d.ctx.n_obs)
     new_modes = winner.line.added_modes or [lab for lab, _ in d.current.effects[-1].modes()]
-    d.current, gone = prune(d.ctx, d.current, {(winner.name, lab) for lab in new_modes}, say)
+    d.current, placed = place_breaks(d.ctx, d.current, say, only=set(model_breaks(d.current)) - before)
+    d.breaks += [dict(b, after=winner.name) for b in placed]
+    kept = [(b["break"], b["to"]) for b in placed if b["kept"]]
+    protect = {(winner.name, lab) for lab in new_modes}
+    if kept:
+        d.moves += kept
+        line = winner.line
+        line.modes = [renamed(x, kept) for x in line.modes]
+        line.added_modes = [renamed(x, kept) for x in line.added_modes]
+        if any(renamed(lab, kept) != lab for lab in new_modes):
+            # its modes passed the rule at a place the fit no longer has: judged again, as older ones are
+            protect = set()
+    d.current, gone = prune(d.ctx, d.current, protect, say)
     if gone:
         winner.pruned = gone
         for g in gone:  # what left is not tried again in this run
@@ -164,7 +199,8 @@ def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> li
     d.ctx, d.current, again = geometry_again(d.ctx, d.current, say)
     if again is not None:
         d.geometry_again.append(dict(again, after=winner.name))
-    d.steps.append(Step(winner.name, d.current, winner))
+    d.placed = set(model_breaks(d.current)) - before
+    d.steps.append(Step(winner.name, d.current, winner, len(d.moves)))
     if not d.current.effects[-1].selectable:  # a family stays a candidate: it may gain modes later
         pool.remove(winner.name)
     say(f"accepted {winner.name}" + (f" ({', '.join(winner.line.added_modes)})" if winner.line.added_modes else ""))

@@ -3,6 +3,7 @@ its stage, the modes that survived the later rounds, its gains, its evidence and
 from __future__ import annotations
 
 from torchcal.measure.data import Measurements
+from torchcal.pipelines.loop.breaks import renamed
 from torchcal.pipelines.loop.diagnosis import Step
 from torchcal.pipelines.loop.evidence import evidence_for
 from torchcal.pipelines.crossval.models import Model
@@ -14,9 +15,10 @@ __all__ = ["state_findings"]
 
 
 def state_findings(book: StageBook, steps: list[Step], final: Model, train: Measurements,
-                   n_obs: float) -> tuple[list[Finding], dict, list[dict]]:
+                   n_obs: float, moves: list[tuple[str, str]] = ()) -> tuple[list[Finding], dict, list[dict]]:
     """One stage per accepted step in ``book`` and, for each effect the ``final`` model keeps,
-    its :class:`Finding`; also the evidence plots per stage and the modes pruned on the way."""
+    its :class:`Finding` (its modes named as the final model names them: ``moves``, every break
+    placed again, in order); also the evidence plots per stage and the modes pruned on the way."""
     findings, evidence, removed = [], {}, []
     kept_modes = _final_modes(final)
     seen: set[str] = set()
@@ -33,7 +35,7 @@ def state_findings(book: StageBook, steps: list[Step], final: Model, train: Meas
         if name not in kept_modes:  # a later round's findings explained it away
             continue
         ev_text, evidence[label.lstrip("+")] = evidence_for(book.robot, m, train, book.setup)
-        findings.append(_finding(step, label, kept_modes[name], gain, ev_text))
+        findings.append(_finding(step, label, kept_modes[name], gain, ev_text, list(moves[step.moves_at:])))
     return findings, evidence, removed
 
 
@@ -47,12 +49,15 @@ def _final_modes(final: Model) -> dict[str, set[str]]:
     return out
 
 
-def _finding(step: Step, label: str, final: set[str], test_gain: float | None, evidence: str) -> Finding:
+def _finding(step: Step, label: str, final: set[str], test_gain: float | None, evidence: str,
+             moves: list[tuple[str, str]]) -> Finding:
+    """The step's finding, its modes renamed by the breaks ``moves`` placed again after it."""
     m, line = step.model, step.trial.line
     eff = m.effects[-1]
     kept = m.params.free[len(m.params) - eff.n_params:].clone()
+    now = lambda lab: renamed(lab, moves)  # noqa: E731
     for lab, idx in eff.modes():
-        if lab not in final and eff.selectable:
+        if now(lab) not in final and eff.selectable:
             kept[[i for i in idx if i not in set(eff.shared())]] = False
     found = eff.describe(free=kept) + [f"{a} cannot be told from {', '.join(b)} by these data: one finding, either "
                                        "of them" for a, b in line.aliases.items()]
@@ -63,8 +68,8 @@ def _finding(step: Step, label: str, final: set[str], test_gain: float | None, e
     own = eff.name + "."
     return Finding(
         name=step.name, stage=label, joints=list(eff.joints), n_params=eff.n_params,
-        modes=[lab for lab, _ in eff.modes() if lab in final or not eff.selectable],
-        added_modes=[lab for lab in line.added_modes if lab in final], extends=line.extends,
+        modes=[now(lab) for lab, _ in eff.modes() if now(lab) in final or not eff.selectable],
+        added_modes=[now(lab) for lab in line.added_modes if now(lab) in final], extends=line.extends,
         cv_gain_mm=line.cv_gain_mm, test_gain_mm=test_gain, evidence=evidence, found=found,
         soft_prior_mm=eff.ridge_mm, aliases=line.aliases,
         params={n: float(v) for n, v, f in zip(m.params.names, m.params.values.tolist(), m.params.free.tolist())

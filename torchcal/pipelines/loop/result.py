@@ -63,6 +63,7 @@ class LoopResult:
     removed: list = field(default_factory=list)  # modes accepted once, then explained by later findings
     plausible: dict | None = None  # the largest plausible joint error per unit the run judged with
     noise_floor_source: str | None = None  # where noise_floor_mm comes from, in words
+    breaks_placed: list = field(default_factory=list)  # breaks in time or row order placed again (loop.breaks)
 
     def __repr__(self) -> str:
         last = self.stages[-1]

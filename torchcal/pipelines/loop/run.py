@@ -154,7 +154,7 @@ def run_loop(robot, train: Measurements, test: Measurements | None = None, setti
     geo_model = geo.best if d.steps else current
     book.add("geometric", geo_model.k, geo_model.params, [], cv=geo.best.cv_rmse_mm(ctx.n_obs),
              prior_mm=geo.best.prior_mm, k_eff=geo_model.k)
-    accepted, evidence, removed = state_findings(book, d.steps, current, train, ctx.n_obs)
+    accepted, evidence, removed = state_findings(book, d.steps, current, train, ctx.n_obs, d.moves)
 
     # 5. residual ELM
     t3 = time.perf_counter()
@@ -293,4 +293,4 @@ def _result(ctx: Context, d: Diagnosis, geo: GeometryChoice, book: StageBook, op
                       elm_covariates=elm_covariates(train), geometric_fits=geo.fits, noise_sigma_mm=1e3 * sigma,
                       huber_mm=1e3 * ctx.c, suspects=suspects, flags=d.flags, prior_mm=best.prior_mm,
                       parameters=parameters, observability=observability, setup=ctx.setup, leftover=left,
-                      removed=removed, plausible=ctx.plausible)
+                      removed=removed, plausible=ctx.plausible, breaks_placed=d.breaks)
