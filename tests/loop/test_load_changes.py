@@ -1,6 +1,8 @@
 """A load that changed mid-session with nothing logged, found by its own shape
 (:mod:`torchcal.pipelines.loop.loadscan`): the scan's explained power against each break's projected
-columns computed directly, and the loop on a payload swapped beside a tracker knocked in one session."""
+columns computed directly. The loop on a payload swapped beside a tracker knocked in one session
+(``swap_and_knock``) is checked in ``tests/loop/test_loop_physsim_data.py``, on the run its
+case-by-case test makes."""
 from __future__ import annotations
 
 import pytest
@@ -34,27 +36,3 @@ def test_the_step_scan_matches_each_projected_least_squares_fit():
         fit = C @ coef[:, 0]
         assert float(power[i]) == pytest.approx(float(fit @ fit), rel=1e-8)
         assert int(rank[i]) == 3
-
-
-@pytest.mark.slow
-def test_a_payload_swapped_beside_a_knocked_tracker_is_found_at_its_own_row():
-    """``swap_and_knock``: 6 kg from row 150 on and the tracker knocked at row 240, nothing logged.
-    The knock's step is the easier to see; the payload's change is found at its own row (a load tied
-    to the knock's step would explain nothing of the swap), its mass within a quarter, and the
-    held-out error ends within a fifth of the noise floor (2.3 times it before: the load never found,
-    a step of the shoulder's origin in its place)."""
-    from torchcal import Robot
-    from torchcal.pipelines.loop.run import run_loop
-    from torchcal.sim.cases import make_case
-
-    c = make_case("swap_and_knock", 1)
-    robot = Robot.from_urdf(c.urdf, markers=c.markers)
-    res = run_loop(robot, c.train.to_measurements(), c.test.to_measurements(), seed=1, log=None,
-                   candidates=["joint_compliance", "load_compliance", "parameter_drivers"], elm=False)
-    load = next(e for e in res.model().effects if e.name == "load_compliance")
-    steps = [float(s.split("~step")[1]) for s in load.loads if "~step" in s]
-    assert any(abs(s - 149.5) <= 1.0 for s in steps), load.loads
-    i = load.loads.index(next(s for s in load.loads if abs(float(s.split("~step")[1]) - 149.5) <= 1.0))
-    mass = float(load.theta[load.param_names.index(f"load_compliance.load~{load.loads[i]}.m")])
-    assert abs(mass - 6.0) < 1.5, mass
-    assert res.stages[-1]["test"]["mean_mm"] < 1.2 * c.floor_mm, (res.stages[-1]["test"], c.floor_mm)

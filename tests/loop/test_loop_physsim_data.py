@@ -98,6 +98,24 @@ def test_the_payload_and_the_compliances_are_recovered():
     assert any(s.startswith("elbow_joint twists about its axis") for s in acc["found"])
 
 
+def test_a_payload_swapped_beside_a_knocked_tracker_is_found_at_its_own_row():
+    """``swap_and_knock``: 6 kg from row 150 on and the tracker knocked at row 240, nothing logged
+    (the case-by-case run above). The knock's step is the easier to see; the payload's change is found
+    at its own row (a load tied to the knock's step would explain nothing of the swap), its mass within
+    a quarter, and the knock's step, placed by the screening at row 240.5, is placed again at 239.5
+    (:mod:`torchcal.pipelines.loop.breaks`)."""
+    res, _ = _run("swap_and_knock")
+    load = next(e for e in res.model().effects if e.name == "load_compliance")
+    steps = {s: float(s.split("~step")[1]) for s in load.loads if "~step" in s}
+    swap = [s for s, at in steps.items() if abs(at - 149.5) <= 1.0]
+    assert swap, load.loads
+    mass = float(load.theta[load.param_names.index(f"load_compliance.load~{swap[0]}.m")])
+    assert abs(mass - 6.0) < 1.5, mass
+    assert any(b["kept"] and b["to"] == "row~step239.5" for b in res.breaks_placed), res.breaks_placed
+    frame = next(a for a in res.accepted if a.name == "parameter_drivers")
+    assert frame.modes == ["base.frame~row~step239.5"]
+
+
 def test_a_logged_load_is_recovered_with_the_compliances():
     """Four payloads swapped every 25 poses and logged in kg (``logged_loads``): the loop names joint
     compliance under the logged load, each twisting joint's compliance and the load's mass per logged
