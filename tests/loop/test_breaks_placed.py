@@ -131,11 +131,15 @@ def test_a_break_in_its_place_stays(place):
 
 
 @pytest.mark.slow
-def test_a_tracker_carried_far_is_found_at_its_row():
+def test_a_tracker_carried_far_is_found_at_its_row(tmp_path):
     """``tracker_carried`` at seed 3: the tracker carried 0.5 m and turned 0.35 rad at row 150. The
     screening's linear view places the frame's step a row late; placed again, the step sits at 149.5,
     the geometry is judged again on what it leaves, and nothing else is named (before: cyclic errors
-    and joint terms stood in for row 150, and the held-out error ended 43 times the floor)."""
+    and joint terms stood in for row 150, and the held-out error ended 43 times the floor). The report
+    says where the change moved."""
+    import json
+
+    from torchcal.report.loop import write_loop_report
     from torchcal.pipelines.loop.run import run_loop
     from torchcal.sim.cases import make_case
 
@@ -147,3 +151,7 @@ def test_a_tracker_carried_far_is_found_at_its_row():
     assert res.accepted[0].modes == ["base.frame~row~step149.5"]
     assert any(b["kept"] and b["to"] == "row~step149.5" for b in res.breaks_placed), res.breaks_placed
     assert res.stages[-1]["test"]["mean_mm"] < 1.1 * c.floor_mm, (res.stages[-1]["test"], c.floor_mm)
+    write_loop_report(res, tmp_path)
+    assert "the change at row 150.5 moved to row 149.5" in (tmp_path / "report.md").read_text()
+    moved = json.loads((tmp_path / "report.json").read_text())["breaks_placed"]
+    assert [(b["break"], b["to"], b["kept"]) for b in moved] == [("row~step150.5", "row~step149.5", True)]

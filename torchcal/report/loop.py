@@ -50,7 +50,7 @@ def loop_json(res) -> dict:
             "observability": res.observability, "problems": res.problems(), "setup": setup, "rule": res.rule,
             "residual_elm": res.elm is not None, "timings_s": res.timings,
             "leftover": None if res.leftover is None else res.leftover.report(), "removed_modes": res.removed,
-            "breaks_placed": getattr(res, "breaks_placed", []),
+            "breaks_placed": res.breaks_placed,
             "heldout_check": None if getattr(res, "heldout", None) is None else res.heldout.to_json()}
 
 
@@ -62,7 +62,7 @@ def _revisions(res) -> list[str]:
               + ", ".join(f"{g['effect']} {g['mode']} (" + ("its parameters dropped for identifiability"
                                                               if g["t"] is None else f"t = {g['t']:.1f}") + ")"
                           for g in res.removed) + ".", ""]
-    moved = [b for b in getattr(res, "breaks_placed", []) if b["kept"]]
+    moved = [b for b in res.breaks_placed if b["kept"]]
     if moved:
         L += ["Placed again once the model around them was fitted (the same parameters, the change at a neighbouring "
               "place that fits the training rows better): " + ", ".join(
