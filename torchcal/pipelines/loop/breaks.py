@@ -51,15 +51,15 @@ def renamed(label: str, moves: list[tuple[str, str]]) -> str:
     return label
 
 
-def _moved(ctx: Context, m: Model, old: str, new: str) -> tuple[ParamSet, list]:
-    """``m``'s parameters and effects with the break ``old`` at ``new`` (values kept)."""
-    geo, parts = split_params(m.params, ctx.robot, m.effects)
-    effects, out = [], []
-    for e, p in zip(m.effects, parts):
+def _moved(ctx: Context, params: ParamSet, effects: list, old: str, new: str) -> tuple[ParamSet, list]:
+    """``params`` and ``effects`` with the break ``old`` at ``new`` (values kept)."""
+    geo, parts = split_params(params, ctx.robot, effects)
+    moved, out = [], []
+    for e, p in zip(effects, parts):
         e2 = e.with_break(old, new)
-        effects.append(e2)
+        moved.append(e2)
         out.append(p if e2 is e else ParamSet(list(e2.param_names), p.units, p.values, p.free, p.lower, p.upper))
-    return assemble(geo, out), effects
+    return assemble(geo, out), moved
 
 
 def _objective(ctx: Context, params: ParamSet, effects: list, prior) -> float:
@@ -100,8 +100,7 @@ def _place(ctx: Context, m: Model, key: str) -> tuple[str, ParamSet | None, list
     places = step_breaks(x)
     prior = prior_weights(ctx.robot, m.params, m.prior_mm, ctx.sigma, m.effects)
     s0 = best_s = _objective(ctx, m.params, m.effects, prior)
-    at, best, effects = key, None, m.effects
-    here = m
+    at, here, effects = key, m.params, m.effects
     tried = {key}
     for _ in range(MAX_MOVES):
         step = None
@@ -109,16 +108,15 @@ def _place(ctx: Context, m: Model, key: str) -> tuple[str, ParamSet | None, list
             if cand in tried:
                 continue
             tried.add(cand)
-            params, effs = _moved(ctx, here, at, cand)
+            params, effs = _moved(ctx, here, effects, at, cand)
             fit = fit_params(ctx, params, effs, ctx.data, prior, reduce=False, max_iter=PROBE_STEPS)
             s = _objective(ctx, fit, effs, prior)
             if s < best_s:
                 best_s, step = s, (cand, fit, effs)
         if step is None:
             break
-        at, best, effects = step
-        here = Model(m.label, best, effects, m.prior_mm, m.k, m.scores, info=m.info)
-    return at, best, effects, s0, best_s
+        at, here, effects = step
+    return at, (here if at != key else None), effects, s0, best_s
 
 
 def place_breaks(ctx: Context, m: Model, say, only=None) -> tuple[Model, list[dict]]:
