@@ -16,7 +16,9 @@ from torchcal.measure.data import Measurements
 from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.evaluate import evaluate
 from torchcal.pipelines.crossval.models import Context, folds_of, observation_errors
+from torchcal.pipelines.loop import diagnosis
 from torchcal.pipelines.loop.breaks import model_breaks, place_breaks, renamed
+from torchcal.pipelines.loop.records import Candidate, Trial
 from torchcal.problems.template import geometric_start
 from torchcal.sim.serial import SimConfig, random_configs, simulated_robot
 
@@ -128,6 +130,49 @@ def test_a_break_in_its_place_stays(place):
     m = evaluate(ctx, "frame step", start, [eff], None, reduce=False)
     out, placed = place_breaks(ctx, m, lambda s: None)
     assert placed == [] and out is m
+
+
+@pytest.mark.parametrize("winner_mode", ["elbow_joint.twist", "base.x~row~step10.5"])
+def test_a_break_moved_after_the_last_round_has_the_modes_judged_again(monkeypatch, winner_mode):
+    """The pass after the last round places again the breaks found before the last finding (not the
+    last one's own); where one moves, the modes are judged again, the last finding's protected unless
+    one of them sits at the moved break, and what leaves is recorded with the last step."""
+    placed_model, pruned_model, start = object(), object(), object()
+    calls = []
+
+    def place(ctx, m, say, only):
+        assert m is start and only == ["row~step10.5"]
+        return placed_model, [{"break": "row~step10.5", "to": "row~step11.5", "kept": True}]
+
+    def prune(ctx, m, protect, say):
+        calls.append((m, protect))
+        return pruned_model, [{"effect": "parameter_drivers", "mode": "base.x~row~step11.5", "t": 0.4}]
+
+    monkeypatch.setattr(diagnosis, "model_breaks", lambda m: ["row~step10.5", "row~step40.5"])
+    monkeypatch.setattr(diagnosis, "place_breaks", place)
+    monkeypatch.setattr(diagnosis, "prune", prune)
+    trial = Trial("load_compliance", Candidate("load_compliance", "fitted", modes=[winner_mode],
+                                               added_modes=[winner_mode]), pruned=[{"mode": "before"}])
+    d = diagnosis.Diagnosis(ctx=None, current=start, steps=[diagnosis.Step("load_compliance", start, trial)],
+                            placed={"row~step40.5"})
+    diagnosis._place_again(d, say=None)
+    protect = set() if "~step10.5" in winner_mode else {("load_compliance", winner_mode)}
+    assert calls == [(placed_model, protect)]
+    assert d.current is pruned_model and d.steps[-1].model is pruned_model
+    assert d.moves == [("row~step10.5", "row~step11.5")] and d.breaks[0]["after"] == "the last round"
+    assert [g["mode"] for g in trial.pruned] == ["before", "base.x~row~step11.5"]
+
+
+def test_no_break_moved_after_the_last_round_judges_nothing_again(monkeypatch):
+    start = object()
+    monkeypatch.setattr(diagnosis, "model_breaks", lambda m: ["row~step10.5"])
+    monkeypatch.setattr(diagnosis, "place_breaks",
+                        lambda ctx, m, say, only: (m, [{"break": "row~step10.5", "to": "row~step11.5", "kept": False}]))
+    monkeypatch.setattr(diagnosis, "prune", lambda *a: pytest.fail("nothing moved: nothing to judge again"))
+    trial = Trial("parameter_drivers", Candidate("parameter_drivers", "fitted", modes=["base.x~row~step10.5"]))
+    d = diagnosis.Diagnosis(ctx=None, current=start, steps=[diagnosis.Step("parameter_drivers", start, trial)])
+    diagnosis._place_again(d, say=None)
+    assert d.current is start and d.moves == [] and trial.pruned == [] and len(d.breaks) == 1
 
 
 @pytest.mark.slow

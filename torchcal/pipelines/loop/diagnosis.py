@@ -162,14 +162,25 @@ def _winner(ctx: Context, current: Model, trials: list[Trial], names: list[str])
 
 def _place_again(d: Diagnosis, say) -> None:
     """The breaks placed in earlier rounds, placed again with every finding in (those placed after
-    the last one came in are where that model puts them)."""
+    the last one came in are where that model puts them). Where one moves, every mode is judged
+    again as after an acceptance: the modes at it passed the rule at a place the fit no longer has."""
     old = [b for b in model_breaks(d.current) if b not in d.placed]
     if not old or not d.steps:
         return
     d.current, placed = place_breaks(d.ctx, d.current, say, only=old)
     d.breaks += [dict(b, after="the last round") for b in placed]
-    d.moves += [(b["break"], b["to"]) for b in placed if b["kept"]]
-    d.steps[-1].model = d.current
+    kept = [(b["break"], b["to"]) for b in placed if b["kept"]]
+    last = d.steps[-1]
+    if kept:
+        d.moves += kept
+        new_modes = last.trial.line.added_modes or last.trial.line.modes
+        # the last winner's modes passed the rule against everything before them, unless at a moved break
+        protect = {(last.name, lab) for lab in new_modes}
+        if any(renamed(lab, kept) != lab for lab in new_modes):
+            protect = set()
+        d.current, gone = prune(d.ctx, d.current, protect, say)
+        last.trial.pruned = [*last.trial.pruned, *gone]
+    last.model = d.current
 
 
 def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> list[str]:
