@@ -139,6 +139,19 @@ class GravityDeformation(Effect):
         return self._carried(self._copy(loads=[new if c == old else c for c in self.loads])) if old in self.loads \
             else self
 
+    def break_parts(self) -> list[tuple[str, list[int]]]:
+        """Each load that is a break (:meth:`breaks`) with its four mass moments: a payload changed
+        there, judged again once later findings are in (another set-up change at that row takes it)."""
+        if not self.has_payload:
+            return []
+        at, start = set(self.breaks()), len(self._modes) + 6
+        return [(f"load~{c}", list(range(start + 4 * i, start + 4 * i + 4))) for i, c in enumerate(self.loads)
+                if c in at]
+
+    def without_part(self, label: str) -> "GravityDeformation":
+        c = label.removeprefix("load~")
+        return self._copy(loads=[x for x in self.loads if x != c]) if c in self.loads else self
+
     def shared(self) -> list[int]:
         """The payload's mass moments and the tilt of gravity in the base frame: a robot is never
         quite level, kinematics cannot see it (the instrument registration absorbs it), and it

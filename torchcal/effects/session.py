@@ -33,6 +33,18 @@ class SessionFindings:
         itself (it holds no break)."""
         return self
 
+    def break_parts(self) -> list[tuple[str, list[int]]]:
+        """What this effect holds at a break beyond its modes, each of which can leave alone: ``(label,
+        its parameter indices)``. A load changed at a step that a later finding explains otherwise (the
+        tracker was knocked there, no payload swapped) is judged again as a mode is
+        (:mod:`~torchcal.pipelines.loop.prune`). Default: nothing."""
+        return []
+
+    def without_part(self, label: str) -> "SessionFindings":
+        """A copy without the part ``label`` of :meth:`break_parts` and its parameters (the others
+        named as before; values are the caller's to carry by name). Default: itself."""
+        return self
+
     def _carried(self, out: "SessionFindings") -> "SessionFindings":
         """``out`` (a copy with the same parameters under other names) with this one's values and prior."""
         out.theta = self.theta.detach().clone()

@@ -40,9 +40,9 @@ def state_findings(book: StageBook, steps: list[Step], final: Model, train: Meas
 
 
 def _final_modes(final: Model) -> dict[str, set[str]]:
-    """Each effect of the final model -> its modes; an extension carries the modes of what it
-    extends: those stay found."""
-    out = {e.name: {lab for lab, _ in e.modes()} for e in final.effects}
+    """Each effect of the final model -> its modes and its parts at breaks; an extension carries the
+    modes of what it extends: those stay found."""
+    out = {e.name: {lab for lab, _ in [*e.modes(), *e.break_parts()]} for e in final.effects}
     for e in final.effects:
         for name in e.supersedes:
             out.setdefault(name, set()).update(out[e.name])
@@ -59,6 +59,9 @@ def _finding(step: Step, label: str, final: set[str], test_gain: float | None, e
     for lab, idx in eff.modes():
         if now(lab) not in final and eff.selectable:
             kept[[i for i in idx if i not in set(eff.shared())]] = False
+    for lab, idx in eff.break_parts():  # a load change a later finding explained is not stated as found
+        if now(lab) not in final:
+            kept[idx] = False
     found = eff.describe(free=kept) + [f"{a} cannot be told from {', '.join(b)} by these data: one finding, either "
                                        "of them" for a, b in line.aliases.items()]
     if eff.ridge is not None:

@@ -10,6 +10,12 @@ to that model. A mode that no longer passes the rule at the exit threshold (``t 
 lower penalised error) is removed, the weakest first, and the model refitted without it; it is
 not tried again in that run.
 
+A load changed at a break in time or the row order (a payload swapped with nothing logged, placed
+where the residual showed a change) is judged so too, its four mass moments as one mode
+(:meth:`~torchcal.effects.session.SessionFindings.break_parts`): found before the tracker's knock at
+nearly the same row, it stood in for the knock, and once the knock's frame step is in it carries
+nothing of its own.
+
 A mode whose every parameter the rank judgement dropped (held at zero: the later findings span
 all it held, a thermal growth driven by a tool's number once the tool per number is in) carries
 nothing; it leaves first, without a judgement. A family kept softly (every mode under one Gaussian
@@ -36,31 +42,40 @@ from torchcal.pipelines.crossval.scores import T_EXIT, compare
 __all__ = ["prune", "weakest_mode", "without_mode", "idle_modes"]
 
 
+def _judged(e) -> list[tuple[str, list[int]]]:
+    """``(label, parameter indices)`` of what of effect ``e`` is judged again: the modes of a family
+    selected mode by mode (their own parameters; a family kept softly is held by its prior, not judged
+    mode by mode), and what it holds at a break beyond its modes (a load changed there)."""
+    out = []
+    if e.selectable and e.ridge is None:
+        shared = set(e.shared())
+        out += [(label, [i for i in idx if i not in shared]) for label, idx in e.modes()]
+    return out + e.break_parts()
+
+
 def _mode_columns(ctx: Context, m: Model) -> list[tuple[int, str, list[int]]]:
-    """``(effect index, mode label, columns among the free parameters)`` of every mode of every
-    selectable accepted effect (modes with no free parameter left out)."""
+    """``(effect index, label, columns among the free parameters)`` of everything judged again
+    (:func:`_judged`; what has no free parameter left out)."""
     col = {int(i): c for c, i in enumerate(m.params.free_index.tolist())}
     out, o = [], ctx.n_geo
     for k, e in enumerate(m.effects):
-        if e.selectable and e.ridge is None:  # a family kept softly is held by its prior, not judged mode by mode
-            for label, idx in e.modes():
-                cols = [col[o + i] for i in idx if (o + i) in col and i not in set(e.shared())]
-                if cols:
-                    out.append((k, label, cols))
+        for label, idx in _judged(e):
+            cols = [col[o + i] for i in idx if (o + i) in col]
+            if cols:
+                out.append((k, label, cols))
         o += e.n_params
     return out
 
 
 def idle_modes(ctx: Context, m: Model, protect=frozenset()) -> list[tuple[int, str]]:
-    """``(effect index, label)`` of the accepted modes of selectable effects with no free parameter
-    left and every value zero: the rank judgement dropped them, and they add nothing to the model."""
+    """``(effect index, label)`` of what is judged again (:func:`_judged`) with no free parameter left
+    and every value zero: the rank judgement dropped it, and it adds nothing to the model."""
     free, vals = m.params.free.tolist(), m.params.values.tolist()
     out, o = [], ctx.n_geo
     for k, e in enumerate(m.effects):
-        if e.selectable and e.ridge is None:
-            own = [(label, [o + i for i in idx if i not in set(e.shared())]) for label, idx in e.modes()]
-            out += [(k, label) for label, idx in own if idx and (e.name, label) not in protect
-                    and not any(free[i] for i in idx) and not any(vals[i] for i in idx)]
+        own = [(label, [o + i for i in idx]) for label, idx in _judged(e)]
+        out += [(k, label) for label, idx in own if idx and (e.name, label) not in protect
+                and not any(free[i] for i in idx) and not any(vals[i] for i in idx)]
         o += e.n_params
     return out
 
@@ -95,13 +110,16 @@ def weakest_mode(ctx: Context, m: Model, protect=frozenset()) -> tuple[int, str,
 
 def without_mode(ctx: Context, m: Model, k: int, label: str | None) -> Model:
     """``m`` refitted without the mode ``label`` of its ``k``-th effect (``None``: every mode; the
-    effect gone when it was its last mode); every other value starts where ``m`` has it."""
+    effect gone when it was its last mode), or without its part at a break of that label
+    (:meth:`~torchcal.effects.session.SessionFindings.break_parts`); every other value starts where
+    ``m`` has it."""
     eff = m.effects[k]
+    part = label is not None and label in dict(eff.break_parts())
     keep = [lab for lab, _ in eff.modes() if label is not None and lab != label]
     geo, parts = split_params(m.params, ctx.robot, m.effects)
     effects, kept_parts = list(m.effects), list(parts)
-    if keep:
-        new = eff.with_modes(keep)
+    if keep or part:
+        new = eff.without_part(label) if part else eff.with_modes(keep)
         old = dict(zip(eff.param_names, parts[k].values.tolist()))
         new.theta = new.theta.new_tensor([old.get(n, 0.0) for n in new.param_names])
         effects[k], kept_parts[k] = new, effect_params([new])

@@ -68,6 +68,9 @@ def try_candidate(ctx: Context, current: Model, name: str, robot, train, n_obs: 
         known = [s for e in current.effects for s in [*e.session_steps(), *getattr(e, "loads", ())]]
         changes = load_changes(ctx, current, known)
     eff = eff.given(current.effects, train, changes)
+    for label, _ in eff.break_parts():  # a part that left in this run is not offered again
+        if label in tabu:
+            eff = eff.without_part(label)
     why = eff.waiting()
     if why is not None:  # recorded, not said: it waits every round until a later finding gives it something
         return Trial(name, Candidate(name, "not proposed", reason=why, round=rnd))
