@@ -20,6 +20,7 @@ from torchcal.pipelines.crossval.models import Context, folds_of
 from torchcal.pipelines.crossval.scores import T_EXIT, compare
 from torchcal.pipelines.loop.loadscan import step_power
 from torchcal.pipelines.loop.prune import prune
+from torchcal.pipelines.loop.start import _at_fitted, _fitted_shared
 from torchcal.problems.template import geometric_start
 from torchcal.sim.cases import make_case
 
@@ -97,3 +98,34 @@ def test_a_load_change_a_knock_explains_leaves_and_the_swap_stays():
     # ... and the swap's load is carried by the data: 6 kg within a quarter
     mass = float(out.params.values[out.params.names.index("load_compliance.load~row~step149.5.m")])
     assert abs(mass - 6.0) < 1.5
+
+
+def test_a_new_mode_of_a_fitted_family_is_one_column_at_its_payload():
+    """A twist joining a load compliance whose payload and load an accepted effect fitted is linearised
+    at them: its column is the joint's deflection per unit compliance under that load, as the effect's
+    own model computes it. A load offered this round (fitted by nobody) keeps its four product columns."""
+    robot = Robot.from_urdf("urdf/ur5e.urdf", markers=["tool@flange"])
+    n = 16
+    g = torch.Generator().manual_seed(11)
+    q = (torch.rand(n, robot.dof, generator=g, dtype=D) - 0.5) * 2.0
+    cov = {"row": torch.arange(n, dtype=D)}
+    joints = ["shoulder_lift_joint", "elbow_joint", "wrist_1_joint"]
+    old = LoadCompliance(robot, joints=joints[:2], loads=["row~step7.5"])
+    old_theta = torch.tensor([6e-6, 9e-6, 0.3, 0.01, -0.02, 0.04, 0.0, 0.0, 5.5, 0.1, 0.0, 0.6], dtype=D)
+    old.theta = old_theta
+    eff = LoadCompliance(robot, joints=joints, loads=["row~step7.5", "row~step11.5"])
+    at = _fitted_shared(eff, [old], [effect_params([old])])
+    assert at.shape == (1 + 12,) and torch.isnan(at[9:]).all()  # the payload and the first load, then the new one
+    prep = eff.prepare(q, cov)
+    basis = eff.linear_basis(prep)
+    k = [lab for lab, _ in eff.modes()].index("wrist_1_joint.twist")
+    cols = basis.dq[:, :, basis.groups[k]].reshape(n * robot.dof, -1)
+    got = _at_fitted(cols, at)
+    assert got.shape[1] == 1 + 4  # one column for the twist, four for the load nobody fitted
+    theta = torch.zeros(eff.n_params, dtype=D)
+    theta[k] = 1.0  # unit compliance of the wrist, the fitted payload and first load, no second load
+    theta[3:7], theta[9:13] = old_theta[2:6], old_theta[8:12]
+    want = eff.joint_delta(theta[None], prep)[0].reshape(-1)
+    assert torch.allclose(got[:, 0], want, rtol=1e-12, atol=1e-15)
+    assert torch.equal(got[:, 1:], cols[:, 9:])
+    assert _fitted_shared(eff, [], []) is None

@@ -85,6 +85,58 @@ def _soft_option(lcv: LinearCV, forced: list[int], ctx: Context, baseline, hard:
     return dict(opt, sigma_mm=1e3 * m * ctx.sigma, t=t, pen_hard=pen_hard, pen_soft=opt["pen"])
 
 
+def _fitted_shared(eff, superseded: list, parts: list) -> Tensor | None:
+    """``(1 + shared,)`` the point a bilinear family's new modes are linearised at: 1 for the mode's
+    own coordinate, then each shared coordinate (the payload's and each load's mass moments, in the
+    order of its linear basis) as an effect it supersedes fitted it (``parts``: their parameters),
+    NaN where none did (a load offered this round); None when none of them is known."""
+    info = eff.param_info()
+    labels = [info[i][0] for i in eff.shared() if not info[i][0].startswith("gravity.")]
+    known = {}
+    for s_, p in zip(superseded, parts):
+        known.update({lab: float(v) for (lab, _), v in zip(s_.param_info(), p.values.tolist())})
+    if not any(lab in known for lab in labels):
+        return None
+    return torch.tensor([1.0] + [known.get(lab, float("nan")) for lab in labels], dtype=torch.float64)
+
+
+def _at_fitted(cols: Tensor, at: Tensor) -> Tensor:
+    """A new mode's columns ``(3 n_obs, 1 + shared)`` linearised at ``at`` (:func:`_fitted_shared`):
+    its deflection at the fitted shared coordinates (one column: at zero compliance no shared
+    coordinate moves it), then the columns of those not fitted yet (their products with the
+    compliance, as the bilinear basis has them)."""
+    fitted = ~torch.isnan(at)
+    one = cols[:, fitted] @ at[fitted].to(cols)
+    return torch.cat([one[:, None], cols[:, ~fitted]], 1)
+
+
+def _group_columns(ctx: Context, prob, eff, forced: list[int], superseded: list, parts: list
+                   ) -> tuple[list[Tensor], list[Tensor] | None, int]:
+    """Each mode's columns for the selection, the bilinear columns of every mode where they differ
+    (None where not) and the number of shared coordinates. A mode joining a family whose payload an
+    effect it supersedes fitted (``parts``: their parameters) is judged by what it adds at that
+    payload (:func:`_at_fitted`): its products with the payload's moments are nine unknowns where
+    the mode is one."""
+    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
+    gcols = [cols_all[:, g] for g in groups]
+    at = _fitted_shared(eff, superseded, parts) if shared and eff.selectable else None
+    if at is None:
+        return gcols, None, shared
+    return [c if g in forced else _at_fitted(c, at) for g, c in enumerate(gcols)], gcols, shared
+
+
+def _linear_step(lcv: LinearCV, chosen: list[int], eff, shared: int) -> Tensor:
+    """The base parameters' step ``(kb,)`` with the ``chosen`` modes in; the effect's start values
+    set (a bilinear family's through :func:`~torchcal.pipelines.loop.bilinear.bilinear_step`)."""
+    coef, kb = lcv.coefficients(chosen), lcv.kb
+    if not shared:
+        eff.theta = eff.from_linear(coef[kb:]).to(eff.robot.dtype)
+        return coef[:kb]
+    step, own, sv = bilinear_step(lcv, chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
+    eff.theta = eff.from_bilinear(own, sv).to(eff.robot.dtype)
+    return step
+
+
 def _new_shared(eff, superseded: list) -> bool:
     """Whether ``eff`` holds shared parameters that none of the effects it supersedes had (a load of
     its own): the modes it takes over are then a new model even where the selection adds no mode,
@@ -176,15 +228,15 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
     pb = None if prior is None else prior[base.free_index]
     if getattr(eff, "screened", False) and (eff := _screened(ctx, current, prob, eff, (r, Jb, w, x), superseded)) is None:
         return EffectStart(effect=None, prior_mm=current.prior_mm, reason="no (parameter, driver) pair passed the screening")
-    cols_all, groups, shared = _basis_columns(ctx, prob, eff)
     labels = [lab for lab, _ in eff.modes()]
-    gcols = [cols_all[:, g] for g in groups]
+    forced = [labels.index(lab) for s_ in superseded for lab, _ in s_.modes() if lab in labels] \
+        if eff.selectable else []
+    gcols, full, shared = _group_columns(ctx, prob, eff, forced, superseded,
+                                         [p for e, p in zip(current.effects, parts) if e in superseded])
     lcv = LinearCV(r, w, Jb, x, pb, gcols, prob.rows, len(ctx.data), ctx.folds, ctx.c)
     _screened_rule(lcv, eff)
     out = EffectStart(effect=None, prior_mm=current.prior_mm)
     if eff.selectable:
-        forced_labels = [lab for s_ in superseded for lab, _ in s_.modes()]
-        forced = [labels.index(lab) for lab in forced_labels if lab in labels]
         for g, lab in enumerate(labels):  # modes a later finding explained away do not come back
             if lab in tabu and g not in forced:
                 lcv.usable[g] = False
@@ -240,14 +292,11 @@ def effect_start(ctx: Context, current: Model, eff, superseded: list, tabu=froze
             eff.ridge_mm = soft["sigma_mm"]
     else:
         chosen = list(range(len(groups)))
-    coef = lcv.coefficients(chosen)
-    kb = Jb.shape[1]
-    step = coef[:kb]
-    if shared:
-        step, own, sv = bilinear_step(lcv, chosen, _bilinear_starts(coef[kb:].reshape(len(chosen), 1 + shared)))
-        eff.theta = eff.from_bilinear(own, sv).to(robot.dtype)
-    else:
-        eff.theta = eff.from_linear(coef[kb:]).to(robot.dtype)
+    if full is not None:  # the start solves the bilinear model of the chosen modes, as for any family
+        prior_now = lcv.prior
+        lcv = LinearCV(r, w, Jb, x, pb, full, prob.rows, len(ctx.data), ctx.folds, ctx.c)
+        lcv.set_prior(prior_now)
+    step = _linear_step(lcv, chosen, eff, shared)
     start = base.clone()
     start.values[base.free_index] = base.values[base.free_index] + step
     if getattr(eff, "screened", False):
