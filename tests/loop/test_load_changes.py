@@ -126,6 +126,7 @@ def test_a_new_mode_of_a_fitted_family_is_one_column_at_its_payload():
     theta[k] = 1.0  # unit compliance of the wrist, the fitted payload and first load, no second load
     theta[3:7], theta[9:13] = old_theta[2:6], old_theta[8:12]
     want = eff.joint_delta(theta[None], prep)[0].reshape(-1)
-    assert torch.allclose(got[:, 0], want, rtol=1e-12, atol=1e-15)
+    # the same sums taken in another order: rounding of the largest deflection's size
+    assert torch.allclose(got[:, 0], want, rtol=0.0, atol=1e-12 * float(want.abs().max()))
     assert torch.equal(got[:, 1:], cols[:, 9:])
     assert _fitted_shared(eff, [], []) is None

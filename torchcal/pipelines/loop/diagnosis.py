@@ -160,6 +160,15 @@ def _winner(ctx: Context, current: Model, trials: list[Trial], names: list[str])
     return min(ties, key=lambda t: (t.model.k, names.index(t.name)))
 
 
+def _protected(name: str, new_modes: list[str], moves: list[tuple[str, str]]) -> set[tuple[str, str]]:
+    """The modes just accepted (``(effect name, label)``): they passed the rule against everything
+    before them and are not judged again, unless one sits at a break ``moves`` placed elsewhere: then
+    they passed at a place the fit no longer has, and are judged again as older ones are."""
+    if any(renamed(lab, moves) != lab for lab in new_modes):
+        return set()
+    return {(name, lab) for lab in new_modes}
+
+
 def _place_again(d: Diagnosis, say) -> None:
     """The breaks placed in earlier rounds, placed again with every finding in (those placed after
     the last one came in are where that model puts them). Where one moves, every mode is judged
@@ -173,11 +182,7 @@ def _place_again(d: Diagnosis, say) -> None:
     last = d.steps[-1]
     if kept:
         d.moves += kept
-        new_modes = last.trial.line.added_modes or last.trial.line.modes
-        # the last winner's modes passed the rule against everything before them, unless at a moved break
-        protect = {(last.name, lab) for lab in new_modes}
-        if any(renamed(lab, kept) != lab for lab in new_modes):
-            protect = set()
+        protect = _protected(last.name, last.trial.line.added_modes or last.trial.line.modes, kept)
         d.current, gone = prune(d.ctx, d.current, protect, say)
         last.trial.pruned = [*last.trial.pruned, *gone]
     last.model = d.current
@@ -192,15 +197,12 @@ def _accept(d: Diagnosis, winner: Trial, pool: list[str], tabu: dict, say) -> li
     d.current, placed = place_breaks(d.ctx, d.current, say, only=set(model_breaks(d.current)) - before)
     d.breaks += [dict(b, after=winner.name) for b in placed]
     kept = [(b["break"], b["to"]) for b in placed if b["kept"]]
-    protect = {(winner.name, lab) for lab in new_modes}
+    protect = _protected(winner.name, new_modes, kept)
     if kept:
         d.moves += kept
         line = winner.line
         line.modes = [renamed(x, kept) for x in line.modes]
         line.added_modes = [renamed(x, kept) for x in line.added_modes]
-        if any(renamed(lab, kept) != lab for lab in new_modes):
-            # its modes passed the rule at a place the fit no longer has: judged again, as older ones are
-            protect = set()
     d.current, gone = prune(d.ctx, d.current, protect, say)
     if gone:
         winner.pruned = gone
