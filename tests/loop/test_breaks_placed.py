@@ -81,6 +81,10 @@ def test_mode_labels_follow_the_moves():
     assert renamed("tool.point~time:time~win20@60", moves) == "tool.point~time:time~win20@80"
     assert renamed("base.frame~row~step15.5", moves) == "base.frame~row~step15.5"  # another break
     assert renamed("shoulder_lift_joint.twist", moves) == "shoulder_lift_joint.twist"
+    # a load's part at a break names its column plainly, in time as in the row order
+    assert renamed("load~row~step5.5", moves) == "load~row~step7.5"
+    assert renamed("load~time~win20@60", moves) == "load~time~win20@80"
+    assert renamed("load~time~step5.5", moves) == "load~time~step5.5"  # the row's break, not time's
     assert renamed("base.frame~row~step5.5", moves + [("row~step7.5", "row~step6.5")]) == "base.frame~row~step6.5"
 
 

@@ -17,7 +17,6 @@ cross-validated error says the old one was better.
 """
 from __future__ import annotations
 
-from torchcal.effects.drivers import ROW
 from torchcal.effects.shapes import WINDOW, break_words, step_breaks, window_parts, window_tag
 from torchcal.params import ParamSet
 from torchcal.pipelines.crossval.evaluate import evaluate, fit_params
@@ -41,12 +40,13 @@ def model_breaks(m: Model) -> list[str]:
 
 
 def renamed(label: str, moves: list[tuple[str, str]]) -> str:
-    """A mode's label (``<thing>~<driver>~<shape>``) after the breaks ``moves`` (``(old, new)``, in
+    """A mode's label (``<thing>~<driver>~<shape>``: a driver family's ``time:<column>`` or ``row``, a
+    load's part at a break ``load~<column>~<shape>``) after the breaks ``moves`` (``(old, new)``, in
     order) were placed again."""
     for old, new in moves:
         col, _, tag = old.partition("~")
         parts = label.split("~")
-        if len(parts) >= 3 and parts[-1] == tag and parts[-2] == (col if col == ROW else f"time:{col}"):
+        if len(parts) >= 3 and parts[-1] == tag and parts[-2] in (col, f"time:{col}"):
             label = "~".join(parts[:-1] + [new.partition("~")[2]])
     return label
 
