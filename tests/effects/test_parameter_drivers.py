@@ -190,3 +190,62 @@ def test_a_rigid_thing_steps_and_settles_as_a_whole():
     assert out.mode_words("base.frame~row~step5.5") == (
         "the instrument frame moves as one rigid body (3 shifts, 3 turns) at row 6, and stays")
     assert out.mode_words(f"{mk}.point~row~step3.5") == f"the marker point {mk} moves at row 4, and stays"
+
+
+def test_torque_drivers_carry_the_load_each_row_logs():
+    """A stiffness that changes with the torque it carries sees what each row carries: with a load
+    logged per row (a mass column, a text level), the torque drivers equal the simulator's gravity
+    torques of the rigid robot with that row's payload on the flange (its own numpy wrenches), and
+    a saved and loaded effect reads the same columns at correction time."""
+    import numpy as np
+
+    from torchcal.sim.physsim import PhysicalRobot
+
+    robot = shipped("ur5e")
+    g = torch.Generator().manual_seed(3)
+    n = 9
+    q = (torch.rand(n, robot.dof, generator=g, dtype=torch.float64) - 0.5) * 3.0
+    kg = torch.tensor([0.0, 3.0, 6.0] * 3, dtype=torch.float64)
+    box = (torch.arange(n) % 3 == 1).double()
+    com = np.array([0.02, -0.01, 0.06])
+    cov = {"payload_kg": kg, "load=box": box}
+    link = robot.markers[0].link
+    # 0.5 kg always there, 1 kg per unit of the mass column at `com`, 2.5 kg more for the box at its origin
+    loads = {"payload_kg": [1.0, *com.tolist()], "load=box": [2.5, 0.0, 0.0, 0.0]}
+    eff = ParameterDrivers(robot, terms=[("elbow_joint.offset", "torque:elbow_joint", "cube")],
+                           payload=[0.5, 0.0, 0.0, 0.0], payload_link=link, loads=loads)
+    assert set(eff.covariates) == {"payload_kg", "load=box"}  # needed again at correction time
+    got = eff.torques(q, cov)
+    ref = np.zeros((n, robot.dof))
+    for i in range(n):
+        # the simulator's rigid robot with this row's payload: its mass and centre from the three parts
+        m = 0.5 + float(kg[i]) + 2.5 * float(box[i])
+        sim = PhysicalRobot(robot.urdf_text, ["flange"], geometric_errors=False, instrument_frame=np.eye(4),
+                            noise_m=0.0, payload_kg=m, payload_com_m=tuple(float(kg[i]) * com / m), payload_link=link)
+        W = sim.gravity_wrenches(q[i:i + 1].numpy())
+        ref[i] = [W["joints"][j]["tau_Nm"][0] for j in robot.joint_names]
+    assert np.abs(got.numpy() - ref).max() < 1e-9 * np.abs(ref).max()
+    # the loads matter: without them the torques are newtons-metres off
+    assert np.abs(got.numpy() - eff.torques(q, {"payload_kg": 0 * kg, "load=box": 0 * box}).numpy()).max() > 10.0
+    back = ParameterDrivers.from_state_dict(eff.state_dict(), robot)
+    assert torch.equal(back.torques(q, cov), got)
+
+
+def test_odd_torque_shapes_sit_about_zero_torque_and_are_offered_for_torques_only():
+    """``τ|τ|`` and ``τ³`` over the half range, about zero torque (a stiffness that changes with the
+    load's size turns either way alike), not about the training mean as the bow and the S; offered
+    for a torque driver, never for a joint angle or time, and said as a stiffness."""
+    from torchcal.effects.anydriver_space import shapes_for
+    from torchcal.effects.anydriver_words import mode_words
+
+    x = torch.tensor([-30.0, -5.0, 0.0, 10.0, 50.0], dtype=torch.float64)
+    mean, half = float(x.mean()), 40.0
+    assert torch.equal(shape_column("odd2", x, mean, half), torch.tensor([-0.5625, -0.015625, 0.0, 0.0625, 1.5625],
+                                                                          dtype=torch.float64))
+    assert torch.equal(shape_column("odd3", x, mean, half), (x / 40.0) ** 3)
+    robot = shipped("ur5e")
+    eff = ParameterDrivers(robot, terms=[("elbow_joint.offset", "torque:elbow_joint", "odd2")])
+    assert {"odd2", "odd3"} <= set(shapes_for(eff, "torque:elbow_joint", x))
+    assert not {"odd2", "odd3"} & set(shapes_for(eff, "q:elbow_joint", x) + shapes_for(eff, "time", x))
+    words = mode_words(eff, "elbow_joint.offset~torque:elbow_joint~odd3")
+    assert "cubed" in words and "stiffness" in words, words

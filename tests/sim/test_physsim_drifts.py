@@ -57,7 +57,7 @@ def test_a_sample_holds_text_levels_as_the_reader_does():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["zero_step", "instrument_drift", "tool_levels", "tool_set", "station_levels",
-                                  "setup_change", "torque_stiffness", "prismatic_guide"])
+                                  "setup_change", "torque_stiffness", "loaded_stiffness", "prismatic_guide"])
 def test_issue32_case_ends_near_the_noise_floor(name):
     from torchcal import Robot
     from torchcal.pipelines.loop.run import run_loop

@@ -41,7 +41,7 @@ from torch import Tensor
 
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.drivers import ROW, driver_kind, driver_values, gravity_torques, list_drivers
-from torchcal.effects.gravity import body_inertials
+from torchcal.effects.gravity import body_inertials, row_payload
 from torchcal.effects.anydriver_space import RIGID_BREAKS, rigid
 from torchcal.effects.shapes import PERIODIC, WINDOW, cycle_label, screen_tags, shape_column
 from torchcal.effects.terms import _neighbours
@@ -77,11 +77,15 @@ class ParameterDrivers(Effect):
     screened = True  # the loop screens its pairs before expanding them (pipelines.loop.screen)
 
     def __init__(self, robot, joints=None, geometry=None, terms: list | None = None, ranges: dict | None = None,
-                 n_searched: int = 0, payload: list | None = None, payload_link: str | None = None):
+                 n_searched: int = 0, payload: list | None = None, payload_link: str | None = None,
+                 loads: dict | None = None):
         self.terms = [tuple(t) for t in terms or []]
-        # a payload an accepted effect fitted (mass moments, kg and kg·m), in every gravity torque
+        # a payload an accepted effect fitted (mass moments, kg and kg·m), in every gravity torque, and
+        # the loads it found logged row by row (load -> mass moments per unit of it): a stiffness that
+        # changes with the torque it carries sees what each row carries
         self.payload = None if payload is None else [float(v) for v in payload]
         self.payload_link = payload_link
+        self.loads = {str(c): [float(v) for v in nu] for c, nu in (loads or {}).items()}
         self.ranges = {k: tuple(v) for k, v in (ranges or {}).items()}
         self.n_searched = int(n_searched)
         super().__init__(robot, joints, geometry)
@@ -91,16 +95,20 @@ class ParameterDrivers(Effect):
 
     def config(self) -> dict:
         return {"terms": [list(t) for t in self.terms], "ranges": {k: list(v) for k, v in self.ranges.items()},
-                "n_searched": self.n_searched, "payload": self.payload, "payload_link": self.payload_link}
+                "n_searched": self.n_searched, "payload": self.payload, "payload_link": self.payload_link,
+                **({"loads": self.loads} if self.loads else {})}
 
-    def torques(self, q: Tensor) -> Tensor:
-        """``(N, dof)`` the gravity torque drivers at ``q`` (URDF inertials and the fitted payload)."""
-        return gravity_torques(self.robot, q, self.geometry, self.payload, self.payload_link)
+    def torques(self, q: Tensor, covariates: dict) -> Tensor:
+        """``(N, dof)`` the gravity torque drivers at ``q`` (URDF inertials, the fitted payload and the
+        loads logged in ``covariates``)."""
+        payload = None if self.payload is None else row_payload(self.payload, self.loads, covariates, q)
+        return gravity_torques(self.robot, q, self.geometry, payload, self.payload_link)
 
-    def with_payload(self, payload: list[float], link: str, data) -> "ParameterDrivers":
-        """A copy whose torque drivers include a fitted payload (their ranges taken again on ``data``)."""
-        out = self._copy(payload=list(payload), payload_link=link)
-        tq = out.torques(data.q)
+    def with_payload(self, payload: list[float], link: str, data, loads: dict | None = None) -> "ParameterDrivers":
+        """A copy whose torque drivers include a fitted payload and the ``loads`` logged row by row
+        (load -> its mass moments per unit), their ranges taken again on ``data``."""
+        out = self._copy(payload=list(payload), payload_link=link, loads=dict(loads or {}))
+        tq = out.torques(data.q, data.covariates)
         for d in out.ranges:
             if d.startswith("torque:"):
                 x = tq[:, self.robot.joint_names.index(d.split(":", 1)[1])]
@@ -151,7 +159,7 @@ class ParameterDrivers(Effect):
         torques = bool(body_inertials(self.robot)) if self.robot.urdf_text else False
         drivers = list_drivers(self.robot, moved.joints, data.covariates, torques)
         out = type(self)(self.robot, moved.joints, geometry=self.geometry)
-        tq = out.torques(data.q) if torques else None
+        tq = out.torques(data.q, data.covariates) if torques else None
         for d in drivers:
             if driver_kind(d) != "level":
                 x = driver_values(self.robot, d, data.q, data.covariates, tq)
@@ -186,6 +194,8 @@ class ParameterDrivers(Effect):
                 out.append(d.split(":", 1)[1])
             elif k == "row":
                 out.append(d)
+        if self.loads and any(driver_kind(d) == "torque" for _, d, _ in self.terms):
+            out += [c.split("~", 1)[0] for c in self.loads]  # the load each row carries
         return list(dict.fromkeys(out))
 
     def param_info(self):
@@ -269,7 +279,7 @@ class ParameterDrivers(Effect):
         return shape_column(t, x, mean, half)
 
     def prepare(self, q, covariates):
-        tq = self.torques(q) if any(d.startswith("torque:") for _, d, _ in self.terms) else None
+        tq = self.torques(q, covariates) if any(d.startswith("torque:") for _, d, _ in self.terms) else None
         cols = [self._column(d, t, q, covariates, tq) for _, d, t in self.terms]
         F = torch.stack(cols, 1) if cols else q.new_zeros(q.shape[0], 0)
         offs = self._offset_params()

@@ -43,7 +43,10 @@ def shapes_for(eff, driver: str, x: Tensor) -> list[str]:
     settlings and knees: the best of their grids, chosen by the screening)."""
     robot = eff.robot
     rev = driver_kind(driver) == "q" and robot.joint_units[robot.joint_names.index(driver.split(":", 1)[1])] == "rad"
-    return ["lin"] + smooth_tags(x) + (harmonic_tags() if rev else [])
+    # a stiffness that changes with the load deflects as an odd function of the torque, about zero
+    # torque: the bow and the S about the training mean are not
+    odd = ["odd2", "odd3"] if driver_kind(driver) == "torque" else []
+    return ["lin"] + smooth_tags(x) + odd + (harmonic_tags() if rev else [])
 
 
 def breaks(eff, driver: str, data, tq: Tensor | None = None) -> list[str]:
@@ -53,7 +56,7 @@ def breaks(eff, driver: str, data, tq: Tensor | None = None) -> list[str]:
     if kind == "level":
         return []
     if kind == "torque" and tq is None:
-        tq = eff.torques(data.q)
+        tq = eff.torques(data.q, data.covariates)
     x = driver_values(eff.robot, driver, data.q, data.covariates, tq)
     return grid_tags(kind, x[torch.isfinite(x)])
 
@@ -75,7 +78,7 @@ def expanded(eff, pairs: list[tuple[str, str]], data, steps: dict | None = None)
     coordinates, and every step any of its coordinates found is offered for all of them (a set-up
     changed, per level or mid-session, is one rigid motion)."""
     robot = eff.robot
-    tq = eff.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
+    tq = eff.torques(data.q, data.covariates) if any(d.startswith("torque:") for _, d in pairs) else None
     levels = factor_levels(data.covariates)
     names = set(robot.param_names)
     steps = steps or {}
@@ -112,7 +115,7 @@ def space_size(eff, pairs: list[tuple[str, str]], data) -> int:
     """Columns of the whole space of ``pairs`` on ``data``: every shape of every pair, every break of
     its driver's grid, every window between two of a time or row driver's breaks, both phases of every
     cycle searched, every level."""
-    tq = eff.torques(data.q) if any(d.startswith("torque:") for _, d in pairs) else None
+    tq = eff.torques(data.q, data.covariates) if any(d.startswith("torque:") for _, d in pairs) else None
     levels = factor_levels(data.covariates)
     per: dict[str, int] = {}
     for d in dict.fromkeys(d for _, d in pairs):

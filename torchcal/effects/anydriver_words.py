@@ -11,6 +11,7 @@ from torchcal.params import display_unit
 
 __all__ = ["coef_unit", "axis_label", "parameter_words", "mode_words", "describe"]
 
+_ODD = {"odd2": "squared, its sign kept", "odd3": "cubed"}
 _AXIS = {"x": "x", "y": "y", "z": "z", "rx": "about x", "ry": "about y", "rz": "about z", "dx": "x", "dy": "y",
          "dz": "z", "droll": "about x (roll)", "dpitch": "about y (pitch)", "dyaw": "about z (yaw)"}
 
@@ -96,6 +97,8 @@ def mode_words(eff, label: str) -> str:
         return f"{what} settles along {driver_words(d)}, with a time constant of {tau}"
     if tag.startswith("cyc"):
         return f"{what} cycles along {driver_words(d)}, with a period of {_span(cycle_period(tag), eff.robot, d)}"
+    if tag in ("odd2", "odd3"):
+        return f"{what} varies with {driver_words(d)} {_ODD[tag]}: a stiffness that changes with the load"
     shape = {"lin": "linearly", "quad": "in a bow", "cube": "in an S"}.get(tag)
     if shape is None:
         shape = ("in a smooth curve" if tag.startswith("spl") else "periodically" if tag[:3] in ("sin", "cos")
@@ -132,6 +135,9 @@ def _term(eff, p: str, d: str, tag: str, v: float, unit: str) -> str:
         k = float(tag[3:])
         return (f"{what} changes by an extra {_rate(v, unit, eff.robot, d)} ({driver_words(d)}) within ±{k:.4g} "
                 f"{driver_unit(eff.robot, d)}, and no further beyond: its stiffness changes there")
+    if tag in ("odd2", "odd3"):
+        return (f"{what} moves by a further {_value(v, unit)} at {driver_words(d)} = ±{half:.4g} "
+                f"{driver_unit(eff.robot, d)}, as {driver_words(d)} {_ODD[tag]}: its stiffness changes with the load")
     if tag.startswith(PERIODIC):
         phase, period, _ = period_parts(tag)
         return (f"{what} swings by ±{_value(abs(v), unit)} ({phase} phase) along {driver_words(d)}, with a period "

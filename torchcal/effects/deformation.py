@@ -26,8 +26,8 @@ from torch import Tensor
 
 from torchcal.effects.base import Effect, LinearBasis, Prepared
 from torchcal.effects.deformation_modes import catalog
-from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches
-from torchcal.effects.shapes import WINDOW, shape_column
+from torchcal.effects.gravity import GRAVITY, body_inertials, gravity_wrenches, load_values
+from torchcal.effects.shapes import WINDOW
 from torchcal.measure.levels import LEVEL_SEP
 
 __all__ = ["GravityDeformation"]
@@ -115,18 +115,11 @@ class GravityDeformation(Effect):
         return list(dict.fromkeys(c.split("~", 1)[0] for c in self.loads)) if self.has_payload else []
 
     def _load_values(self, covariates: dict, q: Tensor) -> list[Tensor]:
-        """Each load's value per row ``(N,)``: its column, or ``<column>~<shape>`` that shape of it (a
-        step of the row order: a load changed where a set-up change was found)."""
+        """Each load's value per row ``(N,)`` (:func:`~torchcal.effects.gravity.load_values`)."""
         missing = [c for c in self.covariates if c not in covariates]
         if missing:
             raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
-        out = []
-        for c in self.loads:
-            col, _, tag = c.partition("~")
-            x = covariates[col].to(q)
-            # a level's 0/1 column reads NaN where the text was not recorded: the first level's load then
-            out.append(shape_column(tag, x, 0.0, 1.0) if tag else torch.nan_to_num(x, nan=0.0) if LEVEL_SEP in c else x)
-        return out
+        return load_values(self.loads, covariates, q)
 
     def modes(self) -> list[tuple[str, list[int]]]:
         return [(m["label"], [i]) for i, m in enumerate(self._modes)]

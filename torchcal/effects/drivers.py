@@ -61,13 +61,15 @@ def gravity_torques(robot, q: Tensor, geometry: Tensor | None = None, payload=No
                     payload_link: str | None = None) -> Tensor:
     """``(N, dof)`` gravity torque on each actuated joint (N·m; force along the axis, N, for a
     prismatic joint) from the URDF's inertials at commands ``q (N, dof)``, plus a payload the loop
-    fitted: ``payload`` its mass moments ``(m kg, m·sx, m·sy, m·sz kg·m)`` on ``payload_link``."""
+    fitted: ``payload`` its mass moments ``(m kg, m·sx, m·sy, m·sz kg·m)`` on ``payload_link``, ``(4,)``
+    or ``(N, 4)`` per row (a load logged row by row: :func:`~torchcal.effects.gravity.row_payload`)."""
     from torchcal.effects.gravity import gravity_wrenches  # gravity imports the kinematics: only when asked
 
     w = gravity_wrenches(robot, q, geometry, payload_link=payload_link)
     wrench = w.urdf
     if payload is not None:
-        wrench = wrench + w.payload @ torch.as_tensor(payload, dtype=q.dtype, device=q.device)
+        mu = torch.as_tensor(payload, dtype=q.dtype, device=q.device)
+        wrench = wrench + (w.payload @ mu if mu.ndim == 1 else torch.einsum("nfsk,nk->nfs", w.payload, mu))
     out = q.new_zeros(q.shape[0], robot.dof)
     for k, name in enumerate(robot.joint_names):
         f = w.names.index(name)

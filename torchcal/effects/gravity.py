@@ -21,10 +21,12 @@ from torch import Tensor
 
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker
+from torchcal.effects.shapes import shape_column
 from torchcal.kinematics.urdf import load_joints, read_inertials
+from torchcal.measure.levels import LEVEL_SEP
 
 __all__ = ["GRAVITY", "Frames", "Wrenches", "body_inertials", "kinematic_frames", "frames_beyond", "gravity_wrenches",
-           "gravity_features"]
+           "gravity_features", "load_values", "row_payload"]
 
 GRAVITY = (0.0, 0.0, -9.81)  # m/s², robot base frame with z up
 # The gravity features and wrenches of the last commands seen, per robot: the loop builds hundreds of
@@ -276,3 +278,31 @@ def _gravity_features(robot, q: Tensor, links: list[str], gravity) -> Tensor:
     gx = torch.linalg.cross(g.expand_as(J[..., 3:, :].transpose(-1, -2)), J[..., 3:, :].transpose(-1, -2))  # (N,L,dof,3)
     f1 = torch.einsum("nlij,nlki->nlkj", R, gx)  # Rᵀ (g × ω_j)
     return torch.cat([f0[..., None], f1], -1)
+
+
+def load_values(loads: list[str], covariates: dict, q: Tensor) -> list[Tensor]:
+    """Each logged load's value per row ``(N,)``: its column (a payload in kg, a level's 0/1
+    indicator ``<column>=<level>``), or ``<column>~<shape>`` that shape of it (a step of the row
+    order or of time: a payload changed where a set-up change was found)."""
+    missing = [c for c in dict.fromkeys(c.split("~", 1)[0] for c in loads) if c not in covariates]
+    if missing:
+        raise ValueError(f"the load per row needs the covariate(s) {missing}: pass them with the commands")
+    out = []
+    for c in loads:
+        col, _, tag = c.partition("~")
+        x = covariates[col].to(q)
+        # a level's 0/1 column reads NaN where the text was not recorded: the first level's load then
+        out.append(shape_column(tag, x, 0.0, 1.0) if tag else torch.nan_to_num(x, nan=0.0) if LEVEL_SEP in c else x)
+    return out
+
+
+def row_payload(payload, loads: dict | None, covariates: dict | None, q: Tensor) -> Tensor:
+    """The payload's mass moments ``(m kg, m·sx, m·sy, m·sz kg·m)``: ``(4,)`` the constant ``payload``,
+    or ``(N, 4)`` per row ``μ + Σ_c L_c ν_c`` with the loads ``{load: ν_c (4,)}`` logged row by row
+    (:func:`load_values` of ``covariates``)."""
+    mu = torch.as_tensor(payload, dtype=q.dtype, device=q.device)
+    if not loads:
+        return mu
+    nu = torch.tensor(list(loads.values()), dtype=q.dtype, device=q.device)  # (loads, 4)
+    L = torch.stack(load_values(list(loads), covariates or {}, q), 1)  # (N, loads)
+    return mu + L @ nu

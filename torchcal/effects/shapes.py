@@ -16,6 +16,8 @@ Tags (the strings a saved model carries):
 * ``psin<P>@<x₀>`` / ``pcos<P>@<x₀>``: ``sin`` / ``cos`` of ``2π (x − x₀) / P`` (a time driver: a
   frame or a part that cycles with the room, air conditioning or a machine nearby, with a period
   ``P`` nobody logged; both phases together are one cycle of any phase);
+* ``odd2`` / ``odd3``: ``(x / h)·|x / h|`` / ``(x / h)³``, odd about zero, not about the mean (a torque
+  driver: a stiffness that grows or softens with the load a joint carries, whichever its sign);
 * ``hinge<k>``: ``(x − k)₊`` (a slope that changes at ``k``);
 * ``sat<k>``: ``x`` clipped to ``±k`` (a torque driver: a stiffness that changes beyond ``±k``, a
   dead zone or a saturation about zero load);
@@ -71,6 +73,10 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
         return ((x - centre) / h) ** 2
     if tag == "cube":
         return ((x - centre) / h) ** 3
+    if tag == "odd2":
+        return (x / h) * (x / h).abs()
+    if tag == "odd3":
+        return (x / h) ** 3
     if tag.startswith("lvl="):
         return x
     if tag == UNIT:
@@ -97,7 +103,7 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
     if tag.startswith("sat"):
         k = _num(tag, "sat")
         return torch.clamp(x, min=-k, max=k)
-    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, spl<k>, sin<n>, cos<n>, step<k>, win<a>@<b>, "
+    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, odd2, odd3, spl<k>, sin<n>, cos<n>, step<k>, win<a>@<b>, "
                      "exp<tau>@<x0>, "
                      "psin<P>@<x0>, pcos<P>@<x0>, hinge<k>, sat<k>, lvl=<level>")
 

@@ -43,6 +43,13 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
   late);
 * ``torque_stiffness``: the shoulder lift twists 20 µrad/(N·m) up to ±15 N·m and half that
   beyond (a gear whose backlash region is soft);
+* ``loaded_stiffness``: the gear of ``torque_stiffness`` (twice as stiff beyond ±15 N·m) under
+  payloads logged row by row (0, 3, 6 and 10 kg in a ``payload_kg`` column, runs of them): the
+  torque the gear carries, and so its stiffness, changes with what each row holds; the other joints
+  twist linearly (the ``logged_loads`` torsion);
+* ``stiffening_elbow``: the elbow under a fixed 4 kg tool twists ``c τ / (1 + |τ| / τ₀)``, 30 µrad/(N·m)
+  near zero torque and stiffer with the load (τ₀ = 10 N·m), a smooth curve no piecewise-linear knee
+  matches exactly;
 * ``prismatic_guide``: the UR5e on a 1.5 m linear track whose carriage wanders 40 µm sideways
   in a bow and pitches 0.3 mrad along its travel.
 """
@@ -150,6 +157,10 @@ def _soft_gear(tau, c_soft=2e-5, c_stiff=1e-5, knee=15.0):
     return c_stiff * tau + (c_soft - c_stiff) * np.clip(tau, -knee, knee)
 
 
+def _stiffening(tau, c=3e-5, tau0=10.0):
+    return c * tau / (1.0 + np.abs(tau) / tau0)
+
+
 def _guide(x):
     u = x / TRACK_M
     z = 0 * u
@@ -212,6 +223,17 @@ DRIFT_CASES: dict[str, dict] = {
                          "physics": dict(payload_kg=5.0, payload_com_m=(0.0, 0.0, 0.1),
                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
                                                        _soft_gear, "20 µrad/N·m up to 15 N·m, half beyond")])},
+    "loaded_stiffness": {**_UR5E, "named": ["load_compliance", "parameter_drivers"],
+                         "covariates": {"payload_kg": ("payloads", {"masses": (0.0, 3.0, 6.0, 10.0)})},
+                         "physics": dict(payload_column="payload_kg", payload_com_m=(0.03, 0.0, 0.12),
+                                         torsion={"elbow_joint": 9e-6, "wrist_1_joint": 20e-6},
+                                         drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
+                                                       _soft_gear, "20 µrad/N·m up to 15 N·m, half beyond, "
+                                                       "under the logged loads")])},
+    "stiffening_elbow": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
+                         "physics": dict(payload_kg=4.0, payload_com_m=(0.0, 0.0, 0.1),
+                                         drifts=[Drift("offset:elbow_joint", "torque:elbow_joint", _stiffening,
+                                                       "30 µrad/N·m near zero torque, stiffer with the load")])},
     "prismatic_guide": {**_UR5E, "robot": "ur5e_track", "named": ["parameter_drivers"],
                         "physics": dict(drifts=[Drift("carriage:track", "q:track", _guide,
                                                       "the carriage bows 40 µm and pitches 0.3 mrad")])},

@@ -58,13 +58,18 @@ MAX_WINDOWS = 4  # windows (a change and its return) offered per kept pair with 
 SCAN_BREAKS = 256
 
 
-def fitted_payload(effects: list, params) -> tuple[list[float], str] | None:
-    """The payload (mass moments ``m, m·sx, m·sy, m·sz``) and its link that an accepted effect
-    fitted, from the model's parameter values ``params``; None when none did."""
+def fitted_payload(effects: list, params) -> tuple[list[float], str, dict[str, list[float]]] | None:
+    """The payload (mass moments ``m, m·sx, m·sy, m·sz``), its link and the loads logged row by row
+    (load -> its mass moments per unit) that an accepted effect fitted, from the model's parameter
+    values ``params``; None when none did."""
+    def moments(prefix: str) -> list[float]:
+        return [float(params.values[params.names.index(f"{prefix}.{k}")]) for k in ("m", "mx", "my", "mz")]
     for e in effects:
         names = [f"{e.name}.payload.{k}" for k in ("m", "mx", "my", "mz")]
         if all(n in params.names for n in names) and getattr(e, "tool_link", None):
-            return [float(params.values[params.names.index(n)]) for n in names], e.tool_link
+            loads = {c: moments(f"{e.name}.load~{c}") for c in getattr(e, "loads", ())
+                     if f"{e.name}.load~{c}.m" in params.names}
+            return moments(f"{e.name}.payload"), e.tool_link, loads
     return None
 
 
@@ -304,7 +309,7 @@ def _best_steps(eff, pair: tuple[str, str], data, columns: Callable, Q: Tensor, 
                 w3: Tensor) -> list[float]:
     """The :data:`MAX_STEPS` steps, settlings or knees of ``pair``'s driver that explain the most, one column each."""
     p, d = pair
-    grid = breaks(eff, d, data, eff.torques(data.q) if d.startswith("torque:") else None)
+    grid = breaks(eff, d, data, eff.torques(data.q, data.covariates) if d.startswith("torque:") else None)
     if not grid:
         return []
     score = []

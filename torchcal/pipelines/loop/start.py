@@ -172,7 +172,7 @@ def _screened(ctx: Context, current: Model, prob, eff, lin: tuple, superseded: l
     r, Jb, w, x = lin
     load = fitted_payload(current.effects, current.params)
     if load is not None:  # the gravity torques as the accepted model knows them: with its payload
-        eff = eff.with_payload(load[0], load[1], ctx.data)
+        eff = eff.with_payload(*load[:2], ctx.data, load[2])
     # the noise the current model leaves (the context's may date from a model far coarser)
     out = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x), ctx.c,
                         rows=prob.rows)
