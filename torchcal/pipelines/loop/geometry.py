@@ -225,6 +225,8 @@ def choose_orientation_weight(ctx: Context, robot, train: Measurements, setup, g
 # under before the geometry is judged again: joint origins the rule refused under that much more noise
 # (a tool change of centimetres hides them all) may be seen now
 AGAIN = 3.0
+# times the wider set is fitted again with the joints it moved implausibly far held at their values
+HOLDS = 3
 
 
 def geometry_again(ctx: Context, current: Model, say) -> tuple[Context, Model, dict | None]:
@@ -252,12 +254,27 @@ def geometry_again(ctx: Context, current: Model, say) -> tuple[Context, Model, d
     start.free[:n_geo] = wide
     info = dict(current.info, candidates=wide.clone())
     tried = [evaluate(ctx, current.label, start, current.effects, None, info=info)]
-    if small:
+    held: list[str] = []
+    for _ in range(HOLDS):
+        # a joint the wider set moves implausibly far is one these data do not hold (it wanders along
+        # a direction they barely see): it keeps the value it had, as a calibration fixes a parameter
+        # it cannot pin down, and the others are fitted again; refusing the whole set would leave
+        # every joint origin's error to the effects
+        bad = implausible_values(tried[-1].params, robot, ctx.plausible)
+        if not bad:
+            break
+        held += list(bad)
+        start = start.clone()
+        start.fix(*bad)
+        info = dict(info, candidates=start.free[:n_geo].clone(), held=list(held))
+        tried.append(evaluate(ctx, current.label, start, current.effects, None, info=info))
+    if small:  # the prior's fit of what is left free, the held joints held
         tried.append(evaluate_prior(ctx, current.label, start, current.effects,
                                     PRIOR_SCALES_MM[len(PRIOR_SCALES_MM) // 2], info=info))
     best = current
     for m in sorted(tried, key=lambda m: penalised(m.scores, m.k, n_obs)):
-        name = "every joint origin" + ("" if m.prior_mm is None else f", prior {m.prior_mm:g} mm/mrad")
+        name = "every joint origin" + ("" if m.prior_mm is None else f", prior {m.prior_mm:g} mm/mrad") \
+            + (f" but {', '.join(m.info['held'])} (held)" if m.info.get("held") else "")
         bad = implausible_values(m.params, robot, ctx.plausible)
         t, _, ok = compare_at(ctx, best, m, n_obs)
         ok = ok and not bad and best is current
