@@ -114,13 +114,6 @@ class GravityDeformation(Effect):
     def covariates(self) -> list[str]:
         return list(dict.fromkeys(c.split("~", 1)[0] for c in self.loads)) if self.has_payload else []
 
-    def _load_values(self, covariates: dict, q: Tensor) -> list[Tensor]:
-        """Each load's value per row ``(N,)`` (:func:`~torchcal.effects.gravity.load_values`)."""
-        missing = [c for c in self.covariates if c not in covariates]
-        if missing:
-            raise ValueError(f"{self.name} needs the covariate(s) {missing} (the load per row)")
-        return load_values(self.loads, covariates, q)
-
     def modes(self) -> list[tuple[str, list[int]]]:
         return [(m["label"], [i]) for i, m in enumerate(self._modes)]
 
@@ -208,7 +201,7 @@ class GravityDeformation(Effect):
                                inertials=self._inertials) for g in self._gravities()]
         W = Ws[0]
         N, M = q.shape[0], W.markers.shape[1]
-        L = [x[:, None, None, None] for x in self._load_values(covariates, q)]
+        L = [x[:, None, None, None] for x in load_values(self.loads, covariates, q)]
         # the driving wrench of every frame, URDF part then per unit payload moment (and per unit of
         # each load's moments), for gravity as set and for the two tilts: (N, F, 6, 3, 5 + 4 loads)
         drive = torch.stack([torch.cat([w.urdf[..., None], w.payload, *(w.payload * x for x in L)], -1)

@@ -103,9 +103,8 @@ def shape_column(tag: str, x: Tensor, centre: float, half: float) -> Tensor:
     if tag.startswith("sat"):
         k = _num(tag, "sat")
         return torch.clamp(x, min=-k, max=k)
-    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, odd2, odd3, spl<k>, sin<n>, cos<n>, step<k>, win<a>@<b>, "
-                     "exp<tau>@<x0>, "
-                     "psin<P>@<x0>, pcos<P>@<x0>, hinge<k>, sat<k>, lvl=<level>")
+    raise ValueError(f"unknown shape {tag!r}; shapes: lin, quad, cube, odd2, odd3, spl<k>, sin<n>, cos<n>, step<k>, "
+                     "win<a>@<b>, exp<tau>@<x0>, psin<P>@<x0>, pcos<P>@<x0>, hinge<k>, sat<k>, lvl=<level>")
 
 
 def _quantiles(x: Tensor, qs) -> list[float]:
