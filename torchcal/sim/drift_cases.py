@@ -47,6 +47,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
   payloads logged row by row (0, 3, 6 and 10 kg in a ``payload_kg`` column, runs of them): the
   torque the gear carries, and so its stiffness, changes with what each row holds; the other joints
   twist linearly (the ``logged_loads`` torsion);
+* ``swapped_stiffness``: the same gear with an 8 kg payload swapped in halfway through the session and
+  nothing logged (the simulator reads a column the loop never sees), the other joints twisting
+  linearly: the load changes at a step the loop must find itself;
 * ``stiffening_elbow``: the elbow under a fixed 4 kg tool twists ``c τ / (1 + |τ| / τ₀)``, 30 µrad/(N·m)
   near zero torque and stiffer with the load (τ₀ = 10 N·m), a smooth curve no piecewise-linear knee
   matches exactly;
@@ -230,6 +233,14 @@ DRIFT_CASES: dict[str, dict] = {
                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
                                                        _soft_gear, "20 µrad/N·m up to 15 N·m, half beyond, "
                                                        "under the logged loads")])},
+    "swapped_stiffness": {**_UR5E, "named": ["joint_compliance", "load_compliance", "parameter_drivers"],
+                          "covariates": {"carried_kg": ("payload_swap", {"before": 0.0, "after": 8.0, "at": 0.5})},
+                          "hidden": ["carried_kg"],
+                          "physics": dict(payload_column="carried_kg", payload_com_m=(0.0, 0.03, 0.1),
+                                          torsion={"elbow_joint": 9e-6, "wrist_1_joint": 20e-6},
+                                          drifts=[Drift("offset:shoulder_lift_joint", "torque:shoulder_lift_joint",
+                                                        _soft_gear, "20 µrad/N·m up to 15 N·m, half beyond, "
+                                                        "an 8 kg payload swapped in halfway, nothing logged")])},
     "stiffening_elbow": {**_UR5E, "named": ["joint_compliance", "parameter_drivers"],
                          "physics": dict(payload_kg=4.0, payload_com_m=(0.0, 0.0, 0.1),
                                          drifts=[Drift("offset:elbow_joint", "torque:elbow_joint", _stiffening,
