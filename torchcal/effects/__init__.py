@@ -14,16 +14,17 @@ from torchcal.effects.joint import Backlash, CyclicJointError, JointScale
 from torchcal.effects.registry import EFFECTS, effect_class, effect_type, register_effect
 from torchcal.effects.terms import JointTerms
 from torchcal.effects.anydriver import ParameterDrivers
+from torchcal.effects.frame_path import FramePath
 from torchcal.effects.thermal import ThermalDrift, thermal_covariate
 from torchcal.params import ParamSet
 
 for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDrift, GravityDeformation, JointTerms,
-             LoadCompliance, ParameterDrivers):
+             LoadCompliance, ParameterDrivers, FramePath):
     register_effect(_cls)
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "LoadCompliance", "GravityDeformation",
            "Backlash",
-           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "thermal_covariate", "effect_params",
+           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "FramePath", "thermal_covariate", "effect_params",
            "build_effect",
            "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]
 

@@ -88,6 +88,9 @@ class Effect(SessionFindings):
     description = ""
     selectable = True             # the loop chooses its modes (joints, links, directions) one by one
     supersedes: tuple[str, ...] = ()  # accepted effects whose modes this one takes over
+    # effects that say what this one says in fewer, named terms where both pass (a frame's path and
+    # the drivers' drift, settling or step): this one wins a round only where it beats them by the rule
+    defers_to: tuple[str, ...] = ()
     fallback = False              # a general family, tried in a round only when no physical effect passes
     # what the effect reads beyond the commanded joint values, by kind: "direction" (the approach
     # direction of a joint, ``dir.<joint>`` = ±1, which a pose plan chooses) and "measured" (a

@@ -14,6 +14,9 @@ On the UR5e cases' set-up (300 training + 150 held-out poses, 0.02 mm tracker no
 * ``instrument_cycle``: the tracker's frame swings with the air conditioning, a 33-minute cycle of
   a phase nobody logged: it turns 0.15 mrad about z and 0.08 mrad about y and moves 0.04 mm along x
   (``time`` column, s; held-out rows from the same session);
+* ``wandering_frame``: the tracker's stand creeps through the session in no shape: its frame follows a
+  random walk of 12 steps over the session (a fixed draw, each step a steady creep), 0.08 mm and
+  0.25 mrad per axis over the whole walk (``time`` column, s; held-out rows from the same session);
 * ``tool_levels``: two tools are used, logged in a text column ``tool``; the probe's point sits
   12 mm and 4 mm off the gripper's;
 * ``tool_set``: three tools logged in a text column ``tool``: a probe 75 mm longer than the
@@ -109,6 +112,17 @@ def _air_conditioning(t):
     return np.stack([0.04e-3 * w, z, z, z, 0.08e-3 * w, 0.15e-3 * w], -1)
 
 
+def _wander(t):
+    # a fixed draw: the path is the case's, the noise and the poses the seed's
+    rng = np.random.default_rng(20261128)
+    steps = rng.normal(size=(12, 6)) * np.array([80e-6] * 3 + [0.25e-3] * 3) / np.sqrt(12.0)
+    walk = np.cumsum(steps, 0)
+    walk -= walk[0]
+    grid = np.linspace(0.0, 8400.0, 12)  # the campaign's span (campaign_time: 450 poses, 7 pauses)
+    t = np.asarray(t, dtype=float)
+    return np.stack([np.interp(t, grid, walk[:, k]) for k in range(6)], -1)
+
+
 def _probe(tool):
     return np.where((tool == "probe")[:, None], np.array([0.0, 0.012, 0.004]), 0.0)
 
@@ -188,6 +202,10 @@ DRIFT_CASES: dict[str, dict] = {
                          "physics": dict(drifts=[Drift("instrument", "cov:time", _air_conditioning,
                                                        "the instrument turns 0.15 mrad about z and 0.08 mrad about y "
                                                        "and moves 0.04 mm in a 33-minute cycle")])},
+    "wandering_frame": {**_UR5E, "named": ["frame_path"], "interleave": True,
+                        "covariates": {"time": ("time", {})},
+                        "physics": dict(drifts=[Drift("instrument", "cov:time", _wander,
+                                                      "the frame wanders about 0.06 mm and 0.2 mrad per axis")])},
     "tool_levels": {**_UR5E, "named": ["parameter_drivers"], "levels": {"tool": ["gripper", "probe"]},
                     "physics": dict(drifts=[Drift("marker:tool", "level:tool", _probe,
                                                   "the probe's point is 12 mm, 4 mm off the gripper's")])},

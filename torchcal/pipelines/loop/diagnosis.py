@@ -6,10 +6,11 @@ effects, and only when none of them passes the general families (``fallback``). 
 holds another that passes too (it supersedes it: joint compliance under a logged load holds plain
 joint compliance) wins only where it beats that one by the rule: what it adds must be seen, not
 only what they share. Candidates gaining within 2 % of the winner's gain are ties, taken by the
-fewest parameters, then the registry's order. After each acceptance every earlier mode is judged
-again (:mod:`~torchcal.pipelines.loop.prune`). A break in time or the row order is placed again
-(:mod:`~torchcal.pipelines.loop.breaks`) in the round that found it, and once more after the last
-round, with every later finding in.
+fewest parameters, then the registry's order. A family that defers to another (a frame's path to the
+drivers' named shapes) wins only where it beats that one by the rule too. After each acceptance every
+earlier mode is judged again (:mod:`~torchcal.pipelines.loop.prune`). A break in time or the row order
+is placed again (:mod:`~torchcal.pipelines.loop.breaks`) in the round that found it, and once more
+after the last round, with every later finding in.
 """
 from __future__ import annotations
 
@@ -146,12 +147,14 @@ def _try_round(d: Diagnosis, pool: list[str], rnd: int, tabu: dict, say, bar) ->
 def _winner(ctx: Context, current: Model, trials: list[Trial], names: list[str]) -> Trial | None:
     """The passing trial with the lowest penalised score; trials gaining within 2 % of its gain
     are ties: the fewest parameters, then the registry's order (the plainer effect) take it. A trial
-    whose effect supersedes another passing one stays in only where it beats that one by the rule."""
+    whose effect supersedes another passing one, or defers to it (:attr:`Effect.defers_to`), stays in
+    only where it beats that one by the rule."""
     n_obs = ctx.n_obs
     passing = [t for t in trials if t.ok]
     held = {t.name: t for t in passing}
     passing = [t for t in passing if all(compare_at(ctx, held[s].model, t.model, n_obs)[2]
-                                         for s in EFFECTS[t.name].supersedes if s in held)]
+                                         for s in (*EFFECTS[t.name].supersedes, *EFFECTS[t.name].defers_to)
+                                         if s in held)]
     if not passing:
         return None
     best = min(passing, key=lambda t: penalised(t.model.scores, t.model.k, n_obs))
