@@ -23,10 +23,9 @@ for _cls in (JointCompliance, Backlash, CyclicJointError, JointScale, ThermalDri
     register_effect(_cls)
 
 __all__ = ["Effect", "Prepared", "LinearBasis", "EFFECTS", "JointCompliance", "LoadCompliance", "GravityDeformation",
-           "Backlash",
-           "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "FramePath", "thermal_covariate", "effect_params",
-           "build_effect",
-           "TIME_COVARIATES", "register_effect", "effect_class", "effect_type"]
+           "Backlash", "CyclicJointError", "JointScale", "ThermalDrift", "JointTerms", "ParameterDrivers", "FramePath",
+           "thermal_covariate", "effect_params", "build_effect", "TIME_COVARIATES", "register_effect", "effect_class",
+           "effect_type"]
 
 
 def build_effect(name: str, robot, data=None, geometry=None, **kw) -> Effect:

@@ -195,14 +195,13 @@ class FramePath(Effect):
 
     def describe(self, theta: Tensor | None = None, free: Tensor | None = None) -> list[str]:
         th = self.theta if theta is None else theta
+        (fm, um), (fr, ur) = display_unit("m"), display_unit("rad")
         out = []
         for i, s in enumerate(self.intervals):
             idx = range(6 * i, 6 * i + 6)
             if free is not None and not any(bool(free[j]) for j in idx):
                 continue
             v = th[6 * i: 6 * i + 6].tolist()
-            fm, um = display_unit("m")
-            fr, ur = display_unit("rad")
             shift = ", ".join(f"{c * fm:.3g}" for c in v[:3])
             turn = ", ".join(f"{c * fr:.3g}" for c in v[3:])
             out.append(f"the instrument frame moves by ({shift}) {um} and turns by ({turn}) {ur} about x, y, z "
