@@ -21,9 +21,10 @@ say (:meth:`position_delta`): first order in the path, which a wander of 1 mrad 
 frame's origin misses by about a micrometre. The drivers' frame terms carry each row's frame exactly
 (a tracker carried metres away needs that); a path fitted exactly row by row crept for its whole
 iteration budget along the geometry's near-alias of the frame's turns and the first joint's origin,
-where the first-order columns converge in a few steps to the same held-out error. Time is held
-inside its training range (a path says nothing of later rows), and held-out rows from another session
-read the training rows' median time (:mod:`torchcal.pipelines.loop.sessions`).
+where the first-order columns converge in a few steps to the same held-out error. The end knots are
+the first and last training values, so a time or row beyond them reads the path's end (:func:`ramps`
+clamps; no extrapolation), and held-out rows from another session read the training rows' median
+time (:mod:`torchcal.pipelines.loop.sessions`).
 
 It is a general family (:attr:`~torchcal.effects.base.Effect.fallback`): the loop tries it beside
 the drivers, only in a round where no catalogued effect passes, and it defers to them
@@ -141,13 +142,6 @@ class FramePath(Effect):
         knots = sorted(set(torch.quantile(x, torch.linspace(0, 1, K + 1, dtype=x.dtype)).tolist()))
         out = type(self)(self.robot, None, geometry=self.geometry, driver=d, knots=knots)
         out.covariate_range = {d: (float(x.min()), float(x.max()))}
-        return out
-
-    def clamped(self, covariates: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Time, and the row order, held inside their training range."""
-        out = super().clamped(covariates)
-        if ROW in out and ROW in self.covariate_range:
-            out[ROW] = out[ROW].clamp(*self.covariate_range[ROW])
         return out
 
     def prepare(self, q, covariates):

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchcal.effects.shapes import shape_column
 from torchcal.kinematics.robot import Robot
 from torchcal.kinematics.tree import Marker
-from torchcal.effects.shapes import shape_column
 from torchcal.kinematics.urdf import load_joints, read_inertials
 from torchcal.measure.levels import LEVEL_SEP
 

@@ -171,8 +171,9 @@ def _screened(ctx: Context, current: Model, prob, eff, lin: tuple, superseded: l
         prob, lin = _around_current(ctx, current)
     r, Jb, w, x = lin
     load = fitted_payload(current.effects, current.params)
-    if load is not None:  # the gravity torques as the accepted model knows them: with its payload
-        eff = eff.with_payload(*load[:2], ctx.data, load[2])
+    if load is not None:  # the gravity torques as the accepted model knows them: with its payload and loads
+        payload, link, loads = load
+        eff = eff.with_payload(payload, link, ctx.data, loads)
     # the noise the current model leaves (the context's may date from a model far coarser)
     out = screen_family(eff, ctx.data, lambda e: _basis_columns(ctx, prob, e)[0], r, Jb, w, fit_noise(prob, x), ctx.c,
                         rows=prob.rows)
