@@ -71,11 +71,13 @@ def test_issue32_case_ends_near_the_noise_floor(name):
 
 
 @pytest.mark.slow
-def test_a_frame_that_wanders_is_followed_along_its_path():
+def test_a_frame_that_wanders_is_followed_along_its_path(tmp_path):
     """wandering_frame: the tracker's frame creeps in a random walk that no shape of the drivers
-    names; the frame's path takes it, near the floor (1.20 of it at this seed before the path)."""
+    names; the frame's path takes it, near the floor (1.20 of it at this seed before the path), and
+    the report says where and how far the frame moved, with its evidence drawn."""
     from torchcal import Robot
     from torchcal.pipelines.loop.run import run_loop
+    from torchcal.report.loop import write_loop_report
     from torchcal.sim.cases import make_case
 
     c = make_case("wandering_frame", 1)
@@ -83,3 +85,7 @@ def test_a_frame_that_wanders_is_followed_along_its_path():
     res = run_loop(robot, c.train.to_measurements(), c.test.to_measurements(), seed=1, log=None)
     assert "frame_path" in [a["name"] for a in res.accepted]
     assert res.stages[-1]["test"]["mean_mm"] <= 1.1 * c.floor_mm
+    write_loop_report(res, tmp_path)
+    text = (tmp_path / "report.md").read_text()
+    assert "the instrument frame moves by (" in text and "mrad about x, y, z from time = " in text
+    assert list(tmp_path.glob("evidence_frame_path_*.png"))
