@@ -1,8 +1,13 @@
 """Robust losses of residual vectors, per observation.
 
-With ``s = |r|² / c²`` an observation's residual ``r`` (m) becomes ``r · sqrt(ρ(s) / s)``, so the
-sum of squares is ``c² Σ ρ(s)``, and its Jacobian rows are scaled by ``sqrt(ρ'(s))`` (the usual
-first-order, IRLS-style approximation).
+With ``s = |r|² / c²`` an observation's residual ``r`` (m) becomes ``r̃ = r · f(s)``, ``f = sqrt(ρ(s) / s)``,
+so the sum of squares is ``c² Σ ρ(s)``. The Jacobian a solver gets (:meth:`Loss.jacobian`) makes
+``J̃ᵀ r̃`` the exact gradient ``Σ ρ' Jᵀ r`` of ``c² Σ ρ / 2``, with the curvature ``ρ' JᵀJ`` across each
+residual. The IRLS shortcut ``sqrt(ρ'(s)) J`` does not: beyond Huber's threshold its gradient is off
+by up to √2, so Levenberg-Marquardt ended where that false gradient and the true one disagree, in a
+tail of refused steps at damping in the millions, short of the robust optimum and at a point that
+depended on the path. ``sqrt(ρ'(s))`` stays the weight of an observation in the linear screens
+(:meth:`Loss.scales`).
 """
 from __future__ import annotations
 
@@ -47,6 +52,21 @@ class Loss:
         safe = torch.where(s > 1e-300, s, torch.ones_like(s))
         r_fac = torch.where(s > 1e-300, torch.sqrt(rho / safe), torch.ones_like(s))
         return r_fac, torch.sqrt(drho)
+
+    def jacobian(self, r: Tensor, J: Tensor) -> Tensor:
+        """The Jacobian ``(..., n, d, k)`` a least-squares solver uses for :meth:`apply`'s residuals, from
+        each observation's residual vector ``r (..., n, d)`` (m) and its Jacobian ``J (..., n, d, k)``:
+        ``sqrt(ρ') (I − α r̂ r̂ᵀ) J`` with ``1 − α = sqrt(ρ') / f``, so that with the residual ``f r`` it
+        gives the exact gradient ``ρ' Jᵀ r`` of ``c² Σ ρ / 2`` and the curvature ``ρ' JᵀJ`` across ``r``."""
+        if self.kind == "l2":
+            return J
+        sq = (r * r).sum(-1)
+        f, w = self.scales(sq)
+        # ρ is concave, so ρ(s) / s ≥ ρ'(s) and 0 ≤ α < 1: the rows along r are shortened, never
+        # turned; α = 0 inside Huber's threshold and at r = 0 (f = w = 1 there)
+        alpha = 1 - w / f
+        rJ = (r[..., None] * J).sum(-2, keepdim=True)  # (..., n, 1, k): rᵀ J per observation
+        return w[..., None, None] * (J - (alpha / sq.clamp(min=1e-300))[..., None, None] * r[..., None] * rJ)
 
     def apply(self, r: Tensor) -> Tensor:
         """Residual vectors ``r (..., n, d)`` (m, one observation per vector) robustified."""

@@ -355,7 +355,7 @@ class EffectCalibrationProblem(Problem):
         J = self.data_jacobians(X)
         if self.loss.kind != "l2":
             r = self.residual_vectors(self.full(X))
-            J = J * self.loss.scales((r * r).sum(-1))[1].repeat_interleave(3, dim=-1)[..., None]
+            J = self.loss.jacobian(r, J.unflatten(1, (self.n_obs, 3))).flatten(1, 2)
         extra = self._fixed_rows()
         if extra is None:
             return J
