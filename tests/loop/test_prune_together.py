@@ -8,11 +8,17 @@ what the guard decides is seen alone. Independent reference: the truth of the si
 joint_a2 and joint_a3 carry the arm's weight and the wrist joints almost none."""
 from __future__ import annotations
 
+import pytest
+
 import torchcal.pipelines.loop.prune as prune_mod
 from torchcal.pipelines.crossval.evaluate import evaluate
 from torchcal.pipelines.crossval.scores import T_EXIT, compare
 
 from .test_batched_folds import _case
+
+# each test fits and prunes a loop's model (2-5 s each on a slow 2-core machine): make test runs them,
+# the fast lane does not
+pytestmark = pytest.mark.slow
 
 
 def _judge(monkeypatch, order):

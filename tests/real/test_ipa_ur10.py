@@ -52,11 +52,14 @@ def test_the_export_reads_as_the_instrument_wrote_it(script):
 
 @pytest.mark.slow
 def test_the_loop_beats_the_plain_fit_on_the_held_out_third(script):
-    """The issue's bar is 10 % below the plain fit; this checks that the loop is below it at all
-    (measured: 0.326 against 0.363 mm on seed 0, 0.328 against 0.359 on seed 1)."""
+    """The issue's bar is 10 % below the plain fit; this checks that the loop is below it at all.
+    Half the rows train (747), half are held out: with two thirds training (997 rows, 0.326 against
+    0.363 mm on split seed 0) the loop took 84 s of a slow 2-core machine's CPU, on this split 33 s
+    (measured: 0.324 against 0.356 mm; split seed 0 gives 0.325 against 0.366 in 66 s, where the
+    driver family adds a term)."""
     from torchcal import run_loop
 
-    robot, train, test = script.load(DATA, 1 / 3, 0)
+    robot, train, test = script.load(DATA, 1 / 2, 1)
     nominal, plain = script.nominal(robot, train, test), script.plain(robot, train, test)
     assert plain < 0.5 < 2.0 < nominal
     res = run_loop(robot, train, test, seed=0, log=None)
