@@ -93,7 +93,8 @@ class CalibrationProblem(Problem):
         return self.loss.apply(r).reshape(r.shape[0], -1)
 
     def jacobian(self, x: Tensor) -> Tensor:
-        """``(k,) -> (m, k)`` Jacobian of :meth:`residuals`."""
+        """``(k,) -> (m, k)`` Jacobian of :meth:`residuals` (under a robust loss, the rows whose product with
+        the residuals is the exact gradient: :meth:`~torchcal.measure.loss.Loss.jacobian`)."""
         return self.full_jacobian(self.full(x), self._free_cols)
 
     def full_jacobian(self, full: Tensor, columns=None) -> Tensor:
@@ -110,7 +111,7 @@ class CalibrationProblem(Problem):
         w = None if self.weights is None else self.weights.sqrt()
         if w is not None:
             J = J * w[:, None, None]
-        if self.loss.kind != "l2":  # the loss's exact derivative at each observation's weighted residual
+        if self.loss.kind != "l2":  # the loss's rows at each observation's weighted residual
             r = self._vectors(p, R)[0] * (1 if w is None else w[:, None])
             J = self.loss.jacobian(r, J)
         return J.reshape(-1, J.shape[-1])
