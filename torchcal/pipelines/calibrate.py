@@ -20,6 +20,7 @@ from torchcal.measure.registration import leave_out_gross, register_base, regist
 from torchcal.measure.stats import errors_by_marker
 from torchcal.optim import Result, get_solver, is_population
 from torchcal.optim.hybrid import Hybrid
+from torchcal.optim.lm import LevenbergMarquardt
 from torchcal.options import Options
 from torchcal.params import ParamSet
 from torchcal.pipelines.calibrate_prior import PriorChoice, choose_prior
@@ -259,9 +260,14 @@ class _Fitter:
         return CalibrationProblem(self.robot, q, self.data, fitness=fitness, loss=loss,
                                   rot_weight=self.opt.rot_weight if self.opt.kind == "pose" else None)
 
-    def solve(self, prob) -> Result:
+    def solve(self, prob, **creep) -> Result:
+        """``prob`` solved by the chosen method; ``creep``: :func:`fit_identified`'s precision checkpoint,
+        which Levenberg-Marquardt takes (a fit creeping along a valley the data barely see is judged
+        while it creeps, not after its whole step budget)."""
         o = self.opt
-        s = get_solver(o.method, seed=o.seed, progress=o.progress, **self.solver_options).minimize(prob)
+        lm = isinstance(get_solver(o.method), LevenbergMarquardt)
+        s = get_solver(o.method, seed=o.seed, progress=o.progress, **self.solver_options,
+                       **(creep if lm else {})).minimize(prob)
         if o.polish and self.swarm and not isinstance(get_solver(o.method), Hybrid):  # a hybrid polishes itself
             prob.x0 = s.x.clone()
             s2 = get_solver("lm").minimize(prob)

@@ -131,7 +131,9 @@ class FitOptions(Options):
 
     Attributes:
         method, options, seed, progress: the solver (:func:`~torchcal.optim.get_solver`) and its settings.
-        solve: optional ``(problem) -> Result`` replacing the plain solver call.
+        solve: optional ``(problem, **creep) -> Result`` replacing the plain solver call; ``creep`` holds the
+            precision checkpoint (``checkpoint``, ``checkpoint_every``) when ``noise`` is judged from each
+            fit, for a Levenberg-Marquardt solver to take.
         markers, kind, prefer: as for :func:`~torchcal.problems.identifiability.analyse_jacobian`.
         reduce: judge identifiability (False: fit every free parameter once).
         rounds: fits while the identifiable set grows (restarts for imprecision come on top:
@@ -144,9 +146,9 @@ class FitOptions(Options):
         zero_dropped: name prefixes of parameters set to 0 when identifiability drops them (a
             model's optional parts, whose start may hold meaningless values along the directions
             the data cannot see).
-        checkpoint_every: with ``noise`` judged from each fit and the ``"lm"`` method, the trial
-            steps between precision checkpoints of a fit still going (:meth:`_OneProblem._creeping`);
-            None: precision judged at the end of each fit only.
+        checkpoint_every: with ``noise`` judged from each fit and the ``"lm"`` method (or a ``solve``
+            that runs LM), the trial steps between precision checkpoints of a fit still going
+            (:meth:`_OneProblem._creeping`); None: precision judged at the end of each fit only.
     """
 
     method: str = "lm"
@@ -220,13 +222,13 @@ class _OneProblem:
         m, k = getattr(prob, "m", None), len(p.free_names)
         if m is not None and m < k:
             raise ValueError(too_few_residuals(m, k, opt.reduce))
+        creep = {} if not (self.judged and opt.checkpoint_every) else \
+            {"checkpoint": self._creeping(prob, p), "checkpoint_every": opt.checkpoint_every}
         if opt.solve is not None:
-            res = opt.solve(prob)
+            res = opt.solve(prob, **creep)
         else:
-            extra = {} if not (self.judged and opt.method == "lm" and opt.checkpoint_every) else \
-                {"checkpoint": self._creeping(prob, p), "checkpoint_every": opt.checkpoint_every}
             res = get_solver(opt.method, seed=opt.seed, progress=opt.progress, **dict(opt.options or {}),
-                             **extra).minimize(prob)
+                             **(creep if opt.method == "lm" else {})).minimize(prob)
         out = p.clone()
         out.values = prob.full(res.x).detach()
         return out, res, prob
