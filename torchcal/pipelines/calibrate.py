@@ -248,6 +248,7 @@ class _Fitter:
     def __init__(self, robot, data: Measurements, start: ParamSet, opt: CalibrateOptions, plausible: dict):
         self.robot, self.data, self.start, self.opt, self.plausible = robot, data, start, opt, plausible
         self.swarm = is_population(opt.method)  # a population searches a box around the start
+        self.lm = isinstance(get_solver(opt.method), LevenbergMarquardt)  # takes fit_identified's checkpoint
         self.solver_options = dict(opt.options or {})
 
     def problem(self, q: ParamSet, loss: Loss | None) -> CalibrationProblem:
@@ -265,9 +266,8 @@ class _Fitter:
         which Levenberg-Marquardt takes (a fit creeping along a valley the data barely see is judged
         while it creeps, not after its whole step budget)."""
         o = self.opt
-        lm = isinstance(get_solver(o.method), LevenbergMarquardt)
         s = get_solver(o.method, seed=o.seed, progress=o.progress, **self.solver_options,
-                       **(creep if lm else {})).minimize(prob)
+                       **(creep if self.lm else {})).minimize(prob)
         if o.polish and self.swarm and not isinstance(get_solver(o.method), Hybrid):  # a hybrid polishes itself
             prob.x0 = s.x.clone()
             s2 = get_solver("lm").minimize(prob)
